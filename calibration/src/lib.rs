@@ -1,0 +1,1 @@
+//! D455 camera models, board detection, hand-eye and joint bundle adjustment, cloud fusion.

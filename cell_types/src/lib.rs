@@ -1,0 +1,28 @@
+//! The shared vocabulary of the cell stack.
+//!
+//! Every other crate speaks these types: frame-tagged rigid transforms ([`Transform`]),
+//! joint vectors ([`Joints`], [`JointState`]), point clouds ([`PointCloud`]), policy
+//! keyframes ([`Keyframe`]), time-stamped joint trajectories ([`Trajectory`]) and gripper
+//! commands and states ([`gripper`]). Units are SI inside (metres, radians, seconds,
+//! newtons); degrees and millimetres only at the edges (CLI, config files, wire formats).
+//!
+//! Uses `nalgebra` for the linear algebra (the workspace's one matrix library) and `serde`
+//! so that every type can be recorded and configured.
+
+pub mod clock;
+pub mod cloud;
+pub mod error;
+pub mod frames;
+pub mod gripper;
+pub mod joints;
+pub mod keyframe;
+pub mod trajectory;
+
+pub use clock::{Clock, ManualClock, SystemClock};
+pub use cloud::{PointCloud, Rgb};
+pub use error::CellTypesError;
+pub use frames::{Base, Board, Camera, Flange, Frame, FrameId, Tcp, Transform, World};
+pub use gripper::{GripperCommand, GripperFault, GripperState, ObjectStatus};
+pub use joints::{JointState, Joints, JOINT_COUNT};
+pub use keyframe::Keyframe;
+pub use trajectory::{Trajectory, TrajectorySample};

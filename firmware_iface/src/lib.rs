@@ -1,0 +1,1 @@
+//! Hardware traits (Arm, Gripper, DepthCamera), wire codecs with no I/O, and the real UR5 and Robotiq drivers.

@@ -1,0 +1,1 @@
+//! Hardware-in-the-loop simulator: UR controller, Robotiq gripper and D455 cameras on loopback.

@@ -1,0 +1,3 @@
+//! `equact`: the command-line front end of the cell stack.
+
+fn main() {}

@@ -1,0 +1,1 @@
+//! Shared helpers for the HIL regression tests in `tests/tests/`.
