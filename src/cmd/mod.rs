@@ -1,0 +1,3 @@
+//! One module per `equact` subcommand.
+
+pub mod config;
