@@ -10,6 +10,7 @@
 //! so that every type can be recorded and configured.
 
 pub mod clock;
+pub mod config;
 pub mod cloud;
 pub mod error;
 pub mod frames;
@@ -19,6 +20,7 @@ pub mod keyframe;
 pub mod trajectory;
 
 pub use clock::{Clock, ManualClock, SystemClock};
+pub use config::{CellConfig, ConfigError};
 pub use cloud::{PointCloud, Rgb};
 pub use error::CellTypesError;
 pub use frames::{Base, Board, Camera, Flange, Frame, FrameId, Tcp, Transform, World};

@@ -1,0 +1,614 @@
+//! The cell configuration (`cell.toml`): parsed with `deny_unknown_fields`, then validated
+//! once into a [`CellConfig`] that the rest of the stack trusts.
+//!
+//! Every mistake is reported as a [`ConfigError`] naming the key and what is wrong with it.
+//! The built-in simulated cell ([`CellConfig::simulated`]) is `config/sim_cell.toml`.
+
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+use crate::joints::{Joints, JOINT_COUNT};
+
+/// The built-in simulated cell's configuration text.
+pub const SIMULATED_CELL_TOML: &str = include_str!("../config/sim_cell.toml");
+
+/// UR5 maximum joint speed (rad/s): π on every joint.
+pub const UR5_MAX_JOINT_SPEED: f64 = std::f64::consts::PI;
+
+/// Why a configuration could not be read or accepted.
+#[derive(Debug, Error)]
+#[non_exhaustive]
+pub enum ConfigError {
+    /// The file could not be read.
+    #[error("cannot read cell configuration {path}: {source}; check the path given to --config")]
+    Read {
+        /// The file.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The text is not valid TOML or does not match the schema (unknown key, wrong type,
+    /// missing key). The message from the parser names the key and the line.
+    #[error("cell configuration {origin} is malformed: {message}")]
+    Parse {
+        /// Where the text came from.
+        origin: String,
+        /// The parser's message (names the key and the line).
+        message: String,
+    },
+    /// A value is outside what the key accepts.
+    #[error("cell configuration key `{key}` = {value}: {problem}")]
+    Invalid {
+        /// The dotted key, e.g. `limits.max_velocity[2]`.
+        key: String,
+        /// The value as written.
+        value: String,
+        /// What is wrong and what would be accepted.
+        problem: String,
+    },
+}
+
+/// Which robot controller the cell talks to.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RobotBackend {
+    /// hil_sim's simulated controller on loopback.
+    Sim,
+    /// A real UR controller at `robot.host`.
+    Ur,
+}
+
+/// The arm model.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum RobotModel {
+    /// UR5 on a CB3 controller (RTDE up to 125 Hz).
+    Ur5,
+    /// UR5e on an e-Series controller (RTDE up to 500 Hz).
+    Ur5e,
+}
+
+impl RobotModel {
+    /// Highest RTDE rate the controller serves (Hz).
+    pub fn max_rate_hz(self) -> f64 {
+        match self {
+            RobotModel::Ur5 => 125.0,
+            RobotModel::Ur5e => 500.0,
+        }
+    }
+}
+
+/// `[robot]`: how to reach the arm.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RobotSection {
+    /// Simulated or real controller.
+    pub backend: RobotBackend,
+    /// Arm model.
+    pub model: RobotModel,
+    /// Controller address (IPv4/IPv6 literal or host name).
+    pub host: String,
+    /// RTDE port (30004 on a real controller; 0 lets the simulator choose).
+    pub rtde_port: u16,
+    /// Dashboard port (29999 on a real controller).
+    pub dashboard_port: u16,
+    /// Secondary interface port for URScript (30002 on a real controller).
+    pub secondary_port: u16,
+    /// Servo streaming rate (Hz).
+    pub controller_rate_hz: f64,
+    /// Flange to TCP distance along the flange z axis (m).
+    pub tcp_offset_m: f64,
+}
+
+/// `[limits]`: joint limits the planner and the driver enforce.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LimitsSection {
+    /// Maximum joint speed (rad/s).
+    pub max_velocity: Joints,
+    /// Maximum joint acceleration (rad/s²).
+    pub max_acceleration: Joints,
+    /// Maximum joint jerk (rad/s³).
+    pub max_jerk: Joints,
+    /// Lower joint position limits (rad).
+    pub joint_min: Joints,
+    /// Upper joint position limits (rad).
+    pub joint_max: Joints,
+    /// Largest per-joint tracking error tolerated while executing (rad).
+    pub tracking_error_bound: f64,
+    /// Deceleration used to stop the arm on a fault or a stop request (rad/s²).
+    pub stop_deceleration: f64,
+}
+
+/// How the gripper is connected.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum GripperTransport {
+    /// hil_sim's emulator (over its URCap text socket on loopback).
+    Sim,
+    /// The URCap text socket of a gripper on the UR tool flange (TCP 63352).
+    Urcap,
+    /// Modbus RTU over an RS-485 serial adapter.
+    ModbusRtu,
+    /// CAN through an slcan serial adapter.
+    CanSlcan,
+    /// CAN through a Linux SocketCAN interface.
+    Socketcan,
+}
+
+/// `[gripper]`: the Robotiq 2F-85.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GripperSection {
+    /// Transport.
+    pub transport: GripperTransport,
+    /// URCap socket host.
+    pub host: String,
+    /// URCap socket port.
+    pub port: u16,
+    /// Serial device (Modbus RTU, slcan) or SocketCAN interface name.
+    pub device: String,
+    /// Modbus slave id.
+    pub slave_id: u8,
+    /// CAN id of the request frames.
+    pub can_command_id: u32,
+    /// CAN id of the status frames.
+    pub can_status_id: u32,
+    /// Default finger speed (m/s).
+    pub default_speed: f64,
+    /// Default grip force (N).
+    pub default_force: f64,
+}
+
+/// `[workspace]`: the box the TCP and the observed cloud are kept to (base frame, m).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct WorkspaceSection {
+    /// Lower corner.
+    pub min: [f64; 3],
+    /// Upper corner.
+    pub max: [f64; 3],
+    /// Height of the table top (m).
+    pub table_height: f64,
+}
+
+/// D455 depth stream modes.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum DepthMode {
+    /// 848×480, the recommended depth mode.
+    #[serde(rename = "848x480")]
+    W848H480,
+    /// 1280×720.
+    #[serde(rename = "1280x720")]
+    W1280H720,
+    /// 640×480 (VGA).
+    #[serde(rename = "640x480")]
+    W640H480,
+}
+
+impl DepthMode {
+    /// Width and height in pixels.
+    pub fn size(self) -> (u32, u32) {
+        match self {
+            DepthMode::W848H480 => (848, 480),
+            DepthMode::W1280H720 => (1280, 720),
+            DepthMode::W640H480 => (640, 480),
+        }
+    }
+}
+
+/// Pinhole intrinsics (pixels) overriding the factory values.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct IntrinsicsOverride {
+    /// Focal length x.
+    pub fx: f64,
+    /// Focal length y.
+    pub fy: f64,
+    /// Principal point x.
+    pub ppx: f64,
+    /// Principal point y.
+    pub ppy: f64,
+}
+
+/// `[[cameras]]`: one D455.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CameraSection {
+    /// Name used in recordings and the calibration file (e.g. `front`).
+    pub name: String,
+    /// Device serial number (the simulator accepts any non-empty text).
+    pub serial: String,
+    /// Depth mode.
+    pub mode: DepthMode,
+    /// Frame rate (Hz).
+    pub fps: u32,
+    /// Intrinsics to use instead of the device's factory calibration.
+    #[serde(default)]
+    pub intrinsics: Option<IntrinsicsOverride>,
+}
+
+/// `[calibration]`: where the camera extrinsics come from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CalibrationSection {
+    /// Path of `calibration.toml` (relative to the config file); empty in simulation means
+    /// the simulator's true camera poses.
+    pub file: String,
+}
+
+/// `[recording]`: where episode recordings go.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RecordingSection {
+    /// Folder for MCAP files (relative to the working directory).
+    pub dir: String,
+}
+
+/// A validated cell configuration.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct CellConfig {
+    /// The arm.
+    pub robot: RobotSection,
+    /// Joint limits.
+    pub limits: LimitsSection,
+    /// The gripper.
+    pub gripper: GripperSection,
+    /// Workspace bounds.
+    pub workspace: WorkspaceSection,
+    /// The depth cameras.
+    pub cameras: Vec<CameraSection>,
+    /// Camera calibration.
+    pub calibration: CalibrationSection,
+    /// Recording.
+    pub recording: RecordingSection,
+}
+
+impl CellConfig {
+    /// The built-in simulated cell.
+    pub fn simulated() -> Result<Self, ConfigError> {
+        Self::from_toml_str(SIMULATED_CELL_TOML, "the built-in simulated cell")
+    }
+
+    /// Reads and validates a `cell.toml` file.
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_toml_str(&text, &path.display().to_string())
+    }
+
+    /// Parses and validates configuration text; `origin` names it in errors.
+    pub fn from_toml_str(text: &str, origin: &str) -> Result<Self, ConfigError> {
+        let cfg: CellConfig = toml::from_str(text).map_err(|e| ConfigError::Parse {
+            origin: origin.to_string(),
+            message: e.to_string(),
+        })?;
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Renders the configuration back to TOML.
+    pub fn to_toml_string(&self) -> Result<String, ConfigError> {
+        toml::to_string_pretty(self).map_err(|e| ConfigError::Parse {
+            origin: "the configuration being written".into(),
+            message: e.to_string(),
+        })
+    }
+
+    /// Checks every value; the first problem found is returned.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        let r = &self.robot;
+        if r.host.trim().is_empty() {
+            return invalid("robot.host", "\"\"", "give the controller's address, e.g. 192.168.1.10");
+        }
+        if r.backend == RobotBackend::Ur {
+            for (key, port) in [
+                ("robot.rtde_port", r.rtde_port),
+                ("robot.dashboard_port", r.dashboard_port),
+                ("robot.secondary_port", r.secondary_port),
+            ] {
+                if port == 0 {
+                    return invalid(key, "0", "a real controller needs its real port (RTDE 30004, dashboard 29999, secondary 30002)");
+                }
+            }
+        }
+        let max_rate = r.model.max_rate_hz();
+        if !(r.controller_rate_hz.is_finite()
+            && r.controller_rate_hz > 0.0
+            && r.controller_rate_hz <= max_rate)
+        {
+            return invalid(
+                "robot.controller_rate_hz",
+                &r.controller_rate_hz.to_string(),
+                &format!("must be in (0, {max_rate}] Hz for this robot model"),
+            );
+        }
+        positive_finite("robot.tcp_offset_m", r.tcp_offset_m, true)?;
+
+        let l = &self.limits;
+        for (name, arr) in [
+            ("limits.max_velocity", &l.max_velocity),
+            ("limits.max_acceleration", &l.max_acceleration),
+            ("limits.max_jerk", &l.max_jerk),
+        ] {
+            for (j, v) in arr.iter().enumerate() {
+                positive_finite(&format!("{name}[{j}]"), *v, false)?;
+            }
+        }
+        for (j, v) in l.max_velocity.iter().enumerate() {
+            if *v > UR5_MAX_JOINT_SPEED + 1e-3 {
+                return invalid(
+                    &format!("limits.max_velocity[{j}]"),
+                    &v.to_string(),
+                    "exceeds the UR5's joint speed limit of pi rad/s",
+                );
+            }
+        }
+        for j in 0..JOINT_COUNT {
+            let (lo, hi) = (l.joint_min[j], l.joint_max[j]);
+            if !(lo.is_finite() && hi.is_finite() && lo < hi) {
+                return invalid(
+                    &format!("limits.joint_min[{j}]"),
+                    &lo.to_string(),
+                    &format!("must be finite and below limits.joint_max[{j}] = {hi}"),
+                );
+            }
+            if lo < -2.0 * std::f64::consts::TAU || hi > 2.0 * std::f64::consts::TAU {
+                return invalid(
+                    &format!("limits.joint_min[{j}]"),
+                    &format!("[{lo}, {hi}]"),
+                    "joint limits beyond ±4π are not physical for a UR arm",
+                );
+            }
+        }
+        positive_finite("limits.tracking_error_bound", l.tracking_error_bound, false)?;
+        positive_finite("limits.stop_deceleration", l.stop_deceleration, false)?;
+
+        let g = &self.gripper;
+        positive_finite("gripper.default_speed", g.default_speed, false)?;
+        positive_finite("gripper.default_force", g.default_force, false)?;
+        match g.transport {
+            GripperTransport::ModbusRtu | GripperTransport::CanSlcan | GripperTransport::Socketcan
+                if g.device.trim().is_empty() =>
+            {
+                return invalid(
+                    "gripper.device",
+                    "\"\"",
+                    "this transport needs a device, e.g. /dev/ttyUSB0 (serial) or can0 (SocketCAN)",
+                );
+            }
+            GripperTransport::Urcap if g.port == 0 => {
+                return invalid("gripper.port", "0", "the URCap socket listens on 63352");
+            }
+            _ => {}
+        }
+        if g.can_command_id > 0x1FFF_FFFF || g.can_status_id > 0x1FFF_FFFF {
+            return invalid(
+                "gripper.can_command_id",
+                &format!("{:#x}/{:#x}", g.can_command_id, g.can_status_id),
+                "CAN ids must fit in 29 bits",
+            );
+        }
+
+        let w = &self.workspace;
+        for i in 0..3 {
+            let axis = ["x", "y", "z"][i];
+            if !(w.min[i].is_finite() && w.max[i].is_finite()) {
+                return invalid(&format!("workspace.min[{i}]"), &w.min[i].to_string(), "must be finite");
+            }
+            if w.min[i] >= w.max[i] {
+                return invalid(
+                    &format!("workspace.min[{i}]"),
+                    &w.min[i].to_string(),
+                    &format!("workspace min {axis} must be below max {axis} = {}", w.max[i]),
+                );
+            }
+        }
+        if !w.table_height.is_finite() {
+            return invalid("workspace.table_height", &w.table_height.to_string(), "must be finite");
+        }
+
+        if self.cameras.is_empty() {
+            return invalid("cameras", "[]", "list at least one [[cameras]] entry");
+        }
+        for (i, c) in self.cameras.iter().enumerate() {
+            if c.name.trim().is_empty() {
+                return invalid(&format!("cameras[{i}].name"), "\"\"", "give each camera a name, e.g. front");
+            }
+            if c.serial.trim().is_empty() {
+                return invalid(
+                    &format!("cameras[{i}].serial"),
+                    "\"\"",
+                    &format!("camera `{}` needs its serial number (printed on the device; `rs-enumerate-devices` lists it)", c.name),
+                );
+            }
+            if self.cameras[..i].iter().any(|o| o.name == c.name) {
+                return invalid(&format!("cameras[{i}].name"), &c.name, "camera names must be unique");
+            }
+            if self.cameras[..i].iter().any(|o| o.serial == c.serial) {
+                return invalid(&format!("cameras[{i}].serial"), &c.serial, "two cameras share this serial");
+            }
+            if !(1..=90).contains(&c.fps) {
+                return invalid(&format!("cameras[{i}].fps"), &c.fps.to_string(), "the D455 streams depth at 5 to 90 fps");
+            }
+            if let Some(k) = &c.intrinsics {
+                for (key, v) in [("fx", k.fx), ("fy", k.fy), ("ppx", k.ppx), ("ppy", k.ppy)] {
+                    positive_finite(&format!("cameras[{i}].intrinsics.{key}"), v, false)?;
+                }
+            }
+        }
+        if self.robot.backend == RobotBackend::Ur && self.calibration.file.trim().is_empty() {
+            return invalid(
+                "calibration.file",
+                "\"\"",
+                "a real cell needs a calibration file: run `equact calibrate` and name its calibration.toml here",
+            );
+        }
+        if self.recording.dir.trim().is_empty() {
+            return invalid("recording.dir", "\"\"", "name a folder for recordings, e.g. recordings");
+        }
+        Ok(())
+    }
+
+    /// The controller period (s).
+    pub fn controller_period(&self) -> f64 {
+        1.0 / self.robot.controller_rate_hz
+    }
+
+    /// The recording folder.
+    pub fn recording_dir(&self) -> PathBuf {
+        PathBuf::from(&self.recording.dir)
+    }
+}
+
+fn invalid(key: &str, value: &str, problem: &str) -> Result<(), ConfigError> {
+    Err(ConfigError::Invalid {
+        key: key.to_string(),
+        value: value.to_string(),
+        problem: problem.to_string(),
+    })
+}
+
+fn positive_finite(key: &str, v: f64, allow_zero: bool) -> Result<(), ConfigError> {
+    let ok = v.is_finite() && (v > 0.0 || (allow_zero && v == 0.0));
+    if ok {
+        Ok(())
+    } else {
+        invalid(
+            key,
+            &v.to_string(),
+            if allow_zero {
+                "must be a finite number, zero or more"
+            } else {
+                "must be a finite number above zero"
+            },
+        )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sim_text() -> String {
+        SIMULATED_CELL_TOML.to_string()
+    }
+
+    fn expect_invalid(text: &str, key: &str) -> String {
+        match CellConfig::from_toml_str(text, "test") {
+            Err(ConfigError::Invalid { key: k, problem, .. }) => {
+                assert_eq!(k, key, "wrong key blamed: {problem}");
+                problem
+            }
+            other => panic!("expected Invalid for {key}, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn builtin_simulated_cell_is_valid_and_round_trips() {
+        let cfg = CellConfig::simulated().unwrap();
+        assert_eq!(cfg.cameras.len(), 3);
+        assert_eq!(cfg.robot.backend, RobotBackend::Sim);
+        let text = cfg.to_toml_string().unwrap();
+        let again = CellConfig::from_toml_str(&text, "round trip").unwrap();
+        assert_eq!(cfg, again);
+        assert!((cfg.controller_period() - 0.008).abs() < 1e-12);
+    }
+
+    #[test]
+    fn unknown_key_is_named() {
+        let text = sim_text().replace("[robot]\n", "[robot]\nspeed_scale = 0.5\n");
+        match CellConfig::from_toml_str(&text, "cell.toml") {
+            Err(ConfigError::Parse { message, origin }) => {
+                assert!(message.contains("speed_scale"), "{message}");
+                assert_eq!(origin, "cell.toml");
+            }
+            other => panic!("expected Parse error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn missing_key_is_named() {
+        let text = sim_text().replace("tcp_offset_m = 0.15", "");
+        match CellConfig::from_toml_str(&text, "cell.toml") {
+            Err(ConfigError::Parse { message, .. }) => assert!(message.contains("tcp_offset_m"), "{message}"),
+            other => panic!("expected Parse error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn negative_limit_is_named() {
+        let text = sim_text().replace(
+            "max_acceleration = [5.0, 5.0, 5.0, 5.0, 5.0, 5.0]",
+            "max_acceleration = [5.0, 5.0, -5.0, 5.0, 5.0, 5.0]",
+        );
+        let p = expect_invalid(&text, "limits.max_acceleration[2]");
+        assert!(p.contains("above zero"));
+    }
+
+    #[test]
+    fn velocity_above_ur5_limit_is_refused() {
+        let text = sim_text().replace(
+            "max_velocity = [3.14159,",
+            "max_velocity = [4.0,",
+        );
+        expect_invalid(&text, "limits.max_velocity[0]");
+    }
+
+    #[test]
+    fn missing_camera_serial_is_named() {
+        let text = sim_text().replace("serial = \"sim-left\"", "serial = \"\"");
+        let p = expect_invalid(&text, "cameras[1].serial");
+        assert!(p.contains("left_shoulder"), "{p}");
+    }
+
+    #[test]
+    fn workspace_min_above_max_is_named() {
+        let text = sim_text().replace("min = [0.18, -0.39, -0.10]", "min = [0.18, 0.5, -0.10]");
+        let p = expect_invalid(&text, "workspace.min[1]");
+        assert!(p.contains("below max y"), "{p}");
+    }
+
+    #[test]
+    fn rate_above_controller_maximum_is_refused() {
+        let text = sim_text().replace("controller_rate_hz = 125.0", "controller_rate_hz = 500.0");
+        expect_invalid(&text, "robot.controller_rate_hz");
+        let e_series = text.replace("model = \"ur5\"", "model = \"ur5e\"");
+        assert!(CellConfig::from_toml_str(&e_series, "test").is_ok());
+    }
+
+    #[test]
+    fn real_robot_needs_ports_and_calibration() {
+        let text = sim_text().replace("backend = \"sim\"", "backend = \"ur\"");
+        expect_invalid(&text, "robot.rtde_port");
+        let with_ports = text
+            .replace("rtde_port = 0", "rtde_port = 30004")
+            .replace("dashboard_port = 0", "dashboard_port = 29999")
+            .replace("secondary_port = 0", "secondary_port = 30002");
+        let p = expect_invalid(&with_ports, "calibration.file");
+        assert!(p.contains("equact calibrate"));
+    }
+
+    #[test]
+    fn serial_gripper_needs_device() {
+        let text = sim_text().replace("transport = \"sim\"", "transport = \"modbus_rtu\"");
+        expect_invalid(&text, "gripper.device");
+    }
+
+    #[test]
+    fn duplicate_camera_names_refused() {
+        let text = sim_text().replace("name = \"left_shoulder\"", "name = \"front\"");
+        expect_invalid(&text, "cameras[1].name");
+    }
+
+    #[test]
+    fn unreadable_file_names_the_path() {
+        let err = CellConfig::load(Path::new("/nonexistent/cell.toml")).unwrap_err();
+        assert!(err.to_string().contains("/nonexistent/cell.toml"));
+    }
+}

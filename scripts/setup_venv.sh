@@ -1,0 +1,18 @@
+#!/usr/bin/env bash
+# Creates .venv with the independent protocol peers the test suite talks to (ur-rtde,
+# pymodbus, python-can, mcap, OpenCV). Re-runs pip only when the requirements changed.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+req=tests/peers/requirements.txt
+stamp=.venv/.requirements.sha256
+want=$(sha256sum "$req" | cut -d' ' -f1)
+if [ -x .venv/bin/python3 ] && [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
+  exit 0
+fi
+python=${PYTHON:-python3}
+command -v "$python" >/dev/null || { echo "setup_venv: python3 not found; install Python 3.10+ (Debian: apt-get install python3 python3-venv)" >&2; exit 1; }
+[ -x .venv/bin/python3 ] || "$python" -m venv .venv
+.venv/bin/python3 -m pip install --quiet --disable-pip-version-check --upgrade pip
+.venv/bin/python3 -m pip install --quiet --disable-pip-version-check -r "$req"
+echo "$want" > "$stamp"
+echo "setup_venv: .venv ready ($(.venv/bin/python3 --version))"
