@@ -6,7 +6,7 @@ cd "$(dirname "$0")/.."
 req=tests/peers/requirements.txt
 stamp=.venv/.requirements.sha256
 want=$(sha256sum "$req" | cut -d' ' -f1)
-if [ -x .venv/bin/python3 ] && [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ]; then
+if [ -x .venv/bin/python3 ] && [ -f "$stamp" ] && [ "$(cat "$stamp")" = "$want" ] && [ -f .venv/foxglove-schemas/.version ]; then
   exit 0
 fi
 python=${PYTHON:-python3}
@@ -14,5 +14,6 @@ command -v "$python" >/dev/null || { echo "setup_venv: python3 not found; instal
 [ -x .venv/bin/python3 ] || "$python" -m venv .venv
 .venv/bin/python3 -m pip install --quiet --disable-pip-version-check --upgrade pip
 .venv/bin/python3 -m pip install --quiet --disable-pip-version-check -r "$req"
+./scripts/fetch_foxglove_schemas.sh
 echo "$want" > "$stamp"
 echo "setup_venv: .venv ready ($(.venv/bin/python3 --version))"

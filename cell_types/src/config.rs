@@ -304,7 +304,11 @@ impl CellConfig {
     pub fn validate(&self) -> Result<(), ConfigError> {
         let r = &self.robot;
         if r.host.trim().is_empty() {
-            return invalid("robot.host", "\"\"", "give the controller's address, e.g. 192.168.1.10");
+            return invalid(
+                "robot.host",
+                "\"\"",
+                "give the controller's address, e.g. 192.168.1.10",
+            );
         }
         if r.backend == RobotBackend::Ur {
             for (key, port) in [
@@ -373,7 +377,9 @@ impl CellConfig {
         positive_finite("gripper.default_speed", g.default_speed, false)?;
         positive_finite("gripper.default_force", g.default_force, false)?;
         match g.transport {
-            GripperTransport::ModbusRtu | GripperTransport::CanSlcan | GripperTransport::Socketcan
+            GripperTransport::ModbusRtu
+            | GripperTransport::CanSlcan
+            | GripperTransport::Socketcan
                 if g.device.trim().is_empty() =>
             {
                 return invalid(
@@ -399,18 +405,29 @@ impl CellConfig {
         for i in 0..3 {
             let axis = ["x", "y", "z"][i];
             if !(w.min[i].is_finite() && w.max[i].is_finite()) {
-                return invalid(&format!("workspace.min[{i}]"), &w.min[i].to_string(), "must be finite");
+                return invalid(
+                    &format!("workspace.min[{i}]"),
+                    &w.min[i].to_string(),
+                    "must be finite",
+                );
             }
             if w.min[i] >= w.max[i] {
                 return invalid(
                     &format!("workspace.min[{i}]"),
                     &w.min[i].to_string(),
-                    &format!("workspace min {axis} must be below max {axis} = {}", w.max[i]),
+                    &format!(
+                        "workspace min {axis} must be below max {axis} = {}",
+                        w.max[i]
+                    ),
                 );
             }
         }
         if !w.table_height.is_finite() {
-            return invalid("workspace.table_height", &w.table_height.to_string(), "must be finite");
+            return invalid(
+                "workspace.table_height",
+                &w.table_height.to_string(),
+                "must be finite",
+            );
         }
 
         if self.cameras.is_empty() {
@@ -418,7 +435,11 @@ impl CellConfig {
         }
         for (i, c) in self.cameras.iter().enumerate() {
             if c.name.trim().is_empty() {
-                return invalid(&format!("cameras[{i}].name"), "\"\"", "give each camera a name, e.g. front");
+                return invalid(
+                    &format!("cameras[{i}].name"),
+                    "\"\"",
+                    "give each camera a name, e.g. front",
+                );
             }
             if c.serial.trim().is_empty() {
                 return invalid(
@@ -428,13 +449,25 @@ impl CellConfig {
                 );
             }
             if self.cameras[..i].iter().any(|o| o.name == c.name) {
-                return invalid(&format!("cameras[{i}].name"), &c.name, "camera names must be unique");
+                return invalid(
+                    &format!("cameras[{i}].name"),
+                    &c.name,
+                    "camera names must be unique",
+                );
             }
             if self.cameras[..i].iter().any(|o| o.serial == c.serial) {
-                return invalid(&format!("cameras[{i}].serial"), &c.serial, "two cameras share this serial");
+                return invalid(
+                    &format!("cameras[{i}].serial"),
+                    &c.serial,
+                    "two cameras share this serial",
+                );
             }
             if !(1..=90).contains(&c.fps) {
-                return invalid(&format!("cameras[{i}].fps"), &c.fps.to_string(), "the D455 streams depth at 5 to 90 fps");
+                return invalid(
+                    &format!("cameras[{i}].fps"),
+                    &c.fps.to_string(),
+                    "the D455 streams depth at 5 to 90 fps",
+                );
             }
             if let Some(k) = &c.intrinsics {
                 for (key, v) in [("fx", k.fx), ("fy", k.fy), ("ppx", k.ppx), ("ppy", k.ppy)] {
@@ -450,7 +483,11 @@ impl CellConfig {
             );
         }
         if self.recording.dir.trim().is_empty() {
-            return invalid("recording.dir", "\"\"", "name a folder for recordings, e.g. recordings");
+            return invalid(
+                "recording.dir",
+                "\"\"",
+                "name a folder for recordings, e.g. recordings",
+            );
         }
         Ok(())
     }
@@ -501,7 +538,9 @@ mod tests {
 
     fn expect_invalid(text: &str, key: &str) -> String {
         match CellConfig::from_toml_str(text, "test") {
-            Err(ConfigError::Invalid { key: k, problem, .. }) => {
+            Err(ConfigError::Invalid {
+                key: k, problem, ..
+            }) => {
                 assert_eq!(k, key, "wrong key blamed: {problem}");
                 problem
             }
@@ -536,7 +575,9 @@ mod tests {
     fn missing_key_is_named() {
         let text = sim_text().replace("tcp_offset_m = 0.15", "");
         match CellConfig::from_toml_str(&text, "cell.toml") {
-            Err(ConfigError::Parse { message, .. }) => assert!(message.contains("tcp_offset_m"), "{message}"),
+            Err(ConfigError::Parse { message, .. }) => {
+                assert!(message.contains("tcp_offset_m"), "{message}")
+            }
             other => panic!("expected Parse error, got {other:?}"),
         }
     }
@@ -553,10 +594,7 @@ mod tests {
 
     #[test]
     fn velocity_above_ur5_limit_is_refused() {
-        let text = sim_text().replace(
-            "max_velocity = [3.14159,",
-            "max_velocity = [4.0,",
-        );
+        let text = sim_text().replace("max_velocity = [3.14159,", "max_velocity = [4.0,");
         expect_invalid(&text, "limits.max_velocity[0]");
     }
 

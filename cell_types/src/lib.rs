@@ -10,8 +10,8 @@
 //! so that every type can be recorded and configured.
 
 pub mod clock;
-pub mod config;
 pub mod cloud;
+pub mod config;
 pub mod error;
 pub mod frames;
 pub mod gripper;
@@ -20,8 +20,8 @@ pub mod keyframe;
 pub mod trajectory;
 
 pub use clock::{Clock, ManualClock, SystemClock};
-pub use config::{CellConfig, ConfigError};
 pub use cloud::{PointCloud, Rgb};
+pub use config::{CellConfig, ConfigError};
 pub use error::CellTypesError;
 pub use frames::{Base, Board, Camera, Flange, Frame, FrameId, Tcp, Transform, World};
 pub use gripper::{GripperCommand, GripperFault, GripperState, ObjectStatus};

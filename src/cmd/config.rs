@@ -25,10 +25,10 @@ pub fn load(path: Option<&PathBuf>) -> anyhow::Result<CellConfig> {
 /// Runs `equact config`: validates and prints the checked configuration.
 pub fn run(args: ConfigArgs) -> anyhow::Result<()> {
     let cfg = load(args.config.as_ref())?;
-    let origin = args
-        .config
-        .as_ref()
-        .map_or_else(|| "built-in simulated cell".to_string(), |p| p.display().to_string());
+    let origin = args.config.as_ref().map_or_else(
+        || "built-in simulated cell".to_string(),
+        |p| p.display().to_string(),
+    );
     println!("# {origin}: valid");
     print!("{}", cfg.to_toml_string()?);
     Ok(())

@@ -1,0 +1,8 @@
+//! The `equact` application library: the episode loop, MCAP recording and the pieces of the
+//! CLI that tests exercise directly. The binary (`src/main.rs`) only parses arguments.
+//!
+//! Libraries: `mcap` (the reference Rust MCAP writer/reader; lz4 chunk compression only, so
+//! a single small C library is built), `serde_json` + `base64` for Foxglove's JSON message
+//! encoding, `ctrlc` to turn Ctrl-C into a controlled stop.
+
+pub mod recording;
