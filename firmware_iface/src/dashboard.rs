@@ -161,6 +161,7 @@ impl SafetyMode {
 
 /// A dashboard command line.
 #[derive(Clone, Debug, PartialEq, Eq)]
+#[non_exhaustive]
 pub enum DashboardCommand {
     /// `power on`.
     PowerOn,

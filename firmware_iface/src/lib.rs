@@ -2,4 +2,5 @@
 
 pub mod dashboard;
 pub mod rtde;
+pub mod ur;
 pub mod urscript;
