@@ -1,1 +1,7 @@
 //! Hardware traits (Arm, Gripper, DepthCamera), wire codecs with no I/O, and the real UR5 and Robotiq drivers.
+
+pub mod arm;
+pub mod dashboard;
+pub mod rtde;
+pub mod ur;
+pub mod urscript;
