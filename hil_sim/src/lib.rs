@@ -1,1 +1,3 @@
 //! Hardware-in-the-loop simulator: UR controller, Robotiq gripper and D455 cameras on loopback.
+
+pub mod gripper;
