@@ -110,6 +110,7 @@ impl ModbusRtuTransport {
         let granularity = self.port.timeout().max(Duration::from_millis(1));
         let mut waited = Duration::ZERO;
         let mut buf = [0u8; 256];
+        // The first rejection is the cause; what follows it is usually its debris.
         let mut last_error = None;
         while waited < timeout {
             let n = read_some(&mut self.port, &mut buf, "a Modbus RTU response")?;
@@ -118,7 +119,7 @@ impl ModbusRtuTransport {
                 if self.reader.pending() > 0 {
                     if let Some(Scan::Dropped { reason, bytes }) = self.reader.silence() {
                         warn!("modbus-rtu: dropped {bytes} bytes: {reason}");
-                        last_error = Some(GripperError::Truncated {
+                        last_error.get_or_insert(GripperError::Truncated {
                             what: "Modbus RTU response",
                             needed: bytes + 1,
                             got: bytes,
@@ -132,7 +133,7 @@ impl ModbusRtuTransport {
                 match scan {
                     Scan::Dropped { bytes, reason } => {
                         warn!("modbus-rtu: dropped {bytes} bytes: {reason}");
-                        last_error = Some(GripperError::Malformed {
+                        last_error.get_or_insert(GripperError::Malformed {
                             what: "Modbus RTU response",
                             detail: reason,
                         });
@@ -141,7 +142,7 @@ impl ModbusRtuTransport {
                         let (slave, resp) = Response::decode(&f)?;
                         if slave != self.slave {
                             warn!("modbus-rtu: ignoring a frame from slave {slave}");
-                            last_error = Some(GripperError::WrongSlave {
+                            last_error.get_or_insert(GripperError::WrongSlave {
                                 expected: self.slave,
                                 got: slave,
                             });
