@@ -5,3 +5,4 @@ pub mod dashboard;
 pub mod rtde;
 pub mod ur;
 pub mod urscript;
+pub mod gripper;
