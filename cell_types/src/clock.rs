@@ -73,8 +73,10 @@ impl ManualClock {
 
     /// Moves time forward by `dt`.
     pub fn advance(&self, dt: Duration) {
-        self.nanos
-            .fetch_add(u64::try_from(dt.as_nanos()).unwrap_or(u64::MAX), Ordering::SeqCst);
+        self.nanos.fetch_add(
+            u64::try_from(dt.as_nanos()).unwrap_or(u64::MAX),
+            Ordering::SeqCst,
+        );
     }
 }
 

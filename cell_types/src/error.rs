@@ -7,7 +7,9 @@ use thiserror::Error;
 #[non_exhaustive]
 pub enum CellTypesError {
     /// A value that must be finite was NaN or infinite.
-    #[error("{what} is not finite ({value}); check the source of this value (sensor, file, solver)")]
+    #[error(
+        "{what} is not finite ({value}); check the source of this value (sensor, file, solver)"
+    )]
     NotFinite {
         /// Which value.
         what: &'static str,

@@ -130,7 +130,10 @@ impl<To: Frame, From: Frame> Transform<To, From> {
 
     /// Builds from a translation (m) and a unit quaternion.
     pub fn from_parts(translation: Vector3<f64>, rotation: UnitQuaternion<f64>) -> Self {
-        Self::from_isometry(Isometry3::from_parts(Translation3::from(translation), rotation))
+        Self::from_isometry(Isometry3::from_parts(
+            Translation3::from(translation),
+            rotation,
+        ))
     }
 
     /// Builds from a translation (m) and roll, pitch, yaw (rad, extrinsic x-y-z).

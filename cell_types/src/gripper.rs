@@ -100,11 +100,17 @@ mod tests {
         assert!(GripperCommand::new(0.04, 0.1, 50.0).is_ok());
         assert!(matches!(
             GripperCommand::new(-0.01, 0.1, 50.0),
-            Err(CellTypesError::OutOfRange { what: "gripper width", .. })
+            Err(CellTypesError::OutOfRange {
+                what: "gripper width",
+                ..
+            })
         ));
         assert!(matches!(
             GripperCommand::new(0.01, f64::NAN, 50.0),
-            Err(CellTypesError::NotFinite { what: "gripper speed", .. })
+            Err(CellTypesError::NotFinite {
+                what: "gripper speed",
+                ..
+            })
         ));
     }
 }

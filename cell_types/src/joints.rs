@@ -56,8 +56,10 @@ mod tests {
             let a = 0.3 + k as f64 * 0.77;
             let w = wrap_to_pi(a);
             assert!(w > -PI - 1e-12 && w <= PI + 1e-12);
-            assert!(((a - w) / std::f64::consts::TAU).fract().abs() < 1e-9
-                || ((a - w) / std::f64::consts::TAU).fract().abs() > 1.0 - 1e-9);
+            assert!(
+                ((a - w) / std::f64::consts::TAU).fract().abs() < 1e-9
+                    || ((a - w) / std::f64::consts::TAU).fract().abs() > 1.0 - 1e-9
+            );
         }
         assert!((wrap_to_pi(PI) - PI).abs() < 1e-12);
         assert!((wrap_to_pi(-PI) - PI).abs() < 1e-12);
