@@ -101,4 +101,12 @@ pub enum CalibrationError {
         /// The camera id.
         camera: u8,
     },
+    /// The fused cloud has fewer points than the policy needs.
+    #[error("the fused cloud has {got} points but {needed} are needed; check that the cameras see the workspace and that the crop box and voxel size are right")]
+    TooFewPoints {
+        /// Points available.
+        got: usize,
+        /// Points needed.
+        needed: usize,
+    },
 }

@@ -9,6 +9,8 @@
 
 pub mod camera;
 pub mod error;
+pub mod fusion;
 
 pub use camera::{DepthMode, Distortion, Intrinsics};
 pub use error::CalibrationError;
+pub use fusion::{CameraCalibration, CellCalibration, FusionParams, FusionPipeline};

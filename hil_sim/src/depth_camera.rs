@@ -160,6 +160,32 @@ pub fn default_rig(seed: u64) -> Vec<SimDepthCamera> {
         .collect()
 }
 
+/// The true calibration of a rig (what a perfect `equact calibrate` would write).
+pub fn rig_calibration(rig: &[SimDepthCamera]) -> calibration::CellCalibration {
+    calibration::CellCalibration {
+        cameras: rig
+            .iter()
+            .map(|c| calibration::CameraCalibration {
+                id: c.id,
+                intrinsics: c.intrinsics,
+                base_from_camera: c.base_from_camera,
+            })
+            .collect(),
+    }
+}
+
+/// Renders every camera of `rig` (frame `frame_index`, stamped `timestamp`).
+pub fn render_rig(
+    rig: &[SimDepthCamera],
+    scene: &SceneGeometry,
+    frame_index: u64,
+    timestamp: Duration,
+) -> Result<Vec<CameraFrame>, SceneError> {
+    rig.iter()
+        .map(|c| c.render(scene, frame_index, timestamp))
+        .collect()
+}
+
 /// Per-pixel result of the ray-casting pass.
 #[derive(Copy, Clone, Debug, Default)]
 struct Sample {

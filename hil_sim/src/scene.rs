@@ -7,6 +7,7 @@
 //! conversion happens here, once per scene build, and `f32` keeps well under a micrometre
 //! at cell distances.
 
+pub use calibration::fusion::Capsule;
 use cell_types::{Joints, Rgb};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use parry3d::math::{Pose, Rot3, Vector};
@@ -117,17 +118,6 @@ pub struct SceneObject {
     pub material: Material,
     /// What it is.
     pub part: Part,
-}
-
-/// A capsule around a segment, in the base frame: the robot's collision geometry.
-#[derive(Copy, Clone, Debug, PartialEq)]
-pub struct Capsule {
-    /// Segment start (m, base frame).
-    pub a: Point3<f64>,
-    /// Segment end (m, base frame).
-    pub b: Point3<f64>,
-    /// Radius (m).
-    pub radius: f64,
 }
 
 /// Radii of the UR5 capsules between consecutive DH frame origins (0-1 base column, 1-2
