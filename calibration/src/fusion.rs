@@ -156,6 +156,11 @@ pub struct FusionParams {
     pub outlier_std_ratio: f64,
     /// Extra radius (m) around the robot's capsules inside which points are the robot.
     pub robot_margin_m: f64,
+    /// Depth-edge filter: a pixel is dropped when the depths in its 3x3 window span more
+    /// than this (m) times max(1, z / 1 m). Stereo cameras put "flying pixels" between fore-
+    /// and background at such edges; they form sheets with enough neighbours to survive the
+    /// statistical filter, and farthest point sampling picks them first. 0 disables.
+    pub edge_jump_m: f64,
     /// Total points handed to the policy.
     pub points: usize,
     /// How many of them come from inside the focus box.
@@ -173,6 +178,7 @@ impl Default for FusionParams {
             outlier_k: 20,
             outlier_std_ratio: 2.0,
             robot_margin_m: 0.02,
+            edge_jump_m: 0.02,
             points: 2048,
             points_inside: 1536,
             seed: 0,
@@ -303,6 +309,13 @@ impl FusionPipeline {
         if !(params.robot_margin_m.is_finite() && params.robot_margin_m >= 0.0) {
             return bad("robot_margin_m", params.robot_margin_m, "use a margin >= 0");
         }
+        if !(params.edge_jump_m.is_finite() && params.edge_jump_m >= 0.0) {
+            return bad(
+                "edge_jump_m",
+                params.edge_jump_m,
+                "use a jump >= 0 (0 disables)",
+            );
+        }
         if params.points_inside > params.points {
             return bad(
                 "points_inside",
@@ -403,8 +416,14 @@ impl FusionPipeline {
             Vector3::new(ws.max[0] as f32, ws.max[1] as f32, ws.max[2] as f32),
         );
         let colour = frame.colour.as_ref();
+        let data = &frame.depth.raw.data;
+        let (w, h) = (
+            frame.depth.raw.width as usize,
+            frame.depth.raw.height as usize,
+        );
+        let jump = self.params.edge_jump_m as f32;
         let mut valid = 0;
-        for (i, (&raw, ray)) in frame.depth.raw.data.iter().zip(rays).enumerate() {
+        for (i, (&raw, ray)) in data.iter().zip(rays).enumerate() {
             if raw == 0 {
                 continue;
             }
@@ -413,6 +432,22 @@ impl FusionPipeline {
                 continue;
             }
             valid += 1;
+            if jump > 0.0 {
+                let (u, v) = (i % w, i / w);
+                let (mut lo_raw, mut hi_raw) = (raw, raw);
+                for nv in v.saturating_sub(1)..(v + 2).min(h) {
+                    for nu in u.saturating_sub(1)..(u + 2).min(w) {
+                        let r = data[nv * w + nu];
+                        if r != 0 {
+                            lo_raw = lo_raw.min(r);
+                            hi_raw = hi_raw.max(r);
+                        }
+                    }
+                }
+                if f32::from(hi_raw - lo_raw) * scale > jump * z.max(1.0) {
+                    continue;
+                }
+            }
             let p = r * Vector3::new(ray[0] * z, ray[1] * z, z) + t;
             if p.x < lo.x || p.y < lo.y || p.z < lo.z || p.x > hi.x || p.y > hi.y || p.z > hi.z {
                 continue;

@@ -1,6 +1,9 @@
 //! The simulated D455 against its noise model (issue 7 acceptance: plane recovery, sigma at
 //! 0.6 / 1 / 1.5 m within 20 %, holes, band, flying pixels, determinism).
 
+// Test helpers outside #[test] functions may unwrap too: a failure there is a test failure.
+#![allow(clippy::unwrap_used)]
+
 use std::sync::{Arc, RwLock};
 use std::time::Duration;
 
