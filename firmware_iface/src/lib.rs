@@ -6,3 +6,4 @@ pub mod rtde;
 pub mod ur;
 pub mod urscript;
 pub mod gripper;
+pub mod camera;

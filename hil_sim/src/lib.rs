@@ -1,4 +1,11 @@
 //! Hardware-in-the-loop simulator: UR controller, Robotiq gripper and D455 cameras on loopback.
+//!
+//! Modules: [`ur_controller`] (RTDE, dashboard and secondary servers with the servo
+//! dynamics), [`gripper`] (Robotiq 2F-85 emulator behind Modbus RTU, URCap and CAN),
+//! [`scene`] (table, objects, the arm as capsules) and [`depth_camera`] (D455-like
+//! depth/IR/colour by ray casting with parry3d, with the sensor's noise model).
 
-pub mod ur_controller;
+pub mod depth_camera;
 pub mod gripper;
+pub mod scene;
+pub mod ur_controller;
