@@ -37,7 +37,7 @@ impl Trajectory {
         }
         for (i, s) in samples.iter().enumerate() {
             let expected = i as f64 * period;
-            if !((s.t - expected).abs() <= 1e-9 * (1.0 + expected)) {
+            if s.t.is_nan() || (s.t - expected).abs() > 1e-9 * (1.0 + expected) {
                 return Err(CellTypesError::UnevenTrajectory {
                     index: i,
                     t: s.t,
