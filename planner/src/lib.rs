@@ -1,4 +1,16 @@
 //! UR5 model from URDF, FK/IK, collision model, cloud structure, path planning and
-//! jerk-limited timing.
+//! jerk-limited timing (issues 2 item 3 and 3).
+//!
+//! Libraries: `urdf-rs` parses the URDF; `nalgebra` is the workspace's linear algebra;
+//! `rsruckig` (pure-Rust Ruckig) does jerk-limited timing without the C++ library's cloud
+//! client; `rand_chacha` gives seeded, platform-independent sampling for RRT-Connect.
 
+pub mod collision;
+pub mod error;
+pub mod ik;
 pub mod kinematics;
+pub mod model;
+pub mod urdf;
+
+pub use error::{Contact, PlanError};
+pub use model::RobotModel;

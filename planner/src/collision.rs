@@ -1,0 +1,250 @@
+//! Sphere collision model of the robot (issue 3 item 1): spheres generated from each link's
+//! collision primitives (cylinders and boxes are covered by a row of spheres whose union
+//! provably contains them; URDF spheres are taken as they are), grouped into rigid bodies
+//! (links joined by fixed joints), with self-collision checked between bodies that are at
+//! least three joints apart in the chain (nearer pairs touch by construction at the joints:
+//! the URDF-adjacency allowed-collision rule, widened by one because the UR wrists overlap).
+
+use crate::error::{Contact, PlanError};
+use crate::urdf::{Chain, Shape};
+use nalgebra::{Isometry3, Point3, Vector3};
+
+/// One sphere of the model, fixed to a link.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct LinkSphere {
+    /// Link index in the chain.
+    pub link: usize,
+    /// Rigid body index (links joined by fixed joints share one).
+    pub body: usize,
+    /// Centre in the link frame.
+    pub center: Point3<f64>,
+    /// Radius (m).
+    pub radius: f64,
+}
+
+/// A sphere placed in the base frame.
+#[derive(Copy, Clone, Debug, Default, PartialEq)]
+pub struct Sphere {
+    /// Centre (m).
+    pub center: Point3<f64>,
+    /// Radius (m).
+    pub radius: f64,
+}
+
+/// The spheres of a robot and the pairs checked for self-collision.
+#[derive(Clone, Debug)]
+pub struct SphereModel {
+    /// All spheres.
+    pub spheres: Vec<LinkSphere>,
+    /// Link names (for error messages).
+    pub link_names: Vec<&'static str>,
+    /// Sphere index pairs checked for self-collision.
+    pub self_pairs: Vec<(u16, u16)>,
+    /// Spheres checked against the world (not those of the root body, which stands on the
+    /// table by design).
+    pub world_spheres: Vec<u16>,
+}
+
+/// Spheres covering a shape, in the link frame. `inflate` is the ratio of sphere radius to
+/// the shape's cross-section radius (larger: fewer, fatter spheres).
+pub fn cover_shape(shape: &Shape, inflate: f64) -> Vec<(Point3<f64>, f64)> {
+    let along = |origin: &Isometry3<f64>, axis: Vector3<f64>, len: f64, r: f64| {
+        let big = r * (1.0 + inflate);
+        // Neighbouring centres at most 2·sqrt(R² − r²) apart keep the whole side covered.
+        let step = 2.0 * (big * big - r * r).sqrt();
+        let n = ((len / step).ceil() as usize).max(1);
+        (0..=n)
+            .map(|k| {
+                let t = -len / 2.0 + len * k as f64 / n as f64;
+                (origin * Point3::from(axis * t), big)
+            })
+            .collect::<Vec<_>>()
+    };
+    match shape {
+        Shape::Sphere { origin, radius } => vec![(origin * Point3::origin(), *radius)],
+        Shape::Cylinder {
+            origin,
+            radius,
+            length,
+        } => along(origin, Vector3::z(), *length, *radius),
+        Shape::Cuboid { origin, size } => {
+            // Along the longest edge; the cross-section's half diagonal is the radius to cover.
+            let (mut k, mut longest) = (0, size[0]);
+            for (i, s) in size.iter().enumerate() {
+                if *s > longest {
+                    longest = *s;
+                    k = i;
+                }
+            }
+            let mut axis = Vector3::zeros();
+            axis[k] = 1.0;
+            let r = size
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| *i != k)
+                .map(|(_, s)| (s / 2.0) * (s / 2.0))
+                .sum::<f64>()
+                .sqrt();
+            along(origin, axis, longest, r)
+        }
+    }
+}
+
+fn leak(s: &str) -> &'static str {
+    // Link names live as long as the model; models are built a handful of times per process.
+    Box::leak(s.to_owned().into_boxed_str())
+}
+
+impl SphereModel {
+    /// Builds the sphere model of a chain: covers each primitive, groups links into bodies,
+    /// and lists the sphere pairs to check for self-collision.
+    pub fn from_chain(chain: &Chain, inflate: f64) -> Result<Self, PlanError> {
+        let n = chain.links.len();
+        // Body of each link: follow fixed joints to the nearest link with a moving parent joint.
+        let mut body_of: Vec<Option<usize>> = vec![None; n];
+        let mut depth = vec![0usize; n];
+        let root = (0..n)
+            .find(|i| chain.joints.iter().all(|j| j.child != *i))
+            .unwrap_or(0);
+        body_of[root] = Some(0);
+        let mut bodies = 1usize;
+        for j in &chain.joints {
+            let pb = body_of[j.parent].unwrap_or(0);
+            if j.axis.is_some() {
+                body_of[j.child] = Some(bodies);
+                depth[j.child] = depth[j.parent] + 1;
+                bodies += 1;
+            } else {
+                body_of[j.child] = Some(pb);
+                depth[j.child] = depth[j.parent];
+            }
+        }
+        let mut spheres = Vec::new();
+        for (link, shapes) in chain.shapes.iter().enumerate() {
+            for s in shapes {
+                for (c, r) in cover_shape(s, inflate) {
+                    spheres.push(LinkSphere {
+                        link,
+                        body: body_of[link].unwrap_or(0),
+                        center: c,
+                        radius: r,
+                    });
+                }
+            }
+        }
+        if spheres.len() > u16::MAX as usize {
+            return Err(PlanError::UrdfStructure {
+                what: format!("{} collision spheres; at most 65535", spheres.len()),
+            });
+        }
+        // Body depth along the chain (bodies are created in order of moving joints).
+        let body_depth = |b: usize| b;
+        let mut self_pairs = Vec::new();
+        for (i, a) in spheres.iter().enumerate() {
+            for (k, b) in spheres.iter().enumerate().skip(i + 1) {
+                if body_depth(a.body).abs_diff(body_depth(b.body)) >= 3 {
+                    self_pairs.push((i as u16, k as u16));
+                }
+            }
+        }
+        let world_spheres = (0..spheres.len())
+            .filter(|&i| spheres[i].body != 0)
+            .map(|i| i as u16)
+            .collect();
+        Ok(Self {
+            spheres,
+            link_names: chain.links.iter().map(|l| leak(l)).collect(),
+            self_pairs,
+            world_spheres,
+        })
+    }
+
+    /// Places every sphere in the base frame given the link poses (no allocation).
+    pub fn place_into(&self, link_poses: &[Isometry3<f64>], out: &mut [Sphere]) {
+        for (s, o) in self.spheres.iter().zip(out.iter_mut()) {
+            let pose = link_poses
+                .get(s.link)
+                .copied()
+                .unwrap_or_else(Isometry3::identity);
+            *o = Sphere {
+                center: pose * s.center,
+                radius: s.radius,
+            };
+        }
+    }
+
+    /// The first self-collision among placed spheres, if any.
+    pub fn self_collision(&self, placed: &[Sphere]) -> Option<Contact> {
+        for &(a, b) in &self.self_pairs {
+            let (sa, sb) = (placed[a as usize], placed[b as usize]);
+            let rr = sa.radius + sb.radius;
+            if (sa.center - sb.center).norm_squared() < rr * rr {
+                return Some(Contact {
+                    link: self.link_names[self.spheres[a as usize].link],
+                    other: self.link_names[self.spheres[b as usize].link].to_string(),
+                });
+            }
+        }
+        None
+    }
+
+    /// Name of the link a sphere belongs to.
+    pub fn link_of(&self, sphere: usize) -> &'static str {
+        self.spheres
+            .get(sphere)
+            .map(|s| self.link_names[s.link])
+            .unwrap_or("unknown")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::RobotModel;
+    use crate::urdf::surface_samples;
+
+    #[test]
+    fn spheres_cover_every_collision_primitive() {
+        let model = RobotModel::ur5().unwrap();
+        let sm = &model.spheres;
+        assert!(
+            (30..=60).contains(&sm.spheres.len()),
+            "{} spheres",
+            sm.spheres.len()
+        );
+        for (link, shapes) in model.chain.shapes.iter().enumerate() {
+            for shape in shapes {
+                for p in surface_samples(shape, 24) {
+                    let covered = sm
+                        .spheres
+                        .iter()
+                        .filter(|s| s.link == link)
+                        .any(|s| (s.center - p).norm() <= s.radius + 1e-12);
+                    assert!(
+                        covered,
+                        "link {} point {p:?} not covered",
+                        model.chain.links[link]
+                    );
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn home_and_zero_are_free_of_self_collision_but_folded_wrist_is_not() {
+        let model = RobotModel::ur5().unwrap();
+        let mut placed = vec![Sphere::default(); model.spheres.spheres.len()];
+        for q in [[0.0; 6], [0.0, -1.57, 1.57, -1.57, -1.57, 0.0]] {
+            model
+                .spheres
+                .place_into(&model.chain.link_poses(&q), &mut placed);
+            assert_eq!(model.spheres.self_collision(&placed), None, "{q:?}");
+        }
+        // Elbow folded back fully: the wrist and gripper come down onto the shoulder/upper arm.
+        let q = [0.0, -1.57, 3.1, -1.57, -1.57, 0.0];
+        model
+            .spheres
+            .place_into(&model.chain.link_poses(&q), &mut placed);
+        assert!(model.spheres.self_collision(&placed).is_some());
+    }
+}
