@@ -19,11 +19,14 @@ struct Cli {
 enum Command {
     /// Check a cell configuration file and print the checked configuration.
     Config(cmd::config::ConfigArgs),
+    /// The EquAct network: check parity fixtures (later: predict).
+    Policy(cmd::policy::PolicyArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Config(args) => cmd::config::run(args),
+        Command::Policy(args) => cmd::policy::run(args),
     }
 }
