@@ -21,6 +21,8 @@ enum Command {
     Config(cmd::config::ConfigArgs),
     /// Summarise an episode recording (topics, counts, outcome, timings).
     Inspect(cmd::inspect::InspectArgs),
+    /// The EquAct network: check parity fixtures, predict, benchmark.
+    Policy(cmd::policy::PolicyArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -48,5 +50,6 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Config(args) => cmd::config::run(args),
         Command::Inspect(args) => cmd::inspect::run(args),
+        Command::Policy(args) => cmd::policy::run(args),
     }
 }

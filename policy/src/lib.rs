@@ -1,1 +1,23 @@
-//! The EquAct SE(3)-equivariant keyframe policy: network, weights, inference, training, scripted experts.
+//! The EquAct SE(3)-equivariant keyframe policy: network, weights, inference, training,
+//! scripted experts.
+//!
+//! Spec: `equact.md` (the reference model) and the `equact_fixtures` README (numerical
+//! conventions). What is here so far, all plain Rust (no tensor library yet):
+//! - [`so3`]: real spherical harmonics (e3nn, component normalisation, y pole), e3nn angles,
+//!   exact Wigner-D matrices, the reference's edge frame;
+//! - [`grids`]: S2 grids of the separable S2 activation, HEALPix S2 and SO(3) grids;
+//! - [`points`]: farthest point sampling, kNN, coefficient max-pool, 3-NN up-sampling;
+//! - [`rotation_head`]: the S2 -> SO(3) lift and rotation logits on a grid;
+//! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`).
+//!
+//! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit),
+//! `safetensors` to read the reference's tensor files, `serde_json` for their sidecars.
+
+pub mod error;
+pub mod fixtures;
+pub mod grids;
+pub mod points;
+pub mod rotation_head;
+pub mod so3;
+
+pub use error::{PolicyError, Result};

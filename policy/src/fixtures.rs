@@ -1,0 +1,920 @@
+//! Parity checks against the reference's numerical fixtures (`equact_fixtures` format).
+//!
+//! Spec: the fixtures README ("Loading", "Key prefixes", "Parity tolerances"). A fixture is a
+//! `NAME.safetensors` tensor file plus a `NAME.json` sidecar whose `fixture` field names the
+//! building block. [`check_dir`] checks every pair in a folder and returns one report per
+//! fixture; a fixture this crate cannot check yet, or a file that cannot be read, is a
+//! failure, never silently skipped.
+//!
+//! Tolerance: an element passes when |ours - ref| <= tol · (1 + |ref|), with tol = 1e-5 for
+//! plain values and 5e-5 wherever Wigner matrices enter (ours are exact, the reference's come
+//! from J tables accurate to about 6e-6). Index records (FPS, kNN picks) must match exactly.
+
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+use nalgebra::Matrix3;
+
+use crate::error::{PolicyError, Result};
+use crate::grids::{reduced_coefficients, s2_healpix_grid, so3_healpix_grid, S2Grid};
+use crate::points::{
+    coefficient_max_pool, farthest_point_sampling, knn, upsample, upsample_weights,
+    UpsampleDistance,
+};
+use crate::rotation_head::{flat_wigner, RotationHead, SO3_COEFFS};
+use crate::so3::{
+    angles_to_xyz, edge_rot_mat, matrix_to_angles, num_coefficients, spherical_harmonics,
+    xyz_to_angles, WignerCalculator,
+};
+
+/// Tolerance for values that do not involve Wigner matrices.
+pub const TOL: f64 = 1e-5;
+/// Tolerance where the reference's tabulated Wigner matrices enter.
+pub const TOL_WIGNER: f64 = 5e-5;
+
+/// The data of one stored tensor.
+#[derive(Debug, Clone)]
+pub enum TensorData {
+    /// float32 values.
+    F32(Vec<f32>),
+    /// int64 values (indices).
+    I64(Vec<i64>),
+}
+
+/// One stored tensor: shape and row-major data.
+#[derive(Debug, Clone)]
+pub struct StoredTensor {
+    /// Shape.
+    pub shape: Vec<usize>,
+    /// Values.
+    pub data: TensorData,
+}
+
+/// A loaded safetensors file with its JSON sidecar.
+#[derive(Debug, Clone)]
+pub struct FixtureFile {
+    /// The tensor file.
+    pub path: PathBuf,
+    /// All tensors by key.
+    pub tensors: HashMap<String, StoredTensor>,
+    /// The parsed sidecar.
+    pub sidecar: serde_json::Value,
+}
+
+/// Reads every tensor of a safetensors file (F32 and I64 only).
+pub fn read_safetensors(path: &Path) -> Result<HashMap<String, StoredTensor>> {
+    let bytes = std::fs::read(path).map_err(|source| PolicyError::Io {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    let st =
+        safetensors::SafeTensors::deserialize(&bytes).map_err(|e| PolicyError::Safetensors {
+            path: path.to_path_buf(),
+            message: e.to_string(),
+        })?;
+    let mut out = HashMap::new();
+    for (name, view) in st.tensors() {
+        let raw = view.data();
+        let data = match view.dtype() {
+            safetensors::Dtype::F32 => TensorData::F32(
+                raw.chunks_exact(4)
+                    .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                    .collect(),
+            ),
+            safetensors::Dtype::I64 => TensorData::I64(
+                raw.chunks_exact(8)
+                    .map(|b| i64::from_le_bytes([b[0], b[1], b[2], b[3], b[4], b[5], b[6], b[7]]))
+                    .collect(),
+            ),
+            other => {
+                return Err(PolicyError::WrongDtype {
+                    name,
+                    expected: "F32 or I64",
+                    got: format!("{other:?}"),
+                })
+            }
+        };
+        out.insert(
+            name,
+            StoredTensor {
+                shape: view.shape().to_vec(),
+                data,
+            },
+        );
+    }
+    Ok(out)
+}
+
+impl FixtureFile {
+    /// Loads `NAME.safetensors` and its sidecar `NAME.json`.
+    pub fn load(path: &Path) -> Result<Self> {
+        let tensors = read_safetensors(path)?;
+        let json_path = path.with_extension("json");
+        let text = std::fs::read_to_string(&json_path).map_err(|source| PolicyError::Io {
+            path: json_path.clone(),
+            source,
+        })?;
+        let sidecar = serde_json::from_str(&text).map_err(|e| PolicyError::Sidecar {
+            path: json_path,
+            message: e.to_string(),
+        })?;
+        Ok(Self {
+            path: path.to_path_buf(),
+            tensors,
+            sidecar,
+        })
+    }
+
+    /// The building block this fixture exercises (sidecar `fixture`, else the file stem).
+    pub fn kind(&self) -> String {
+        self.sidecar
+            .get("fixture")
+            .and_then(|v| v.as_str())
+            .map(str::to_string)
+            .unwrap_or_else(|| {
+                self.path
+                    .file_stem()
+                    .map(|s| s.to_string_lossy().into_owned())
+                    .unwrap_or_default()
+            })
+    }
+
+    fn get(&self, key: &str) -> Result<&StoredTensor> {
+        self.tensors
+            .get(key)
+            .ok_or_else(|| PolicyError::MissingTensor {
+                name: key.to_string(),
+                file: self.path.display().to_string(),
+            })
+    }
+
+    /// A float32 tensor, checked against an expected shape (`None` entries match anything).
+    pub fn f32(&self, key: &str, shape: &[Option<usize>]) -> Result<(&[usize], &[f32])> {
+        let t = self.get(key)?;
+        check_shape(key, &t.shape, shape)?;
+        match &t.data {
+            TensorData::F32(v) => Ok((&t.shape, v)),
+            TensorData::I64(_) => Err(PolicyError::WrongDtype {
+                name: key.to_string(),
+                expected: "F32",
+                got: "I64".into(),
+            }),
+        }
+    }
+
+    /// An int64 tensor, checked against an expected shape.
+    pub fn i64(&self, key: &str, shape: &[Option<usize>]) -> Result<(&[usize], &[i64])> {
+        let t = self.get(key)?;
+        check_shape(key, &t.shape, shape)?;
+        match &t.data {
+            TensorData::I64(v) => Ok((&t.shape, v)),
+            TensorData::F32(_) => Err(PolicyError::WrongDtype {
+                name: key.to_string(),
+                expected: "I64",
+                got: "F32".into(),
+            }),
+        }
+    }
+}
+
+fn check_shape(key: &str, got: &[usize], expected: &[Option<usize>]) -> Result<()> {
+    let ok = got.len() == expected.len()
+        && got
+            .iter()
+            .zip(expected)
+            .all(|(g, e)| e.is_none_or(|e| e == *g));
+    if !ok {
+        return Err(PolicyError::ShapeMismatch {
+            name: key.to_string(),
+            expected: expected.iter().map(|e| e.unwrap_or(0)).collect(),
+            got: got.to_vec(),
+        });
+    }
+    Ok(())
+}
+
+/// The result of comparing one output with its reference.
+#[derive(Debug, Clone)]
+pub struct Comparison {
+    /// What was compared (usually the reference key).
+    pub what: String,
+    /// max |ours - ref| (for index records: the number of mismatches).
+    pub max_abs: f64,
+    /// max_abs / max |ref|.
+    pub rel: f64,
+    /// max |ours - ref| / (1 + |ref|), the quantity held to the tolerance.
+    pub scaled: f64,
+    /// The tolerance on `scaled`.
+    pub tolerance: f64,
+}
+
+impl Comparison {
+    /// Whether the comparison is within tolerance (NaN fails).
+    pub fn passed(&self) -> bool {
+        self.scaled <= self.tolerance
+    }
+}
+
+/// Compares values; a length mismatch is an infinite error.
+pub fn compare(what: &str, ours: &[f64], reference: &[f32], tolerance: f64) -> Comparison {
+    if ours.len() != reference.len() {
+        return Comparison {
+            what: format!(
+                "{what} (length {} vs reference {})",
+                ours.len(),
+                reference.len()
+            ),
+            max_abs: f64::INFINITY,
+            rel: f64::INFINITY,
+            scaled: f64::INFINITY,
+            tolerance,
+        };
+    }
+    let mut max_abs = 0.0f64;
+    let mut max_ref = 0.0f64;
+    let mut scaled = 0.0f64;
+    for (a, b) in ours.iter().zip(reference) {
+        let b = f64::from(*b);
+        let d = (a - b).abs();
+        // NaN must fail: f64::max ignores NaN, so map it to infinity.
+        let d = if d.is_nan() { f64::INFINITY } else { d };
+        max_abs = max_abs.max(d);
+        max_ref = max_ref.max(b.abs());
+        scaled = scaled.max(d / (1.0 + b.abs()));
+    }
+    Comparison {
+        what: what.to_string(),
+        max_abs,
+        rel: if max_ref > 0.0 {
+            max_abs / max_ref
+        } else {
+            max_abs
+        },
+        scaled,
+        tolerance,
+    }
+}
+
+fn compare_f32(what: &str, ours: &[f32], reference: &[f32], tolerance: f64) -> Comparison {
+    let o: Vec<f64> = ours.iter().map(|v| f64::from(*v)).collect();
+    compare(what, &o, reference, tolerance)
+}
+
+/// Compares index records exactly: `max_abs` counts mismatches.
+pub fn compare_indices(what: &str, ours: &[usize], reference: &[i64]) -> Comparison {
+    let mismatches = if ours.len() != reference.len() {
+        f64::INFINITY
+    } else {
+        ours.iter()
+            .zip(reference)
+            .filter(|(a, b)| **a as i64 != **b)
+            .count() as f64
+    };
+    Comparison {
+        what: what.to_string(),
+        max_abs: mismatches,
+        rel: mismatches,
+        scaled: mismatches,
+        tolerance: 0.0,
+    }
+}
+
+/// What checking one fixture gave.
+#[derive(Debug)]
+#[non_exhaustive]
+pub enum Outcome {
+    /// Checked: every comparison made.
+    Checked(Vec<Comparison>),
+    /// This crate cannot check that kind of fixture yet (a failure).
+    Unsupported(String),
+    /// The fixture could not be read or did not have the expected layout (a failure).
+    Failed(PolicyError),
+}
+
+/// The report of one fixture file.
+#[derive(Debug)]
+pub struct FixtureReport {
+    /// The fixture's name (file stem).
+    pub name: String,
+    /// What happened.
+    pub outcome: Outcome,
+}
+
+impl FixtureReport {
+    /// Whether the fixture was checked and every comparison passed.
+    pub fn passed(&self) -> bool {
+        match &self.outcome {
+            Outcome::Checked(c) => !c.is_empty() && c.iter().all(Comparison::passed),
+            _ => false,
+        }
+    }
+
+    /// The comparison with the largest tolerance ratio, if any.
+    pub fn worst(&self) -> Option<&Comparison> {
+        match &self.outcome {
+            Outcome::Checked(c) => c.iter().max_by(|a, b| ratio(a).total_cmp(&ratio(b))),
+            _ => None,
+        }
+    }
+
+    /// One summary line: status, name, max abs and relative error, worst comparison.
+    pub fn line(&self) -> String {
+        let status = if self.passed() { "PASS" } else { "FAIL" };
+        match &self.outcome {
+            Outcome::Checked(c) => {
+                let max_abs = c.iter().map(|x| x.max_abs).fold(0.0, f64::max);
+                let rel = c.iter().map(|x| x.rel).fold(0.0, f64::max);
+                let worst = self
+                    .worst()
+                    .map(|w| {
+                        format!(
+                            "worst {} (scaled {:.2e} / tol {:.0e})",
+                            w.what, w.scaled, w.tolerance
+                        )
+                    })
+                    .unwrap_or_default();
+                format!(
+                    "{status} {:<20} checks {:>3}  max_abs {:.3e}  rel {:.3e}  {worst}",
+                    self.name,
+                    c.len(),
+                    max_abs,
+                    rel
+                )
+            }
+            Outcome::Unsupported(kind) => format!(
+                "{status} {:<20} unsupported fixture kind '{kind}' (not implemented yet)",
+                self.name
+            ),
+            Outcome::Failed(e) => format!("{status} {:<20} error: {e}", self.name),
+        }
+    }
+}
+
+fn ratio(c: &Comparison) -> f64 {
+    if c.tolerance > 0.0 {
+        c.scaled / c.tolerance
+    } else if c.scaled > 0.0 {
+        f64::INFINITY
+    } else {
+        0.0
+    }
+}
+
+/// Checks every `*.safetensors` (+ `.json` sidecar) fixture in `dir`, sorted by name.
+///
+/// Errors only when the folder itself cannot be listed or holds no fixture; per-file problems
+/// are failing reports.
+pub fn check_dir(dir: &Path) -> Result<Vec<FixtureReport>> {
+    let entries = std::fs::read_dir(dir).map_err(|source| PolicyError::Io {
+        path: dir.to_path_buf(),
+        source,
+    })?;
+    let mut tensor_files = Vec::new();
+    let mut sidecars = Vec::new();
+    for e in entries {
+        let p = e
+            .map_err(|source| PolicyError::Io {
+                path: dir.to_path_buf(),
+                source,
+            })?
+            .path();
+        match p.extension().and_then(|x| x.to_str()) {
+            Some("safetensors") => tensor_files.push(p),
+            Some("json") => sidecars.push(p),
+            _ => {}
+        }
+    }
+    tensor_files.sort();
+    sidecars.sort();
+    let mut reports: Vec<FixtureReport> = tensor_files.iter().map(|p| check_file(p)).collect();
+    // A sidecar without its tensor file is a broken fixture too.
+    for s in sidecars {
+        if !s.with_extension("safetensors").exists() {
+            let name = s
+                .file_stem()
+                .map(|x| x.to_string_lossy().into_owned())
+                .unwrap_or_default();
+            let source = std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                "sidecar without its .safetensors file",
+            );
+            reports.push(FixtureReport {
+                name,
+                outcome: Outcome::Failed(PolicyError::Io {
+                    path: s.with_extension("safetensors"),
+                    source,
+                }),
+            });
+        }
+    }
+    if reports.is_empty() {
+        return Err(PolicyError::Io {
+            path: dir.to_path_buf(),
+            source: std::io::Error::new(
+                std::io::ErrorKind::NotFound,
+                "no *.safetensors fixtures in this folder",
+            ),
+        });
+    }
+    Ok(reports)
+}
+
+/// Checks one fixture file.
+pub fn check_file(path: &Path) -> FixtureReport {
+    let name = path
+        .file_stem()
+        .map(|x| x.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let fx = match FixtureFile::load(path) {
+        Ok(f) => f,
+        Err(e) => {
+            return FixtureReport {
+                name,
+                outcome: Outcome::Failed(e),
+            }
+        }
+    };
+    let kind = fx.kind();
+    let result = match kind.as_str() {
+        "sh_wigner" => check_sh_wigner(&fx),
+        "s2_grid" => check_s2_grid(&fx),
+        "rotation_head" => check_rotation_head(&fx),
+        "pool_upsample" => check_pool_upsample(&fx),
+        _ => {
+            return FixtureReport {
+                name,
+                outcome: Outcome::Unsupported(kind),
+            }
+        }
+    };
+    FixtureReport {
+        name,
+        outcome: match result {
+            Ok(c) => Outcome::Checked(c),
+            Err(e) => Outcome::Failed(e),
+        },
+    }
+}
+
+fn mat3(v: &[f32]) -> Matrix3<f64> {
+    Matrix3::from_row_slice(&v.iter().map(|x| f64::from(*x)).collect::<Vec<_>>())
+}
+
+fn vec3s(v: &[f32]) -> Vec<[f64; 3]> {
+    v.chunks_exact(3)
+        .map(|c| [f64::from(c[0]), f64::from(c[1]), f64::from(c[2])])
+        .collect()
+}
+
+fn vec3s_f32(v: &[f32]) -> Vec<[f32; 3]> {
+    v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+fn flatten_dm(m: &nalgebra::DMatrix<f64>) -> Vec<f64> {
+    // Row-major, like the stored tensors.
+    let mut out = Vec::with_capacity(m.len());
+    for r in 0..m.nrows() {
+        for c in 0..m.ncols() {
+            out.push(m[(r, c)]);
+        }
+    }
+    out
+}
+
+fn sh_rows(lmax: usize, vs: &[[f64; 3]]) -> Result<Vec<f64>> {
+    let mut out = Vec::with_capacity(vs.len() * num_coefficients(lmax));
+    for v in vs {
+        out.extend(spherical_harmonics(lmax, *v)?);
+    }
+    Ok(out)
+}
+
+fn check_sh_wigner(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    let mut out = Vec::new();
+    let calc = WignerCalculator::new(4)?;
+    let (_, uv) = fx.f32("in.unit_vectors", &[None, Some(3)])?;
+    let vs = vec3s(uv);
+    let (_, sh) = fx.f32("out.sh", &[Some(vs.len()), Some(25)])?;
+    out.push(compare("out.sh", &sh_rows(4, &vs)?, sh, TOL));
+    let mut al = Vec::new();
+    let mut be = Vec::new();
+    for v in &vs {
+        let (a, b) = xyz_to_angles(*v)?;
+        al.push(a);
+        be.push(b);
+    }
+    out.push(compare(
+        "out.vec_alpha",
+        &al,
+        fx.f32("out.vec_alpha", &[Some(vs.len())])?.1,
+        TOL,
+    ));
+    out.push(compare(
+        "out.vec_beta",
+        &be,
+        fx.f32("out.vec_beta", &[Some(vs.len())])?.1,
+        TOL,
+    ));
+
+    let (shape, rm) = fx.f32("in.rot_mats", &[None, Some(3), Some(3)])?;
+    let nrot = shape[0];
+    let (_, wref) = fx.f32("out.wigner", &[Some(nrot), Some(25), Some(25)])?;
+    let mut w = Vec::new();
+    let mut angles = [Vec::new(), Vec::new(), Vec::new()];
+    for r in rm.chunks_exact(9) {
+        let m = mat3(r);
+        w.extend(flatten_dm(&calc.wigner(4, &m)?));
+        let (a, b, g) = matrix_to_angles(&m)?;
+        angles[0].push(a);
+        angles[1].push(b);
+        angles[2].push(g);
+    }
+    out.push(compare("out.wigner", &w, wref, TOL_WIGNER));
+    for (k, key) in ["out.rot_alpha", "out.rot_beta", "out.rot_gamma"]
+        .iter()
+        .enumerate()
+    {
+        out.push(compare(key, &angles[k], fx.f32(key, &[Some(nrot)])?.1, TOL));
+    }
+
+    let (eshape, ev) = fx.f32("in.edge_vec", &[None, Some(3)])?;
+    let ne = eshape[0];
+    let mut erm = Vec::new();
+    let mut w3 = Vec::new();
+    let mut w4 = Vec::new();
+    let mut w3inv = Vec::new();
+    for e in vec3s(ev) {
+        let m = edge_rot_mat(e)?;
+        erm.extend(m.transpose().iter().copied());
+        w3.extend(flatten_dm(&calc.wigner(3, &m)?));
+        w3inv.extend(flatten_dm(&calc.wigner(3, &m)?.transpose()));
+        w4.extend(flatten_dm(&calc.wigner(4, &m)?));
+    }
+    out.push(compare(
+        "out.edge_rot_mat",
+        &erm,
+        fx.f32("out.edge_rot_mat", &[Some(ne), Some(3), Some(3)])?.1,
+        TOL,
+    ));
+    out.push(compare(
+        "out.edge_wigner_l3",
+        &w3,
+        fx.f32("out.edge_wigner_l3", &[Some(ne), Some(16), Some(16)])?
+            .1,
+        TOL_WIGNER,
+    ));
+    out.push(compare(
+        "out.edge_wigner_inv_l3",
+        &w3inv,
+        fx.f32("out.edge_wigner_inv_l3", &[Some(ne), Some(16), Some(16)])?
+            .1,
+        TOL_WIGNER,
+    ));
+    out.push(compare(
+        "out.edge_wigner_l4",
+        &w4,
+        fx.f32("out.edge_wigner_l4", &[Some(ne), Some(25), Some(25)])?
+            .1,
+        TOL_WIGNER,
+    ));
+
+    // The moved run: parity on the moved input, and D(R) itself.
+    let r = mat3(fx.f32("rot.R", &[Some(3), Some(3)])?.1);
+    out.push(compare(
+        "rot.buf.D_R",
+        &flatten_dm(&calc.wigner(4, &r)?),
+        fx.f32("rot.buf.D_R", &[Some(25), Some(25)])?.1,
+        TOL_WIGNER,
+    ));
+    let rvs = vec3s(fx.f32("rot.in.unit_vectors", &[Some(vs.len()), Some(3)])?.1);
+    out.push(compare(
+        "rot.out.sh",
+        &sh_rows(4, &rvs)?,
+        fx.f32("rot.out.sh", &[Some(vs.len()), Some(25)])?.1,
+        TOL,
+    ));
+    let rev = vec3s(fx.f32("rot.in.edge_vec", &[Some(ne), Some(3)])?.1);
+    let mut rerm = Vec::new();
+    for e in rev {
+        rerm.extend(edge_rot_mat(e)?.transpose().iter().copied());
+    }
+    out.push(compare(
+        "rot.out.edge_rot_mat",
+        &rerm,
+        fx.f32("rot.out.edge_rot_mat", &[Some(ne), Some(3), Some(3)])?
+            .1,
+        TOL,
+    ));
+    Ok(out)
+}
+
+fn check_s2_grid(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    let mut out = Vec::new();
+    let grids = fx
+        .sidecar
+        .get("grids")
+        .and_then(|g| g.as_object())
+        .ok_or_else(|| PolicyError::Sidecar {
+            path: fx.path.with_extension("json"),
+            message: "missing object 'grids'".into(),
+        })?;
+    for (gname, g) in grids {
+        let field = |k: &str| {
+            g.get(k)
+                .and_then(|v| v.as_u64())
+                .map(|v| v as usize)
+                .ok_or_else(|| PolicyError::Sidecar {
+                    path: fx.path.with_extension("json"),
+                    message: format!("grids.{gname}.{k} missing or not an integer"),
+                })
+        };
+        let (lmax, mmax) = (field("lmax")?, field("mmax")?);
+        let grid = S2Grid::reference(lmax, mmax)?;
+        let (lat, long, nr) = (grid.lat, grid.long, grid.reduced.len());
+        let shape = [Some(lat), Some(long), Some(nr)];
+        out.push(compare(
+            &format!("buf.to_grid_mat.{gname}"),
+            &grid.to_grid,
+            fx.f32(&format!("buf.to_grid_mat.{gname}"), &shape)?.1,
+            TOL,
+        ));
+        out.push(compare(
+            &format!("buf.from_grid_mat.{gname}"),
+            &grid.from_grid,
+            fx.f32(&format!("buf.from_grid_mat.{gname}"), &shape)?.1,
+            TOL,
+        ));
+        out.push(compare_indices(
+            &format!("buf.reduced_coef_idx.{gname}"),
+            &reduced_coefficients(lmax, mmax),
+            fx.i64(&format!("buf.reduced_coef_idx.{gname}"), &[Some(nr)])?
+                .1,
+        ));
+        let betas: Vec<f64> = (0..lat)
+            .map(|b| (b as f64 + 0.5) * std::f64::consts::PI / lat as f64)
+            .collect();
+        let alphas: Vec<f64> = (0..long)
+            .map(|a| 2.0 * std::f64::consts::PI * a as f64 / long as f64)
+            .collect();
+        out.push(compare(
+            &format!("buf.betas.{gname}"),
+            &betas,
+            fx.f32(&format!("buf.betas.{gname}"), &[Some(lat)])?.1,
+            TOL,
+        ));
+        out.push(compare(
+            &format!("buf.alphas.{gname}"),
+            &alphas,
+            fx.f32(&format!("buf.alphas.{gname}"), &[Some(long)])?.1,
+            TOL,
+        ));
+        out.push(compare(
+            &format!("buf.quadrature_weights.{gname}"),
+            &crate::grids::quadrature_weights(lat, long),
+            fx.f32(&format!("buf.quadrature_weights.{gname}"), &[Some(lat)])?
+                .1,
+            TOL,
+        ));
+        let (xs, x) = fx.f32(&format!("in.x.{gname}"), &[None, Some(nr), None])?;
+        let (n, c) = (xs[0], xs[2]);
+        out.push(compare_f32(
+            &format!("out.grid.{gname}"),
+            &grid.to_grid_values(x, n, c)?,
+            fx.f32(
+                &format!("out.grid.{gname}"),
+                &[Some(n), Some(lat), Some(long), Some(c)],
+            )?
+            .1,
+            TOL,
+        ));
+        out.push(compare_f32(
+            &format!("out.s2act.{gname}"),
+            &grid.activate(x, n, c)?,
+            fx.f32(&format!("out.s2act.{gname}"), &[Some(n), Some(nr), Some(c)])?
+                .1,
+            TOL,
+        ));
+        let rkey = format!("rot.in.x.{gname}");
+        if fx.tensors.contains_key(&rkey) {
+            let (rs, rx) = fx.f32(&rkey, &[None, Some(nr), None])?;
+            out.push(compare_f32(
+                &format!("rot.out.s2act.{gname}"),
+                &grid.activate(rx, rs[0], rs[2])?,
+                fx.f32(
+                    &format!("rot.out.s2act.{gname}"),
+                    &[Some(rs[0]), Some(nr), Some(rs[2])],
+                )?
+                .1,
+                TOL,
+            ));
+        }
+    }
+    Ok(out)
+}
+
+fn check_rotation_head(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    let mut out = Vec::new();
+    let calc = WignerCalculator::new(4)?;
+    let kernel = s2_healpix_grid(1);
+    let kg: Vec<f64> = kernel
+        .iter()
+        .map(|k| k.0)
+        .chain(kernel.iter().map(|k| k.1))
+        .collect();
+    out.push(compare(
+        "buf.s2_kernel_grid",
+        &kg,
+        fx.f32("buf.s2_kernel_grid", &[Some(2), Some(48)])?.1,
+        TOL,
+    ));
+    let mut y = Vec::new();
+    for &(a, b) in &kernel {
+        y.extend(spherical_harmonics(4, angles_to_xyz(a, b))?);
+    }
+    out.push(compare(
+        "buf.s2_conv.Y",
+        &y,
+        fx.f32("buf.s2_conv.Y", &[Some(48), Some(25)])?.1,
+        TOL,
+    ));
+    for (level, n) in [(1u32, 576usize), (2, 4608)] {
+        let grid = so3_healpix_grid(level);
+        let angles: Vec<f64> = (0..3)
+            .flat_map(|k| grid.iter().map(move |g| g.angles[k]))
+            .collect();
+        out.push(compare(
+            &format!("buf.healpix_l{level}_angles"),
+            &angles,
+            fx.f32(&format!("buf.healpix_l{level}_angles"), &[Some(3), Some(n)])?
+                .1,
+            TOL,
+        ));
+        let mats: Vec<f64> = grid
+            .iter()
+            .flat_map(|g| g.matrix.transpose().iter().copied().collect::<Vec<_>>())
+            .collect();
+        out.push(compare(
+            &format!("buf.healpix_l{level}_mats"),
+            &mats,
+            fx.f32(
+                &format!("buf.healpix_l{level}_mats"),
+                &[Some(n), Some(3), Some(3)],
+            )?
+            .1,
+            TOL,
+        ));
+    }
+    let grid = so3_healpix_grid(1);
+    let fw = RotationHead::grid_wigners(&calc, &grid)?;
+    let mut ow = vec![0.0; SO3_COEFFS * grid.len()];
+    for (j, w) in fw.iter().enumerate() {
+        for (i, v) in w.iter().enumerate() {
+            ow[i * grid.len() + j] = *v;
+        }
+    }
+    out.push(compare(
+        "buf.output_wigners",
+        &ow,
+        fx.f32("buf.output_wigners", &[Some(SO3_COEFFS), Some(grid.len())])?
+            .1,
+        TOL_WIGNER,
+    ));
+
+    let (ws, w) = fx.f32("param.s2_conv.w", &[None, Some(1), Some(48)])?;
+    let f_in = ws[0];
+    let head = RotationHead::new(w, f_in)?;
+    let r = mat3(fx.f32("rot.R", &[Some(3), Some(3)])?.1);
+    let rotated_grid: Vec<_> = grid
+        .iter()
+        .map(|g| crate::grids::GridRotation {
+            angles: g.angles,
+            matrix: r * g.matrix,
+        })
+        .collect();
+    let fw_rot = RotationHead::grid_wigners(&calc, &rotated_grid)?;
+    for prefix in ["", "rot."] {
+        let (xs, x) = fx.f32(&format!("{prefix}in.x"), &[None, Some(f_in), Some(25)])?;
+        let b = xs[0];
+        let mut coeffs = Vec::new();
+        let mut logits = Vec::new();
+        let mut logits_rot = Vec::new();
+        for q in x.chunks_exact(f_in * 25) {
+            let c = head.so3_coefficients(q)?;
+            logits.extend(RotationHead::logits(&c, &fw));
+            logits_rot.extend(RotationHead::logits(&c, &fw_rot));
+            coeffs.extend(c);
+        }
+        out.push(compare(
+            &format!("{prefix}out.so3_coeffs"),
+            &coeffs,
+            fx.f32(
+                &format!("{prefix}out.so3_coeffs"),
+                &[Some(b), Some(SO3_COEFFS)],
+            )?
+            .1,
+            TOL,
+        ));
+        out.push(compare(
+            &format!("{prefix}out.logits"),
+            &logits,
+            fx.f32(&format!("{prefix}out.logits"), &[Some(b), Some(grid.len())])?
+                .1,
+            TOL_WIGNER,
+        ));
+        if prefix == "rot." {
+            out.push(compare(
+                "rot.out.logits_on_rotated_grid",
+                &logits_rot,
+                fx.f32(
+                    "rot.out.logits_on_rotated_grid",
+                    &[Some(b), Some(grid.len())],
+                )?
+                .1,
+                TOL_WIGNER,
+            ));
+        }
+    }
+    let _ = flat_wigner;
+    Ok(out)
+}
+
+fn check_pool_upsample(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    let mut out = Vec::new();
+    let (xs, _) = fx.f32("in.x", &[None, None, None])?;
+    let (n, nc, c) = (xs[0], xs[1], xs[2]);
+    let lmax = (nc as f64).sqrt() as usize - 1;
+    if num_coefficients(lmax) != nc {
+        return Err(PolicyError::ShapeMismatch {
+            name: "in.x".into(),
+            expected: vec![n, num_coefficients(lmax), c],
+            got: xs.to_vec(),
+        });
+    }
+    for prefix in ["", "rot."] {
+        // Inputs not stored under rot.in are unchanged (fixtures README, "Key prefixes").
+        let pos = vec3s_f32(fx.f32(&format!("{prefix}in.pos"), &[Some(n), Some(3)])?.1);
+        let x = fx
+            .f32(&format!("{prefix}in.x"), &[Some(n), Some(nc), Some(c)])?
+            .1;
+        let m = n.div_ceil(4);
+        let centres = farthest_point_sampling(&pos, m)?;
+        if prefix.is_empty() {
+            out.push(compare_indices(
+                "in.centres",
+                &centres,
+                fx.i64("in.centres", &[Some(m)])?.1,
+            ));
+        }
+        let centre_pos: Vec<[f32; 3]> = centres.iter().map(|&i| pos[i]).collect();
+        let neighbours = knn(&pos, &centre_pos, 16)?;
+        if prefix.is_empty() {
+            let flat: Vec<usize> = neighbours.iter().flatten().copied().collect();
+            out.push(compare_indices(
+                "in.neighbours",
+                &flat,
+                fx.i64("in.neighbours", &[Some(m), Some(16)])?.1,
+            ));
+        }
+        let pooled = coefficient_max_pool(x, n, lmax, c, &neighbours)?;
+        out.push(compare_f32(
+            &format!("{prefix}out.pooled"),
+            &pooled,
+            fx.f32(
+                &format!("{prefix}out.pooled"),
+                &[Some(m), Some(nc), Some(c)],
+            )?
+            .1,
+            TOL,
+        ));
+        let up_nb = knn(&centre_pos, &pos, 3)?;
+        if prefix.is_empty() {
+            let flat: Vec<usize> = up_nb.iter().flatten().copied().collect();
+            out.push(compare_indices(
+                "in.up_neighbours",
+                &flat,
+                fx.i64("in.up_neighbours", &[Some(n), Some(3)])?.1,
+            ));
+        }
+        let w = upsample_weights(&pos, &centre_pos, &up_nb, UpsampleDistance::L1)?;
+        let wf: Vec<f32> = w.iter().flatten().copied().collect();
+        out.push(compare_f32(
+            &format!("{prefix}out.up_weights"),
+            &wf,
+            fx.f32(&format!("{prefix}out.up_weights"), &[Some(n), Some(3)])?
+                .1,
+            TOL,
+        ));
+        let up = upsample(&pooled, m, nc * c, &up_nb, &w)?;
+        out.push(compare_f32(
+            &format!("{prefix}out.upsampled"),
+            &up,
+            fx.f32(
+                &format!("{prefix}out.upsampled"),
+                &[Some(n), Some(nc), Some(c)],
+            )?
+            .1,
+            TOL,
+        ));
+    }
+    Ok(out)
+}

@@ -1,0 +1,267 @@
+//! Sampling grids: the S2 grids of the separable S2 activation, and HEALPix grids on the
+//! sphere and on SO(3).
+//!
+//! Spec: fixtures README, "S2 grids" and "HEALPix SO(3) grid"; `equact.md`, "EquiformerV2
+//! block" (separable S2 activation) and "Heads" (rotation grid). The S2 grid matrices are
+//! built from their closed forms (they agree with the reference's tables to 6e-8).
+
+use crate::error::{PolicyError, Result};
+use crate::so3::{angles_to_matrix, angles_to_xyz, spherical_harmonics_unit_into, MAX_DEGREE};
+use nalgebra::Matrix3;
+
+/// Full-basis indices (l*l + m + l) of the coefficients with |m| <= mmax, in l-major order.
+pub fn reduced_coefficients(lmax: usize, mmax: usize) -> Vec<usize> {
+    let mut out = Vec::new();
+    for l in 0..=lmax {
+        let mm = l.min(mmax) as i64;
+        for m in -mm..=mm {
+            out.push(crate::so3::coefficient_index(l, m));
+        }
+    }
+    out
+}
+
+/// The reference's grid resolution for (lmax, mmax) with `grid_resolution=None`:
+/// (lat, long) = (2(lmax+1), 2(mmax+1)+1 if lmax == mmax else 2 mmax + 1).
+pub fn reference_resolution(lmax: usize, mmax: usize) -> (usize, usize) {
+    let lat = 2 * (lmax + 1);
+    let long = if lmax == mmax {
+        2 * (mmax + 1) + 1
+    } else {
+        2 * mmax + 1
+    };
+    (lat, long)
+}
+
+/// Kostelec-Rockmore quadrature weights per latitude ring, scaled as the reference's
+/// `from_grid` uses them (qw_b = w_b · lat² / long).
+pub fn quadrature_weights(lat: usize, long: usize) -> Vec<f64> {
+    use std::f64::consts::PI;
+    let b = lat as f64 / 2.0;
+    (0..lat)
+        .map(|j| {
+            let jj = (2 * j + 1) as f64;
+            let mut s = 0.0;
+            for k in 0..(lat / 2) {
+                let kk = (2 * k + 1) as f64;
+                s += (jj * kk * PI / (4.0 * b)).sin() / kk;
+            }
+            let w = (2.0 / b) * (PI * jj / (4.0 * b)).sin() * s / (2.0 * (2.0 * b) * (2.0 * b));
+            w * (lat * lat) as f64 / long as f64
+        })
+        .collect()
+}
+
+/// An S2 grid with its to-grid and from-grid matrices for the reduced coefficient set.
+#[derive(Debug, Clone)]
+pub struct S2Grid {
+    /// Maximum degree.
+    pub lmax: usize,
+    /// Maximum order kept.
+    pub mmax: usize,
+    /// Number of latitude rings (beta samples).
+    pub lat: usize,
+    /// Number of longitudes (alpha samples).
+    pub long: usize,
+    /// Full-basis index of each reduced coefficient.
+    pub reduced: Vec<usize>,
+    /// [lat, long, n_reduced], row-major.
+    pub to_grid: Vec<f64>,
+    /// [lat, long, n_reduced], row-major.
+    pub from_grid: Vec<f64>,
+}
+
+impl S2Grid {
+    /// The reference's grid for (lmax, mmax) (parity mode).
+    pub fn reference(lmax: usize, mmax: usize) -> Result<Self> {
+        let (lat, long) = reference_resolution(lmax, mmax);
+        Self::with_resolution(lmax, mmax, lat, long)
+    }
+
+    /// A grid with the given resolution (finer grids make the S2 activation closer to
+    /// equivariant; the scale factors keep the reference's normalisation).
+    pub fn with_resolution(lmax: usize, mmax: usize, lat: usize, long: usize) -> Result<Self> {
+        if lmax > MAX_DEGREE || mmax > lmax || lat < 2 || long < 1 || lat % 2 != 0 {
+            return Err(PolicyError::UnsupportedDegree {
+                lmax,
+                mmax,
+                max_supported: MAX_DEGREE,
+            });
+        }
+        use std::f64::consts::PI;
+        let reduced = reduced_coefficients(lmax, mmax);
+        let nr = reduced.len();
+        let qw = quadrature_weights(lat, long);
+        let mut to_grid = vec![0.0; lat * long * nr];
+        let mut from_grid = vec![0.0; lat * long * nr];
+        let mut y = vec![0.0; crate::so3::num_coefficients(lmax)];
+        let degree_of = |i: usize| (i as f64).sqrt().floor() as usize;
+        for (bi, &qb) in qw.iter().enumerate() {
+            let beta = (bi as f64 + 0.5) * PI / lat as f64;
+            for ai in 0..long {
+                let alpha = 2.0 * PI * ai as f64 / long as f64;
+                spherical_harmonics_unit_into(lmax, angles_to_xyz(alpha, beta), &mut y);
+                for (r, &full) in reduced.iter().enumerate() {
+                    let l = degree_of(full);
+                    let tl = (2 * l + 1) as f64;
+                    let rescale = if l > mmax {
+                        (tl / (2 * mmax + 1) as f64).sqrt()
+                    } else {
+                        1.0
+                    };
+                    let idx = (bi * long + ai) * nr + r;
+                    to_grid[idx] = y[full] / (tl * (lmax + 1) as f64).sqrt() * rescale;
+                    from_grid[idx] = qb * y[full] * ((lmax + 1) as f64 * tl).sqrt() * rescale;
+                }
+            }
+        }
+        Ok(Self {
+            lmax,
+            mmax,
+            lat,
+            long,
+            reduced,
+            to_grid,
+            from_grid,
+        })
+    }
+
+    /// Number of grid points.
+    pub fn num_points(&self) -> usize {
+        self.lat * self.long
+    }
+
+    /// `grid[z, p, c] = sum_i to_grid[p, i] x[z, i, c]` for x of shape [n, n_reduced, c].
+    pub fn to_grid_values(&self, x: &[f32], n: usize, c: usize) -> Result<Vec<f32>> {
+        let nr = self.reduced.len();
+        check_len("S2 grid input", x.len(), &[n, nr, c])?;
+        let np = self.num_points();
+        let mut out = vec![0.0f32; n * np * c];
+        for z in 0..n {
+            for p in 0..np {
+                let o = &mut out[(z * np + p) * c..(z * np + p + 1) * c];
+                for i in 0..nr {
+                    let w = self.to_grid[p * nr + i];
+                    let xi = &x[(z * nr + i) * c..(z * nr + i + 1) * c];
+                    for (oc, xc) in o.iter_mut().zip(xi) {
+                        *oc += (w * f64::from(*xc)) as f32;
+                    }
+                }
+            }
+        }
+        Ok(out)
+    }
+
+    /// The S2 activation of the reference: from_grid(SiLU(to_grid(x))), x of shape [n, n_reduced, c].
+    pub fn activate(&self, x: &[f32], n: usize, c: usize) -> Result<Vec<f32>> {
+        let nr = self.reduced.len();
+        let grid = self.to_grid_values(x, n, c)?;
+        let np = self.num_points();
+        let mut out = vec![0.0f64; n * nr * c];
+        for z in 0..n {
+            for p in 0..np {
+                let g = &grid[(z * np + p) * c..(z * np + p + 1) * c];
+                for i in 0..nr {
+                    let w = self.from_grid[p * nr + i];
+                    let o = &mut out[(z * nr + i) * c..(z * nr + i + 1) * c];
+                    for (oc, gc) in o.iter_mut().zip(g) {
+                        *oc += w * silu(f64::from(*gc));
+                    }
+                }
+            }
+        }
+        Ok(out.into_iter().map(|v| v as f32).collect())
+    }
+}
+
+/// SiLU x·σ(x).
+pub fn silu(x: f64) -> f64 {
+    x / (1.0 + (-x).exp())
+}
+
+fn check_len(name: &str, len: usize, shape: &[usize]) -> Result<()> {
+    if len != shape.iter().product::<usize>() {
+        return Err(PolicyError::ShapeMismatch {
+            name: name.to_string(),
+            expected: shape.to_vec(),
+            got: vec![len],
+        });
+    }
+    Ok(())
+}
+
+/// HEALPix `pix2ang` in RING order: (colatitude theta, longitude phi) of pixel `p`.
+pub fn healpix_pix2ang_ring(nside: usize, p: usize) -> (f64, f64) {
+    use std::f64::consts::PI;
+    let ns = nside as f64;
+    let npix = 12 * nside * nside;
+    let ncap = 2 * nside * (nside - 1);
+    if p < ncap {
+        let iring = isqrt(1 + 2 * p).div_ceil(2);
+        let iphi = p + 1 - 2 * iring * (iring - 1);
+        let z = 1.0 - (iring * iring) as f64 / (3.0 * ns * ns);
+        (z.acos(), (iphi as f64 - 0.5) * PI / (2.0 * iring as f64))
+    } else if p < npix - ncap {
+        let ip = p - ncap;
+        let iring = ip / (4 * nside) + nside;
+        let iphi = ip % (4 * nside) + 1;
+        let fodd = if (iring + nside) % 2 == 1 { 1.0 } else { 0.5 };
+        let z = (2.0 * ns - iring as f64) * 2.0 / (3.0 * ns);
+        (z.acos(), (iphi as f64 - fodd) * PI / (2.0 * ns))
+    } else {
+        let ip = npix - p;
+        let iring = isqrt(2 * ip - 1).div_ceil(2);
+        let iphi = 4 * iring + 1 - (ip - 2 * iring * (iring - 1));
+        let z = -1.0 + (iring * iring) as f64 / (3.0 * ns * ns);
+        (z.acos(), (iphi as f64 - 0.5) * PI / (2.0 * iring as f64))
+    }
+}
+
+fn isqrt(n: usize) -> usize {
+    let mut r = (n as f64).sqrt() as usize;
+    while r * r > n {
+        r -= 1;
+    }
+    while (r + 1) * (r + 1) <= n {
+        r += 1;
+    }
+    r
+}
+
+/// HEALPix sphere grid of `level` (n_side = 2^level): (alpha = longitude, beta = colatitude) per pixel.
+pub fn s2_healpix_grid(level: u32) -> Vec<(f64, f64)> {
+    let nside = 1usize << level;
+    (0..12 * nside * nside)
+        .map(|p| {
+            let (theta, phi) = healpix_pix2ang_ring(nside, p);
+            (phi, theta)
+        })
+        .collect()
+}
+
+/// One rotation of the HEALPix SO(3) grid.
+#[derive(Debug, Clone, Copy)]
+pub struct GridRotation {
+    /// e3nn angles (alpha, beta, gamma).
+    pub angles: [f64; 3],
+    /// Ry(alpha) Rx(beta) Ry(gamma).
+    pub matrix: Matrix3<f64>,
+}
+
+/// HEALPix SO(3) grid of `level`: 72·8^level rotations, index q·npix + p (gamma-major).
+pub fn so3_healpix_grid(level: u32) -> Vec<GridRotation> {
+    use std::f64::consts::PI;
+    let pix = s2_healpix_grid(level);
+    let n_gamma = 6 * (1usize << level);
+    let mut out = Vec::with_capacity(pix.len() * n_gamma);
+    for q in 0..n_gamma {
+        let gamma = 2.0 * PI * q as f64 / n_gamma as f64;
+        for &(alpha, beta) in &pix {
+            out.push(GridRotation {
+                angles: [alpha, beta, gamma],
+                matrix: angles_to_matrix(alpha, beta, gamma),
+            });
+        }
+    }
+    out
+}

@@ -1,0 +1,226 @@
+//! Point-set operations of the U-net: farthest point sampling, k nearest neighbours, the
+//! spherical-coefficient max-pool and the 3-NN up-sampling.
+//!
+//! Spec: fixtures README, "Pool and upsample" and "Edges"; `equact.md`, "U-net". FPS uses
+//! squared L2 distance, starts at index 0 and returns its picks sorted ascending. kNN returns
+//! each query's neighbours by increasing distance, ties broken by index (a stable sort, as the
+//! reference). The up-sampling weights use the L1 distance in parity mode (as the reference
+//! code) and the Euclidean distance in equivariant mode.
+
+use crate::error::{PolicyError, Result};
+
+/// Checks that every coordinate is finite.
+pub fn check_finite(what: &'static str, pos: &[[f32; 3]]) -> Result<()> {
+    for (index, p) in pos.iter().enumerate() {
+        if !p.iter().all(|v| v.is_finite()) {
+            return Err(PolicyError::NonFinitePoint {
+                what,
+                index,
+                value: *p,
+            });
+        }
+    }
+    Ok(())
+}
+
+fn dist2(a: &[f32; 3], b: &[f32; 3]) -> f32 {
+    let dx = a[0] - b[0];
+    let dy = a[1] - b[1];
+    let dz = a[2] - b[2];
+    dx * dx + dy * dy + dz * dz
+}
+
+/// Farthest point sampling of `count` points, starting at index 0; indices sorted ascending.
+pub fn farthest_point_sampling(pos: &[[f32; 3]], count: usize) -> Result<Vec<usize>> {
+    check_finite("farthest point sampling", pos)?;
+    if count == 0 || count > pos.len() {
+        return Err(PolicyError::TooFewPoints {
+            what: "farthest point sampling",
+            needed: count.max(1),
+            got: pos.len(),
+        });
+    }
+    let mut min_d = vec![f32::INFINITY; pos.len()];
+    let mut picks = Vec::with_capacity(count);
+    let mut current = 0usize;
+    for _ in 0..count {
+        picks.push(current);
+        let c = pos[current];
+        let mut best = 0usize;
+        let mut best_d = -1.0f32;
+        for (i, p) in pos.iter().enumerate() {
+            let d = dist2(p, &c);
+            if d < min_d[i] {
+                min_d[i] = d;
+            }
+            // Strictly greater: the first index wins ties, as torch's argmax.
+            if min_d[i] > best_d {
+                best_d = min_d[i];
+                best = i;
+            }
+        }
+        current = best;
+    }
+    picks.sort_unstable();
+    Ok(picks)
+}
+
+/// For each query, the indices of its `k` nearest points (fewer if there are fewer points),
+/// sorted by increasing squared distance, ties by index.
+pub fn knn(points: &[[f32; 3]], queries: &[[f32; 3]], k: usize) -> Result<Vec<Vec<usize>>> {
+    check_finite("knn points", points)?;
+    check_finite("knn queries", queries)?;
+    if points.is_empty() {
+        return Err(PolicyError::TooFewPoints {
+            what: "knn",
+            needed: 1,
+            got: 0,
+        });
+    }
+    let k = k.min(points.len());
+    let mut order: Vec<(f32, usize)> = Vec::with_capacity(points.len());
+    Ok(queries
+        .iter()
+        .map(|q| {
+            order.clear();
+            order.extend(points.iter().enumerate().map(|(i, p)| (dist2(p, q), i)));
+            // Partial selection, then a stable order of the kept k.
+            if k < order.len() {
+                order.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                order.truncate(k);
+            }
+            order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            order.iter().map(|&(_, i)| i).collect()
+        })
+        .collect())
+}
+
+/// The spherical-coefficient max-pool (`CoefficientMaxPool`): for every centre, degree l and
+/// channel, the neighbour whose degree-l block has the largest sum of squares (first on ties)
+/// supplies that whole block.
+///
+/// `x` is [n, (lmax+1)², c]; returns [neighbours.len(), (lmax+1)², c].
+pub fn coefficient_max_pool(
+    x: &[f32],
+    n: usize,
+    lmax: usize,
+    c: usize,
+    neighbours: &[Vec<usize>],
+) -> Result<Vec<f32>> {
+    let nc = crate::so3::num_coefficients(lmax);
+    if x.len() != n * nc * c {
+        return Err(PolicyError::ShapeMismatch {
+            name: "max-pool features".into(),
+            expected: vec![n, nc, c],
+            got: vec![x.len()],
+        });
+    }
+    let mut out = vec![0.0f32; neighbours.len() * nc * c];
+    for (m, nb) in neighbours.iter().enumerate() {
+        for &j in nb {
+            if j >= n {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "max-pool neighbours".into(),
+                    value: j as i64,
+                    len: n,
+                });
+            }
+        }
+        for l in 0..=lmax {
+            for ch in 0..c {
+                let mut best: Option<(f32, usize)> = None;
+                for &j in nb {
+                    let mut s = 0.0f32;
+                    for i in l * l..(l + 1) * (l + 1) {
+                        let v = x[(j * nc + i) * c + ch];
+                        s += v * v;
+                    }
+                    if best.is_none_or(|(bs, _)| s > bs) {
+                        best = Some((s, j));
+                    }
+                }
+                if let Some((_, j)) = best {
+                    for i in l * l..(l + 1) * (l + 1) {
+                        out[(m * nc + i) * c + ch] = x[(j * nc + i) * c + ch];
+                    }
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// Which distance the up-sampling weights use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum UpsampleDistance {
+    /// L1 (Manhattan), as the reference code: not rotation invariant.
+    L1,
+    /// Euclidean: rotation invariant (equivariant mode).
+    Euclidean,
+}
+
+/// Up-sampling weights w_k = 1/(d_k + 1e-8), normalised, for each point's neighbours among
+/// `centres` (indices into `centre_pos`).
+pub fn upsample_weights(
+    pos: &[[f32; 3]],
+    centre_pos: &[[f32; 3]],
+    neighbours: &[Vec<usize>],
+    distance: UpsampleDistance,
+) -> Result<Vec<Vec<f32>>> {
+    let mut out = Vec::with_capacity(pos.len());
+    for (p, nb) in pos.iter().zip(neighbours) {
+        let mut w = Vec::with_capacity(nb.len());
+        for &j in nb {
+            let q = centre_pos.get(j).ok_or(PolicyError::IndexOutOfRange {
+                name: "up-sampling neighbours".into(),
+                value: j as i64,
+                len: centre_pos.len(),
+            })?;
+            let d = match distance {
+                UpsampleDistance::L1 => {
+                    (p[0] - q[0]).abs() + (p[1] - q[1]).abs() + (p[2] - q[2]).abs()
+                }
+                UpsampleDistance::Euclidean => dist2(p, q).sqrt(),
+            };
+            w.push(1.0 / (d + 1e-8));
+        }
+        let s: f32 = w.iter().sum();
+        w.iter_mut().for_each(|v| *v /= s);
+        out.push(w);
+    }
+    Ok(out)
+}
+
+/// `out[i] = sum_k w[i][k] · coarse[neighbours[i][k]]` for features [m, nc, c] -> [n, nc, c].
+pub fn upsample(
+    coarse: &[f32],
+    m: usize,
+    row: usize,
+    neighbours: &[Vec<usize>],
+    weights: &[Vec<f32>],
+) -> Result<Vec<f32>> {
+    if coarse.len() != m * row {
+        return Err(PolicyError::ShapeMismatch {
+            name: "up-sampling features".into(),
+            expected: vec![m, row],
+            got: vec![coarse.len()],
+        });
+    }
+    let mut out = vec![0.0f32; neighbours.len() * row];
+    for (i, (nb, w)) in neighbours.iter().zip(weights).enumerate() {
+        let o = &mut out[i * row..(i + 1) * row];
+        for (&j, &wk) in nb.iter().zip(w) {
+            if j >= m {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "up-sampling neighbours".into(),
+                    value: j as i64,
+                    len: m,
+                });
+            }
+            for (ov, cv) in o.iter_mut().zip(&coarse[j * row..(j + 1) * row]) {
+                *ov += wk * cv;
+            }
+        }
+    }
+    Ok(out)
+}
