@@ -5,12 +5,21 @@
 //! `rsruckig` (pure-Rust Ruckig) does jerk-limited timing without the C++ library's cloud
 //! client; `rand_chacha` gives seeded, platform-independent sampling for RRT-Connect.
 
+pub mod checker;
 pub mod collision;
 pub mod error;
 pub mod ik;
 pub mod kinematics;
 pub mod model;
+pub mod planner;
+pub mod rrt;
+pub mod timing;
 pub mod urdf;
+pub mod world;
 
 pub use error::{Contact, PlanError};
 pub use model::RobotModel;
+pub use planner::{ClosingVolume, PlanStats, PlannedMotion, Planner, PlannerConfig};
+pub use rrt::RrtParams;
+pub use timing::PlannerLimits;
+pub use world::{CloudParams, Obstacle, World};

@@ -94,8 +94,9 @@ impl UrdfSpec {
         let (rb, rf, rw) = (self.big_radius, self.forearm_radius, self.wrist_radius);
         let body = self.flange_to_tcp - 0.055;
         vec![
-            ("base_link", [0.0, 0.0, 0.0], [0.0, 0.0, 0.05], 0.075),
-            ("shoulder_link", [0.0, 0.0, 0.0], [0.0, 0.0, u.d1], rb),
+            ("base_link", [0.0, 0.0, 0.0], [0.0, 0.0, 0.075], 0.075),
+            // Starts above the base plate so the shoulder spheres clear the mounting table.
+            ("shoulder_link", [0.0, 0.0, 0.075], [0.0, 0.0, u.d1], rb),
             ("shoulder_link", [0.0, rb, u.d1], [0.0, -s, u.d1], rb),
             ("upper_arm_link", [0.0, 0.0, s], [u.a2, 0.0, s], rb),
             ("forearm_link", [0.0, 0.0, f], [0.0, 0.0, s], rb * 0.95),

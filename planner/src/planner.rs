@@ -1,0 +1,476 @@
+//! Keyframe to validated trajectory (issue 3 items 3–8): goal selection over the IK
+//! solutions, keyframe semantics (gripper closing volume, "ignore collisions"), path search,
+//! shortcutting, jerk-limited timing and the final dense re-check of the sampled trajectory.
+
+use crate::checker::{lerp, Checker};
+use crate::error::PlanError;
+use crate::model::RobotModel;
+use crate::rrt::{path_length, plan_path, shortcut, RrtParams};
+use crate::timing::{time_path, validate_limits, PlannerLimits};
+use crate::world::World;
+use cell_types::{Base, Joints, Keyframe, Tcp, Trajectory, Transform};
+use nalgebra::Point3;
+use std::time::Instant;
+
+/// The region between the open 2F-85 fingers at the goal, plus a margin: cloud points in it
+/// belong to the object being grasped or placed and are excluded for the final approach.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct ClosingVolume {
+    /// Half extents in the TCP frame (m): x across the fingers, y along the pads, z along the
+    /// approach axis.
+    pub half_extents: [f64; 3],
+    /// Offset of the box centre from the TCP along the TCP z (m).
+    pub z_offset: f64,
+}
+
+impl Default for ClosingVolume {
+    /// 85 mm stroke plus the fingers and 1 cm margin; pads 22 mm wide plus margin; from 5 cm
+    /// behind the TCP to 2.5 cm past the fingertips.
+    fn default() -> Self {
+        Self {
+            half_extents: [0.0425 + 0.016 + 0.01, 0.011 + 0.01, 0.0375],
+            z_offset: -0.0125,
+        }
+    }
+}
+
+impl ClosingVolume {
+    /// True when the base-frame point lies in the volume at TCP pose `base_from_tcp`.
+    pub fn contains(&self, base_from_tcp: &Transform<Base, Tcp>, p: &Point3<f64>) -> bool {
+        let l = base_from_tcp.inverse().transform_point(p);
+        l.x.abs() <= self.half_extents[0]
+            && l.y.abs() <= self.half_extents[1]
+            && (l.z - self.z_offset).abs() <= self.half_extents[2]
+    }
+}
+
+/// Search and check settings.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct PlannerConfig {
+    /// RRT-Connect and shortcut settings.
+    pub rrt: RrtParams,
+    /// Largest motion of any robot point between two checks during the search (m).
+    pub check_resolution: f64,
+    /// Largest motion of any robot point between two checks in the final re-check (m).
+    pub validate_resolution: f64,
+    /// Joint weights for choosing the IK solution closest to the start.
+    pub goal_weights: Joints,
+    /// The gripper's closing volume for grasp/place keyframes.
+    pub closing_volume: ClosingVolume,
+}
+
+impl Default for PlannerConfig {
+    fn default() -> Self {
+        Self {
+            rrt: RrtParams::default(),
+            check_resolution: 0.02,
+            validate_resolution: 0.01,
+            goal_weights: [3.0, 3.0, 2.0, 1.0, 1.0, 1.0],
+            closing_volume: ClosingVolume::default(),
+        }
+    }
+}
+
+/// Where the time went and what was done, for one plan.
+#[derive(Copy, Clone, Debug, Default, PartialEq)]
+pub struct PlanStats {
+    /// IK and goal selection (s).
+    pub goal_s: f64,
+    /// Path search (s).
+    pub search_s: f64,
+    /// Shortcutting (s).
+    pub shortcut_s: f64,
+    /// Ruckig timing (s).
+    pub timing_s: f64,
+    /// Limit validation and dense re-check (s).
+    pub validate_s: f64,
+    /// Everything (s).
+    pub total_s: f64,
+    /// RRT iterations (0: the direct segment was free).
+    pub iterations: usize,
+    /// Configurations checked.
+    pub checks: u64,
+    /// Joint-space path length after shortcutting (rad).
+    pub path_length: f64,
+    /// Waypoints after shortcutting.
+    pub waypoints: usize,
+}
+
+/// A planned, timed and validated motion.
+#[derive(Clone, Debug)]
+pub struct PlannedMotion {
+    /// The trajectory at the controller rate.
+    pub trajectory: Trajectory,
+    /// The geometric path (waypoints) the trajectory follows exactly.
+    pub path: Vec<Joints>,
+    /// The chosen goal configuration.
+    pub goal: Joints,
+    /// Timing and work statistics.
+    pub stats: PlanStats,
+}
+
+/// The planner: a robot model, its limits and search settings.
+#[derive(Clone, Debug)]
+pub struct Planner {
+    /// The robot.
+    pub model: RobotModel,
+    /// Kinematic limits and controller period.
+    pub limits: PlannerLimits,
+    /// Search settings.
+    pub config: PlannerConfig,
+}
+
+impl Planner {
+    /// A planner, checking the limits.
+    pub fn new(
+        model: RobotModel,
+        limits: PlannerLimits,
+        config: PlannerConfig,
+    ) -> Result<Self, PlanError> {
+        limits.validate()?;
+        Ok(Self {
+            model,
+            limits,
+            config,
+        })
+    }
+
+    /// Plans from `start` to the keyframe's TCP pose against `world`.
+    pub fn plan_to_keyframe(
+        &self,
+        start: &Joints,
+        keyframe: &Keyframe,
+        world: &World,
+    ) -> Result<PlannedMotion, PlanError> {
+        let t0 = Instant::now();
+        self.model.check_limits(start)?;
+        // Keyframe semantics: "ignore collisions" drops the cloud; otherwise points in the
+        // closing volume at the goal belong to the object and are excluded for this motion.
+        let cv = self.config.closing_volume;
+        let pose = keyframe.base_from_tcp;
+        let owned;
+        let world = if keyframe.ignore_collisions {
+            owned = world.without_cloud();
+            &owned
+        } else {
+            match world.without_points(|p| cv.contains(&pose, p))? {
+                Some(w) => {
+                    owned = w;
+                    &owned
+                }
+                None => world,
+            }
+        };
+        let sols = self.model.ik_near(&pose, start)?;
+        let mut checker = Checker::new(&self.model, world, self.config.check_resolution);
+        if let Some(contact) = checker.contact(start) {
+            return Err(PlanError::StartInCollision { contact });
+        }
+        let mut free = Vec::new();
+        let mut first_contact = None;
+        for s in &sols {
+            match checker.contact(s) {
+                None => free.push(*s),
+                Some(c) => {
+                    first_contact.get_or_insert(c);
+                }
+            }
+        }
+        let w = self.config.goal_weights;
+        let cost = |q: &Joints| -> f64 { (0..6).map(|j| w[j] * (q[j] - start[j]).abs()).sum() };
+        free.sort_by(|a, b| cost(a).total_cmp(&cost(b)));
+        if free.is_empty() {
+            if let Some(first) = first_contact {
+                return Err(PlanError::AllSolutionsInCollision {
+                    solutions: sols.len(),
+                    first,
+                });
+            }
+        }
+        let goal_s = t0.elapsed().as_secs_f64();
+        let mut last_err = PlanError::NoPath { iterations: 0 };
+        for goal in free {
+            match self.plan_joints_inner(start, &goal, &mut checker, world) {
+                Ok(mut m) => {
+                    m.stats.goal_s = goal_s;
+                    m.stats.total_s = t0.elapsed().as_secs_f64();
+                    return Ok(m);
+                }
+                Err(e) => last_err = e,
+            }
+        }
+        Err(last_err)
+    }
+
+    /// Plans from `start` to the joint configuration `goal` against `world` (the MBM
+    /// benchmark's problems are given this way).
+    pub fn plan_to_joints(
+        &self,
+        start: &Joints,
+        goal: &Joints,
+        world: &World,
+    ) -> Result<PlannedMotion, PlanError> {
+        let t0 = Instant::now();
+        self.model.check_limits(start)?;
+        self.model.check_limits(goal)?;
+        let mut checker = Checker::new(&self.model, world, self.config.check_resolution);
+        if let Some(contact) = checker.contact(start) {
+            return Err(PlanError::StartInCollision { contact });
+        }
+        if let Some(first) = checker.contact(goal) {
+            return Err(PlanError::AllSolutionsInCollision {
+                solutions: 1,
+                first,
+            });
+        }
+        let mut m = self.plan_joints_inner(start, goal, &mut checker, world)?;
+        m.stats.total_s = t0.elapsed().as_secs_f64();
+        Ok(m)
+    }
+
+    fn plan_joints_inner(
+        &self,
+        start: &Joints,
+        goal: &Joints,
+        checker: &mut Checker<'_>,
+        world: &World,
+    ) -> Result<PlannedMotion, PlanError> {
+        let mut stats = PlanStats::default();
+        let t = Instant::now();
+        let search = plan_path(start, goal, &self.model.limits, checker, &self.config.rrt)?;
+        stats.search_s = t.elapsed().as_secs_f64();
+        stats.iterations = search.iterations;
+        let mut path = search.path;
+        let t = Instant::now();
+        shortcut(
+            &mut path,
+            checker,
+            self.config.rrt.shortcut_attempts,
+            self.config.rrt.seed,
+        );
+        stats.shortcut_s = t.elapsed().as_secs_f64();
+        stats.path_length = path_length(&path);
+        stats.waypoints = path.len();
+        let t = Instant::now();
+        let trajectory = time_path(&path, &self.limits)?;
+        stats.timing_s = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        validate_limits(&trajectory, &self.model.limits, &self.limits)?;
+        let mut dense = Checker::new(&self.model, world, self.config.validate_resolution);
+        validate_dense(&trajectory, &mut dense)?;
+        stats.validate_s = t.elapsed().as_secs_f64();
+        stats.checks = checker.checks + dense.checks;
+        Ok(PlannedMotion {
+            trajectory,
+            path,
+            goal: *goal,
+            stats,
+        })
+    }
+}
+
+/// Re-checks the executed trajectory densely: every sample, and between samples enough
+/// interpolated states that no robot point moves more than the checker's resolution between
+/// two checks. Consecutive samples lie on one straight checked segment (phase-synchronized
+/// rest-to-rest timing), so linear interpolation between them is the executed motion.
+pub fn validate_dense(traj: &Trajectory, checker: &mut Checker<'_>) -> Result<(), PlanError> {
+    let s = traj.samples();
+    for (i, x) in s.iter().enumerate() {
+        if let Some(contact) = checker.contact(&x.position) {
+            return Err(PlanError::TrajectoryCollides { t: x.t, contact });
+        }
+        if let Some(next) = s.get(i + 1) {
+            let n = checker.steps(&x.position, &next.position);
+            for k in 1..n {
+                let f = k as f64 / n as f64;
+                let q = lerp(&x.position, &next.position, f);
+                if let Some(contact) = checker.contact(&q) {
+                    return Err(PlanError::TrajectoryCollides {
+                        t: x.t + f * traj.period(),
+                        contact,
+                    });
+                }
+            }
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::world::{CloudParams, Obstacle};
+    use cell_types::{FrameId, PointCloud};
+    use nalgebra::{Isometry3, Vector3};
+
+    fn planner() -> Planner {
+        Planner::new(
+            RobotModel::ur5().unwrap(),
+            PlannerLimits::default(),
+            PlannerConfig::default(),
+        )
+        .unwrap()
+    }
+
+    const HOME: Joints = [0.0, -1.57, 1.57, -1.57, -1.57, 0.0];
+
+    fn table() -> Obstacle {
+        Obstacle::HalfSpace {
+            name: "table".into(),
+            normal: Vector3::z_axis(),
+            offset: -0.01,
+        }
+    }
+
+    fn wall() -> Obstacle {
+        Obstacle::Cuboid {
+            name: "wall".into(),
+            pose: Isometry3::translation(0.0, 0.6, 0.4),
+            half: Vector3::new(0.02, 0.3, 0.4),
+        }
+    }
+
+    /// Points on the surface of the wall box, 1 cm apart.
+    fn wall_cloud() -> PointCloud {
+        let mut pts = Vec::new();
+        for i in 0..=60 {
+            for k in 0..=80 {
+                let y = 0.3 + i as f32 * 0.01;
+                let z = k as f32 * 0.01;
+                pts.push(Point3::new(-0.02, y, z));
+                pts.push(Point3::new(0.02, y, z));
+            }
+        }
+        PointCloud::new(FrameId::Base, pts, None).unwrap()
+    }
+
+    fn assert_valid(p: &Planner, m: &PlannedMotion, start: &Joints, world: &World) {
+        assert_eq!(m.trajectory.start(), Some(start));
+        assert_eq!(m.trajectory.goal(), Some(&m.goal));
+        validate_limits(&m.trajectory, &p.model.limits, &p.limits).unwrap();
+        let mut c = Checker::new(&p.model, world, 0.005);
+        validate_dense(&m.trajectory, &mut c).unwrap();
+    }
+
+    #[test]
+    fn keyframe_behind_a_wall_needs_rrt_and_gives_a_valid_trajectory() {
+        let p = planner();
+        let world = World::empty().with_obstacle(table()).with_obstacle(wall());
+        let start = [-2.4, -1.57, 1.57, -1.57, -1.57, 0.0];
+        let goal = [-0.9, -1.57, 1.57, -1.57, -1.57, 0.0];
+        let kf = Keyframe::new(p.model.fk_tcp(&goal), true, false).unwrap();
+        let m = p.plan_to_keyframe(&start, &kf, &world).unwrap();
+        assert!(
+            m.stats.iterations > 0,
+            "the direct segment crosses the wall"
+        );
+        let (dt, dr) = p.model.fk_tcp(&m.goal).error_to(&kf.base_from_tcp);
+        assert!(dt < 1e-9 && dr < 1e-9);
+        assert_valid(&p, &m, &start, &world);
+        // Deterministic for a seed.
+        let again = p.plan_to_keyframe(&start, &kf, &world).unwrap();
+        assert_eq!(again.path, m.path);
+    }
+
+    #[test]
+    fn same_wall_as_a_cloud_is_also_avoided() {
+        let p = planner();
+        let world = World::from_cloud(&wall_cloud(), &CloudParams::default())
+            .unwrap()
+            .with_obstacle(table());
+        let start = [-2.4, -1.57, 1.57, -1.57, -1.57, 0.0];
+        let goal = [-0.9, -1.57, 1.57, -1.57, -1.57, 0.0];
+        let m = p.plan_to_joints(&start, &goal, &world).unwrap();
+        assert!(m.stats.iterations > 0);
+        assert_valid(&p, &m, &start, &world);
+    }
+
+    #[test]
+    fn keyframe_inside_an_obstacle_names_the_touching_link() {
+        let p = planner();
+        let q = [-1.5, -1.2, 1.4, -1.6, -1.57, 0.0];
+        let tcp = p.model.fk_tcp(&q);
+        let block = Obstacle::Ball {
+            name: "block".into(),
+            center: Point3::from(tcp.translation()) + Vector3::new(0.0, 0.0, 0.0),
+            radius: 0.08,
+        };
+        let world = World::empty().with_obstacle(block);
+        let kf = Keyframe::new(tcp, true, false).unwrap();
+        let err = p.plan_to_keyframe(&HOME, &kf, &world).unwrap_err();
+        match err {
+            PlanError::AllSolutionsInCollision { first, .. } => {
+                assert_eq!(first.other, "obstacle block");
+                assert!(
+                    first.link == "gripper_link" || first.link == "wrist_3_link",
+                    "{first}"
+                );
+            }
+            e => panic!("unexpected {e}"),
+        }
+    }
+
+    #[test]
+    fn grasp_target_in_the_cloud_is_excluded_but_ignore_collisions_still_sees_the_table() {
+        let p = planner();
+        let q = [-1.5, -1.2, 1.4, -1.6, -1.57, 0.0];
+        let tcp = p.model.fk_tcp(&q);
+        // A small object between the fingers at the goal: a 3 cm cube of points.
+        let c = tcp.translation();
+        let mut pts = Vec::new();
+        for i in 0..4 {
+            for j in 0..4 {
+                for k in 0..4 {
+                    let d =
+                        Vector3::new(i as f64, j as f64, k as f64) * 0.01 - Vector3::repeat(0.015);
+                    pts.push(Point3::from(c + d).cast::<f32>());
+                }
+            }
+        }
+        let cloud = PointCloud::new(FrameId::Base, pts, None).unwrap();
+        let world = World::from_cloud(&cloud, &CloudParams::default()).unwrap();
+        let kf = Keyframe::new(tcp, false, false).unwrap();
+        let m = p.plan_to_keyframe(&HOME, &kf, &world).unwrap();
+        assert_eq!(m.trajectory.goal(), Some(&m.goal));
+        // Without the exclusion the same goal is in collision with the object.
+        let mut checker = Checker::new(&p.model, &world, 0.01);
+        assert!(checker.contact(&m.goal).is_some());
+        // "Ignore collisions" plans through the cloud but not through static geometry.
+        let static_world = world.clone().with_obstacle(Obstacle::Ball {
+            name: "fixture".into(),
+            center: Point3::from(c),
+            radius: 0.02,
+        });
+        let kf_ignore = Keyframe::new(tcp, false, true).unwrap();
+        let err = p
+            .plan_to_keyframe(&HOME, &kf_ignore, &static_world)
+            .unwrap_err();
+        assert!(
+            matches!(err, PlanError::AllSolutionsInCollision { ref first, .. } if first.other == "obstacle fixture"),
+            "{err}"
+        );
+        // With the cloud only, "ignore collisions" plans straight to the goal.
+        let m = p.plan_to_keyframe(&HOME, &kf_ignore, &world).unwrap();
+        assert_eq!(m.trajectory.goal(), Some(&m.goal));
+    }
+
+    #[test]
+    fn start_in_collision_and_out_of_limits_are_typed() {
+        let p = planner();
+        let world = World::empty().with_obstacle(Obstacle::HalfSpace {
+            name: "table".into(),
+            normal: Vector3::z_axis(),
+            offset: 0.5,
+        });
+        let kf = Keyframe::new(p.model.fk_tcp(&HOME), true, false).unwrap();
+        let err = p.plan_to_keyframe(&HOME, &kf, &world).unwrap_err();
+        assert!(matches!(err, PlanError::StartInCollision { .. }), "{err}");
+        let mut bad = HOME;
+        bad[2] = 4.0;
+        let err = p.plan_to_keyframe(&bad, &kf, &World::empty()).unwrap_err();
+        assert!(
+            matches!(err, PlanError::JointLimit { joint: 2, .. }),
+            "{err}"
+        );
+    }
+}
