@@ -18,6 +18,8 @@ struct Cli {
 #[derive(Subcommand, Debug)]
 enum Command {
     /// Check a cell configuration file and print the checked configuration.
+    /// Run episodes end to end (the built-in simulated cell when no --config is given).
+    Run(cmd::run::RunArgs),
     Config(cmd::config::ConfigArgs),
     /// Summarise an episode recording (topics, counts, outcome, timings).
     Inspect(cmd::inspect::InspectArgs),
@@ -48,6 +50,7 @@ fn main() -> std::process::ExitCode {
 
 fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
+        Command::Run(args) => cmd::run::run(args),
         Command::Config(args) => cmd::config::run(args),
         Command::Inspect(args) => cmd::inspect::run(args),
         Command::Policy(args) => cmd::policy::run(args),

@@ -114,8 +114,8 @@ mod tests {
 
     #[test]
     fn even_samples_accepted() {
-        let tr = Trajectory::new(0.008, (0..10).map(|i| sample(i as f64 * 0.008)).collect())
-            .unwrap();
+        let tr =
+            Trajectory::new(0.008, (0..10).map(|i| sample(i as f64 * 0.008)).collect()).unwrap();
         assert_eq!(tr.len(), 10);
         assert!((tr.duration() - 0.072).abs() < 1e-12);
         assert!((tr.rate_hz() - 125.0).abs() < 1e-9);
@@ -124,7 +124,10 @@ mod tests {
     #[test]
     fn uneven_samples_rejected() {
         let err = Trajectory::new(0.008, vec![sample(0.0), sample(0.01)]).unwrap_err();
-        assert!(matches!(err, CellTypesError::UnevenTrajectory { index: 1, .. }));
+        assert!(matches!(
+            err,
+            CellTypesError::UnevenTrajectory { index: 1, .. }
+        ));
     }
 
     #[test]
@@ -134,7 +137,10 @@ mod tests {
         s.velocity[3] = f64::NAN;
         assert!(matches!(
             Trajectory::new(0.002, vec![s]),
-            Err(CellTypesError::NotFinite { what: "trajectory velocity", .. })
+            Err(CellTypesError::NotFinite {
+                what: "trajectory velocity",
+                ..
+            })
         ));
     }
 }

@@ -3,3 +3,4 @@
 pub mod config;
 pub mod inspect;
 pub mod policy;
+pub mod run;

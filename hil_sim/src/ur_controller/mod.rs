@@ -291,6 +291,30 @@ pub struct UrSimHandle {
     threads: Vec<JoinHandle<()>>,
 }
 
+/// Injects faults into a running simulated controller; clones share the controller.
+#[derive(Clone)]
+pub struct FaultInjector {
+    shared: Arc<Shared>,
+}
+
+impl FaultInjector {
+    /// Injects a fault.
+    pub fn inject(&self, fault: Fault) {
+        self.shared.log(format!("fault injected: {fault:?}"));
+        match fault {
+            Fault::ProtectiveStop => self.shared.core().protective_stop("injected fault"),
+            Fault::EmergencyStop => self.shared.core().emergency_stop(),
+            Fault::ReleaseEmergencyStop => self.shared.core().release_emergency_stop(),
+            Fault::DropConnections => self.shared.drop_connections(),
+            Fault::LosePackets(n) => lock(&self.shared.faults).lose += n,
+            Fault::Delay(d) => lock(&self.shared.faults).delay = d,
+            Fault::Stall(d) => {
+                lock(&self.shared.faults).stall_until = Some(self.shared.clock.now() + d)
+            }
+        }
+    }
+}
+
 /// Starts the simulated controller on `clock` (use [`cell_types::SystemClock`] whenever a
 /// client runs in real time).
 pub fn start(config: UrSimConfig, clock: Arc<dyn Clock>) -> Result<UrSimHandle, UrSimError> {
@@ -432,17 +456,14 @@ impl UrSimHandle {
 
     /// Injects a fault.
     pub fn inject(&self, fault: Fault) {
-        self.shared.log(format!("fault injected: {fault:?}"));
-        match fault {
-            Fault::ProtectiveStop => self.shared.core().protective_stop("injected fault"),
-            Fault::EmergencyStop => self.shared.core().emergency_stop(),
-            Fault::ReleaseEmergencyStop => self.shared.core().release_emergency_stop(),
-            Fault::DropConnections => self.shared.drop_connections(),
-            Fault::LosePackets(n) => lock(&self.shared.faults).lose += n,
-            Fault::Delay(d) => lock(&self.shared.faults).delay = d,
-            Fault::Stall(d) => {
-                lock(&self.shared.faults).stall_until = Some(self.shared.clock.now() + d)
-            }
+        self.injector().inject(fault);
+    }
+
+    /// A handle that injects faults from another thread (e.g. in the middle of a motion
+    /// that the owner of this handle is waiting on).
+    pub fn injector(&self) -> FaultInjector {
+        FaultInjector {
+            shared: self.shared.clone(),
         }
     }
 

@@ -1,0 +1,540 @@
+//! The episode loop: capture → fuse → predict keyframe → plan → execute → gripper → repeat,
+//! until the task reports done, the policy has nothing more, a fault, or the keyframe limit.
+//!
+//! Every arrow is recorded ([`crate::recording`]); the file is checkpointed after each step
+//! and finished whatever happens, so an interrupted or faulted episode leaves a readable
+//! recording whose outcome says what happened.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+use calibration::fusion::{FusionParams, FusionPipeline};
+use cell_types::config::CellConfig;
+use cell_types::{Clock, GripperState, JointState, Keyframe, PointCloud};
+use firmware_iface::arm::{Arm, ExecutionOutcome};
+use firmware_iface::gripper::Gripper;
+use nalgebra::{Unit, Vector3};
+use planner::{CloudParams, Obstacle, Planner, PlannerConfig, PlannerLimits, RobotModel, World};
+use serde_json::json;
+
+use crate::recording::{self, EpisodeRecorder, LogLevel};
+use crate::sim_cell::SimCell;
+
+/// Most keyframes one episode may take (the keyframe-policy literature's limit).
+pub const MAX_KEYFRAMES: usize = 25;
+
+/// Points this close above the table plane are the table's (m): 3 sigma of the D455's depth
+/// noise at the cameras' range, plus a margin.
+const TABLE_POINT_BAND: f64 = 0.012;
+
+/// What the policy sees at one step.
+pub struct Observation<'a> {
+    /// The fused, sampled cloud in the base frame.
+    pub cloud: &'a PointCloud,
+    /// The arm's joints.
+    pub joints: &'a JointState,
+    /// The gripper's state.
+    pub gripper: &'a GripperState,
+    /// The language instruction.
+    pub instruction: &'a str,
+}
+
+/// Anything that emits keyframes: the learned policy or a scripted expert.
+pub trait KeyframeSource {
+    /// The next keyframe, or `None` when the source considers the task done.
+    fn next_keyframe(&mut self, obs: &Observation<'_>) -> anyhow::Result<Option<Keyframe>>;
+    /// A name for logs and recordings.
+    fn name(&self) -> &str;
+}
+
+/// The scripted expert: replays keyframes computed from the true object poses.
+pub struct ScriptedExpert {
+    keyframes: Vec<Keyframe>,
+    next: usize,
+}
+
+impl ScriptedExpert {
+    /// An expert that emits `keyframes` in order.
+    pub fn new(keyframes: Vec<Keyframe>) -> Self {
+        Self { keyframes, next: 0 }
+    }
+}
+
+impl KeyframeSource for ScriptedExpert {
+    fn next_keyframe(&mut self, _obs: &Observation<'_>) -> anyhow::Result<Option<Keyframe>> {
+        let k = self.keyframes.get(self.next).copied();
+        self.next += 1;
+        Ok(k)
+    }
+
+    fn name(&self) -> &str {
+        "expert"
+    }
+}
+
+/// How an episode ended.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum Outcome {
+    /// The task's success test passed.
+    Success,
+    /// The policy finished (or the keyframe limit was hit) without the task being done.
+    TaskNotDone,
+    /// A keyframe could not be planned; the arm stayed where it was.
+    PlanFailed,
+    /// The arm stopped during a motion (protective stop, tracking error, lost link, ...).
+    ArmStopped,
+    /// The gripper reported a fault or did not answer.
+    GripperFault,
+    /// A camera delivered no usable frame, or the fusion failed.
+    PerceptionFault,
+    /// Ctrl-C: the arm was stopped with a controlled deceleration.
+    Interrupted,
+    /// Anything else that ended the episode (policy error, recording error).
+    Error,
+}
+
+impl Outcome {
+    /// The outcome's name in recordings and on the terminal.
+    pub fn label(&self) -> &'static str {
+        match self {
+            Outcome::Success => "success",
+            Outcome::TaskNotDone => "task_not_done",
+            Outcome::PlanFailed => "plan_failed",
+            Outcome::ArmStopped => "arm_stopped",
+            Outcome::GripperFault => "gripper_fault",
+            Outcome::PerceptionFault => "perception_fault",
+            Outcome::Interrupted => "interrupted",
+            Outcome::Error => "error",
+        }
+    }
+}
+
+/// What an episode did.
+#[derive(Clone, Debug)]
+pub struct EpisodeReport {
+    /// How it ended.
+    pub outcome: Outcome,
+    /// Keyframes executed.
+    pub steps: usize,
+    /// What happened, in words.
+    pub detail: String,
+    /// The recording.
+    pub recording: PathBuf,
+    /// Messages recorded per topic.
+    pub counts: BTreeMap<&'static str, u64>,
+}
+
+/// Builds the planner the cell's configuration asks for.
+pub fn planner_from_config(cfg: &CellConfig) -> anyhow::Result<Planner> {
+    let model = match cfg.robot.model {
+        cell_types::config::RobotModel::Ur5 => RobotModel::ur5()?,
+        cell_types::config::RobotModel::Ur5e => RobotModel::ur5e()?,
+    };
+    let limits = PlannerLimits {
+        max_velocity: cfg.limits.max_velocity,
+        max_acceleration: cfg.limits.max_acceleration,
+        max_jerk: cfg.limits.max_jerk,
+        period: cfg.controller_period(),
+    };
+    Ok(Planner::new(model, limits, PlannerConfig::default())?)
+}
+
+/// Builds the fusion pipeline for the cell's workspace.
+pub fn fusion_params(cfg: &CellConfig, seed: u64) -> FusionParams {
+    let mut p = FusionParams {
+        seed,
+        ..FusionParams::default()
+    };
+    p.workspace.min = cfg.workspace.min;
+    p.workspace.max = cfg.workspace.max;
+    p
+}
+
+fn gripper_message(s: &GripperState) -> serde_json::Value {
+    json!({
+        "activated": s.activated,
+        "width_m": s.width_m,
+        "object": format!("{:?}", s.object),
+        "current_a": s.current_a,
+        "fault": s.fault.map(|f| format!("{f:?}")),
+    })
+}
+
+fn ns(clock: &dyn Clock) -> u64 {
+    u64::try_from(clock.now().as_nanos()).unwrap_or(u64::MAX)
+}
+
+/// Runs one episode in the simulated cell with `policy`, recording into `recorder`.
+/// `interrupt` is set by Ctrl-C. Never returns with the arm moving.
+pub fn run_sim_episode(
+    cfg: &CellConfig,
+    cell: &mut SimCell,
+    policy: &mut dyn KeyframeSource,
+    recorder: &mut EpisodeRecorder,
+    interrupt: &Arc<AtomicBool>,
+    clock: &dyn Clock,
+    seed: u64,
+) -> EpisodeReport {
+    let mut steps = 0;
+    let (outcome, detail) = match episode_steps(
+        cfg, cell, policy, recorder, interrupt, clock, seed, &mut steps,
+    ) {
+        Ok((o, d)) => (o, d),
+        Err(e) => (Outcome::Error, format!("{e:#}")),
+    };
+    // Whatever happened, leave the arm still: a no-op when it already is.
+    if outcome != Outcome::Success && outcome != Outcome::TaskNotDone {
+        if let Err(e) = cell.arm.stop() {
+            let _ = recorder.write(
+                "/log",
+                ns(clock),
+                &recording::log_message(
+                    ns(clock),
+                    LogLevel::Error,
+                    &format!("stop after the episode failed: {e}"),
+                ),
+            );
+        }
+    }
+    let t = ns(clock);
+    let _ = recorder.write(
+        "/episode/outcome",
+        t,
+        &json!({"outcome": outcome.label(), "success": outcome == Outcome::Success, "steps": steps, "detail": detail}),
+    );
+    let counts = recorder.counts().clone();
+    let _ = recorder.finish();
+    EpisodeReport {
+        outcome,
+        steps,
+        detail,
+        recording: recorder.path().to_path_buf(),
+        counts,
+    }
+}
+
+#[allow(clippy::too_many_arguments)]
+fn episode_steps(
+    cfg: &CellConfig,
+    cell: &mut SimCell,
+    policy: &mut dyn KeyframeSource,
+    rec: &mut EpisodeRecorder,
+    interrupt: &Arc<AtomicBool>,
+    clock: &dyn Clock,
+    seed: u64,
+    steps: &mut usize,
+) -> anyhow::Result<(Outcome, String)> {
+    let planner = planner_from_config(cfg)?;
+    let fusion = FusionPipeline::new(cell.calibration.clone(), fusion_params(cfg, seed))?;
+    let instruction = cell.world.task.kind.instruction();
+    rec.write(
+        "/robot_description",
+        ns(clock),
+        &json!({"data": planner::model::UR5_URDF}),
+    )?;
+    rec.attach(
+        "ur5.urdf",
+        "application/xml",
+        ns(clock),
+        planner::model::UR5_URDF.as_bytes(),
+    )?;
+
+    let mut gstate = match cell.gripper.activate().and_then(|_| cell.gripper.open()) {
+        Ok(s) => s,
+        Err(e) => {
+            return Ok((
+                Outcome::GripperFault,
+                format!("gripper activation failed: {e}"),
+            ))
+        }
+    };
+    let table = Obstacle::HalfSpace {
+        name: "table".into(),
+        normal: Unit::new_normalize(Vector3::z()),
+        offset: cfg.workspace.table_height,
+    };
+
+    for step in 0..MAX_KEYFRAMES {
+        if interrupt.load(Ordering::SeqCst) {
+            return Ok((
+                Outcome::Interrupted,
+                format!("Ctrl-C before keyframe {step}"),
+            ));
+        }
+        let arm_state = match cell.arm.state() {
+            Ok(s) => s,
+            Err(e) => return Ok((Outcome::ArmStopped, format!("before keyframe {step}: {e}"))),
+        };
+        let q = arm_state.joints.position;
+        let t = ns(clock);
+        rec.write(
+            "/joint_states",
+            t,
+            &recording::joint_states_message(t, &arm_state.joints),
+        )?;
+        rec.write("/gripper", t, &gripper_message(&gstate))?;
+        let mut transforms = vec![recording::frame_transform(
+            t,
+            "base",
+            "tcp",
+            planner.model.fk_tcp(&q).isometry(),
+        )];
+        for c in &cell.calibration.cameras {
+            transforms.push(recording::frame_transform(
+                t,
+                "base",
+                &format!("camera_{}", c.id),
+                c.base_from_camera.isometry(),
+            ));
+        }
+        rec.write("/tf", t, &json!({ "transforms": transforms }))?;
+
+        // Capture and fuse.
+        let t0 = Instant::now();
+        let mut frames = Vec::with_capacity(cell.cameras.len());
+        for cam in cell.cameras.iter_mut() {
+            match cam.capture() {
+                Ok(f) => frames.push(f),
+                Err(e) => {
+                    return Ok((
+                        Outcome::PerceptionFault,
+                        format!("camera {} gave no frame: {e}", cam.id()),
+                    ))
+                }
+            }
+        }
+        let capture_s = t0.elapsed().as_secs_f64();
+        for f in &frames {
+            let d = &f.depth.raw;
+            rec.write(
+                "/camera/depth",
+                t,
+                &recording::depth_image_message(
+                    t,
+                    &format!("camera_{}", f.camera),
+                    d.width,
+                    d.height,
+                    &d.data,
+                ),
+            )?;
+        }
+        let t1 = Instant::now();
+        let opening = gstate.width_m;
+        let robot = hil_sim::scene::robot_capsules(&q, opening);
+        let fused = match fusion.fuse(&frames, &robot) {
+            Ok(f) => f,
+            Err(e) => return Ok((Outcome::PerceptionFault, format!("fusion failed: {e}"))),
+        };
+        let fuse_s = t1.elapsed().as_secs_f64();
+        rec.write(
+            "/cloud/fused",
+            t,
+            &recording::cloud_message(t, &fused.sampled),
+        )?;
+
+        // Predict.
+        let t2 = Instant::now();
+        let obs = Observation {
+            cloud: &fused.sampled,
+            joints: &arm_state.joints,
+            gripper: &gstate,
+            instruction: &instruction,
+        };
+        let Some(keyframe) = policy.next_keyframe(&obs)? else {
+            let done = cell.world.success();
+            return Ok((
+                if done {
+                    Outcome::Success
+                } else {
+                    Outcome::TaskNotDone
+                },
+                format!(
+                    "the {} policy finished after {step} keyframes",
+                    policy.name()
+                ),
+            ));
+        };
+        let predict_s = t2.elapsed().as_secs_f64();
+        rec.write(
+            "/keyframes",
+            t,
+            &recording::keyframe_scene(
+                t,
+                step,
+                keyframe.base_from_tcp.isometry(),
+                keyframe.gripper_open,
+                keyframe.ignore_collisions,
+            ),
+        )?;
+
+        // Plan against the dense fused cloud and the table.
+        let t3 = Instant::now();
+        // The table is known static geometry (a half-space obstacle): its points are dropped
+        // from the planning cloud so sensor noise on the table top cannot block grasps of
+        // objects lying on it.
+        let above_table = cfg.workspace.table_height + TABLE_POINT_BAND;
+        let keep: Vec<usize> = (0..fused.dense.len())
+            .filter(|&i| f64::from(fused.dense.points[i].z) > above_table)
+            .collect();
+        let planning_cloud = PointCloud {
+            frame: fused.dense.frame,
+            points: keep.iter().map(|&i| fused.dense.points[i]).collect(),
+            rgb: None,
+        };
+        let world = World::from_cloud(&planning_cloud, &CloudParams::default())?
+            .with_obstacle(table.clone());
+        let motion = match planner.plan_to_keyframe(&q, &keyframe, &world) {
+            Ok(m) => m,
+            Err(e) => {
+                return Ok((
+                    Outcome::PlanFailed,
+                    format!("keyframe {step} could not be planned: {e}"),
+                ));
+            }
+        };
+        let plan_s = t3.elapsed().as_secs_f64();
+        rec.write(
+            "/trajectory/planned",
+            t,
+            &recording::trajectory_scene(t, step, &motion.trajectory, |qq| {
+                nalgebra::Point3::from(planner.model.fk_tcp(qq).translation())
+            }),
+        )?;
+
+        // Execute.
+        let t4 = Instant::now();
+        let outcome = match cell.arm.execute(&motion.trajectory) {
+            Ok(o) => o,
+            // Refused before the first sample (a stop already active) or the link went down:
+            // the arm is not following the plan either way.
+            Err(e) => return Ok((Outcome::ArmStopped, format!("keyframe {step}: {e}"))),
+        };
+        let exec_s = t4.elapsed().as_secs_f64();
+        let (final_q, jitter) = match &outcome {
+            ExecutionOutcome::Completed {
+                final_state,
+                jitter,
+                ..
+            } => (final_state.joints.position, *jitter),
+            ExecutionOutcome::Stopped {
+                by,
+                cause,
+                last_state,
+                ..
+            } => {
+                let t = ns(clock);
+                rec.write(
+                    "/joint_states",
+                    t,
+                    &recording::joint_states_message(t, &last_state.joints),
+                )?;
+                cell.world
+                    .update_robot(&last_state.joints.position, opening)?;
+                let detail = format!("keyframe {step}: arm stopped by {by:?}: {cause:?}");
+                return Ok((
+                    if interrupt.load(Ordering::SeqCst) {
+                        Outcome::Interrupted
+                    } else {
+                        Outcome::ArmStopped
+                    },
+                    detail,
+                ));
+            }
+        };
+        cell.world.update_robot(&final_q, opening)?;
+
+        // Gripper.
+        let t5 = Instant::now();
+        let was_open = gstate.width_m > 0.08;
+        if keyframe.gripper_open != was_open {
+            let result = if keyframe.gripper_open {
+                cell.gripper.open()
+            } else {
+                cell.world.before_close(&final_q);
+                cell.gripper.close()
+            };
+            gstate = match result {
+                Ok(s) => s,
+                Err(e) => {
+                    return Ok((
+                        Outcome::GripperFault,
+                        format!("keyframe {step}: gripper: {e}"),
+                    ))
+                }
+            };
+            cell.world.after_gripper(&final_q, gstate.holds_object());
+            cell.world.update_robot(&final_q, gstate.width_m)?;
+        }
+        let gripper_s = t5.elapsed().as_secs_f64();
+        *steps = step + 1;
+
+        for (phase, d, detail) in [
+            ("capture", capture_s, format!("{} cameras", frames.len())),
+            (
+                "fuse",
+                fuse_s,
+                format!(
+                    "{} dense, {} sampled points",
+                    fused.dense.len(),
+                    fused.sampled.len()
+                ),
+            ),
+            ("predict", predict_s, policy.name().to_string()),
+            (
+                "plan",
+                plan_s,
+                format!(
+                    "{} samples, {} RRT iterations",
+                    motion.trajectory.len(),
+                    motion.stats.iterations
+                ),
+            ),
+            (
+                "execute",
+                exec_s,
+                format!("jitter p99 {:.0} us", jitter.jitter_p99_us),
+            ),
+            (
+                "gripper",
+                gripper_s,
+                format!(
+                    "width {:.4} m, holds object: {}",
+                    gstate.width_m,
+                    gstate.holds_object()
+                ),
+            ),
+        ] {
+            rec.write(
+                "/episode/step",
+                t,
+                &json!({"step": step, "phase": phase, "duration_s": d, "detail": detail}),
+            )?;
+        }
+        rec.checkpoint()?;
+        println!(
+            "  step {step:>2}: keyframe at [{:.3}, {:.3}, {:.3}] {} | capture {:.2} s, fuse {:.3} s, plan {:.1} ms, execute {:.2} s, gripper {:.2} s",
+            keyframe.base_from_tcp.translation().x,
+            keyframe.base_from_tcp.translation().y,
+            keyframe.base_from_tcp.translation().z,
+            if keyframe.gripper_open { "open  " } else { "closed" },
+            capture_s,
+            fuse_s,
+            plan_s * 1e3,
+            exec_s,
+            gripper_s,
+        );
+        if cell.world.success() {
+            return Ok((
+                Outcome::Success,
+                format!("task done after {} keyframes", step + 1),
+            ));
+        }
+    }
+    Ok((
+        Outcome::TaskNotDone,
+        format!("{MAX_KEYFRAMES} keyframes without finishing the task"),
+    ))
+}
