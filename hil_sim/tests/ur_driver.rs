@@ -21,6 +21,9 @@ fn config_for(h: &UrSimHandle) -> UrConfig {
     UrConfig {
         host: h.addr(),
         ports: h.ports(),
+        // 3 cycles (the default) is right on a dedicated controller PC; this test machine
+        // is shared, so allow ~100 ms before calling the link lost.
+        lost_cycles: 12,
         ..UrConfig::default()
     }
 }
@@ -227,7 +230,7 @@ fn stalled_controller_is_detected() {
             by: StoppedBy::Driver,
             cause: StopCause::NoData { missed_cycles },
             ..
-        } => assert!(missed_cycles > 3),
+        } => assert!(missed_cycles > 12),
         o => panic!("{o:?}"),
     }
     assert!(
@@ -356,10 +359,10 @@ fn connect_errors_name_the_problem_and_the_fix() {
 #[test]
 fn e_series_runs_at_500_hz() {
     let h = sim(UrSimConfig::for_tests().e_series());
-    // 3 missing packages are only 6 ms at 500 Hz: allow 20 ms on a shared CI machine.
+    // 12 missing packages are only 24 ms at 500 Hz: allow 100 ms on a shared CI machine.
     let arm = UrArm::connect(
         UrConfig {
-            lost_cycles: 10,
+            lost_cycles: 50,
             ..config_for(&h)
         },
         Arc::new(SystemClock::new()),

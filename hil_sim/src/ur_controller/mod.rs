@@ -147,6 +147,9 @@ pub enum Fault {
     Stall(Duration),
 }
 
+/// How far the control thread may fall behind its cadence before it stops catching up.
+const CATCH_UP_LIMIT: Duration = Duration::from_millis(250);
+
 pub(crate) enum Outgoing {
     Data(Arc<ControllerSnapshot>, Duration),
     Text(TextMessage),
@@ -245,9 +248,10 @@ impl Shared {
             next += period;
             self.clock.sleep_until(next);
             let now = self.clock.now();
-            if now > next + 2 * period {
-                // Fell behind (a stall, or a starved CPU): resume the cadence from now
-                // instead of sending a burst of catch-up packages.
+            if now > next + CATCH_UP_LIMIT {
+                // Starved of CPU for long: resume the cadence from now. Shorter delays are
+                // caught up (a short burst of packages), so that the average rate a client
+                // measures stays the controller's rate on a loaded machine.
                 next = now;
             }
             {
