@@ -19,11 +19,17 @@ struct Cli {
 enum Command {
     /// Check a cell configuration file and print the checked configuration.
     Config(cmd::config::ConfigArgs),
+    /// Serve the simulated UR controller (RTDE, dashboard, secondary) until interrupted.
+    Sim(cmd::sim::SimArgs),
+    /// Measure the UR driver's streaming-loop jitter at 125 and 500 Hz (JSON).
+    BenchUr(cmd::bench_ur::BenchUrArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Config(args) => cmd::config::run(args),
+        Command::Sim(args) => cmd::sim::run(args),
+        Command::BenchUr(args) => cmd::bench_ur::run(args),
     }
 }

@@ -10,6 +10,7 @@
 //! closes only its connection, with the reason recorded in [`UrSimHandle::log`] and printed
 //! to stderr.
 
+pub mod bench;
 pub mod core;
 pub mod dashboard_server;
 pub mod rtde_server;
