@@ -371,3 +371,105 @@ fn e_series_runs_at_500_hz() {
     assert!((arm.period() - 0.002).abs() < 1e-12);
     run_to_goal(&h, arm);
 }
+
+#[test]
+fn emergency_stop_is_reported_by_the_controller() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    let (outcome, _) = run_with_fault(
+        &h,
+        &mut arm,
+        Duration::from_millis(300),
+        Fault::EmergencyStop,
+    );
+    match outcome {
+        ExecutionOutcome::Stopped {
+            by: StoppedBy::Controller,
+            cause: StopCause::EmergencyStop,
+            last_state,
+            ..
+        } => assert_eq!(last_state.safety_mode, SafetyMode::RobotEmergencyStop),
+        o => panic!("{o:?}"),
+    }
+}
+
+#[test]
+fn dashboard_stop_ends_the_program_and_the_motion() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    let start = arm.state().unwrap().joints.position;
+    let traj = quintic(start, goal_from(start), 2.0, 0.008);
+    let outcome = std::thread::scope(|s| {
+        s.spawn(|| {
+            std::thread::sleep(Duration::from_millis(300));
+            h.with_core(|c| c.stop_program("test: dashboard stop"));
+        });
+        arm.execute(&traj).unwrap()
+    });
+    match outcome {
+        ExecutionOutcome::Stopped {
+            by: StoppedBy::Controller,
+            cause: StopCause::ProgramStopped { .. },
+            ..
+        } => {}
+        o => panic!("{o:?}"),
+    }
+}
+
+#[test]
+fn tracking_error_over_the_bound_stops_the_arm() {
+    // An arm that cannot accelerate as planned falls behind its trajectory.
+    let h = sim(UrSimConfig {
+        max_accel: 0.5,
+        ..UrSimConfig::for_tests()
+    });
+    let mut arm = UrArm::connect(
+        UrConfig {
+            tracking_bound: 0.02,
+            ..config_for(&h)
+        },
+        Arc::new(SystemClock::new()),
+    )
+    .unwrap();
+    let start = arm.state().unwrap().joints.position;
+    let outcome = arm
+        .execute(&quintic(start, goal_from(start), 1.0, 0.008))
+        .unwrap();
+    match outcome {
+        ExecutionOutcome::Stopped {
+            by: StoppedBy::Driver,
+            cause: StopCause::TrackingError { error, bound, .. },
+            ..
+        } => assert!(error > bound && bound == 0.02),
+        o => panic!("{o:?}"),
+    }
+}
+
+#[test]
+fn a_few_lost_packages_are_tolerated_and_many_stop_the_motion() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    let (outcome, _) = run_with_fault(
+        &h,
+        &mut arm,
+        Duration::from_millis(300),
+        Fault::LosePackets(2),
+    );
+    assert!(
+        matches!(outcome, ExecutionOutcome::Completed { .. }),
+        "{outcome:?}"
+    );
+    let (outcome, _) = run_with_fault(
+        &h,
+        &mut arm,
+        Duration::from_millis(300),
+        Fault::LosePackets(40),
+    );
+    match outcome {
+        ExecutionOutcome::Stopped {
+            cause: StopCause::NoData { .. },
+            ..
+        } => {}
+        o => panic!("{o:?}"),
+    }
+}

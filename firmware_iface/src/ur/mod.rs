@@ -185,6 +185,13 @@ impl UrArm {
     }
 }
 
+impl Drop for UrArm {
+    fn drop(&mut self) {
+        // Ends the link thread; a program still running is stopped by its own watchdog.
+        self.link.close();
+    }
+}
+
 impl Arm for UrArm {
     fn state(&self) -> Result<ArmState, ArmError> {
         let s = self.link.status.lock().unwrap_or_else(|e| e.into_inner());

@@ -285,6 +285,11 @@ impl Link {
         lock(&self.writer).write_all(&pkg[..n]).map_err(io)
     }
 
+    /// Closes the RTDE socket; the link thread sees the end of the stream and exits.
+    pub(crate) fn close(&self) {
+        let _ = lock(&self.writer).shutdown(std::net::Shutdown::Both);
+    }
+
     /// Blocks until the status satisfies `pred` or `timeout` passes; returns the status.
     pub(crate) fn wait_for(
         &self,
