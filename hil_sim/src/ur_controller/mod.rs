@@ -23,7 +23,7 @@ use std::io;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{SyncSender, TrySendError};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -76,6 +76,11 @@ pub struct UrSimConfig {
     pub max_accel: f64,
     /// The tool: flange to TCP.
     pub flange_from_tcp: Transform<Flange, Tcp>,
+    /// Lockstep: after each cycle, wait (up to one real period) for a client's input
+    /// package before the next. With a [`cell_types::ManualClock`] shared by the simulator
+    /// and the driver, the pair then runs as fast as the round trip allows, faster than
+    /// real time, and each cycle still sees the driver's answer to the previous one.
+    pub lockstep: bool,
 }
 
 impl Default for UrSimConfig {
@@ -93,6 +98,7 @@ impl Default for UrSimConfig {
             initial_mode: RobotMode::PowerOff,
             max_accel: 15.0,
             flange_from_tcp: Transform::identity(),
+            lockstep: false,
         }
     }
 }
@@ -179,6 +185,8 @@ pub(crate) struct Shared {
     next_conn: AtomicU64,
     log: Mutex<Vec<String>>,
     faults: Mutex<FaultState>,
+    inputs_seen: Mutex<u64>,
+    input_arrived: Condvar,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -202,6 +210,12 @@ impl Shared {
 
     pub(crate) fn subscribe(&self, tx: SyncSender<Outgoing>) {
         lock(&self.subscribers).push(Subscriber { tx });
+    }
+
+    /// Called by RTDE sessions for every input data package (lockstep pacing).
+    pub(crate) fn input_received(&self) {
+        *lock(&self.inputs_seen) += 1;
+        self.input_arrived.notify_all();
     }
 
     pub(crate) fn delay(&self) -> Duration {
@@ -264,6 +278,7 @@ impl Shared {
                     f.stall_until = None;
                 }
             }
+            let seen_before = *lock(&self.inputs_seen);
             let (snap, events) = {
                 let mut core = self.core();
                 core.step();
@@ -285,6 +300,14 @@ impl Shared {
                     Err(TrySendError::Disconnected(_))
                 )
             });
+            if self.config.lockstep {
+                // Real-time wait on purpose: without a streaming client the simulator keeps
+                // real-time pace instead of spinning its simulated clock away.
+                let g = lock(&self.inputs_seen);
+                let _ = self
+                    .input_arrived
+                    .wait_timeout_while(g, period, |n| *n == seen_before);
+            }
         }
     }
 }
@@ -338,6 +361,8 @@ pub fn start(config: UrSimConfig, clock: Arc<dyn Clock>) -> Result<UrSimHandle, 
         next_conn: AtomicU64::new(1),
         log: Mutex::new(Vec::new()),
         faults: Mutex::new(FaultState::default()),
+        inputs_seen: Mutex::new(0),
+        input_arrived: Condvar::new(),
     });
     let mut handle = UrSimHandle {
         shared: shared.clone(),

@@ -321,10 +321,13 @@ fn handle(
                 .layout
                 .decode_all(&values)
                 .map_err(|e| format!("bad input data package: {e}"))?;
-            let mut core = shared.core();
-            for (n, v) in r.names.iter().zip(decoded) {
-                apply_input(n, v, &mut core.registers);
+            {
+                let mut core = shared.core();
+                for (n, v) in r.names.iter().zip(decoded) {
+                    apply_input(n, v, &mut core.registers);
+                }
             }
+            shared.input_received();
             Vec::new()
         }
         HostMessage::Text(t) => {
