@@ -7,7 +7,7 @@ use std::sync::Arc;
 use clap::Args;
 use firmware_iface::dashboard::RobotMode;
 use firmware_iface::ur::UrPorts;
-use hil_sim::ur_controller::{start, UrSimConfig};
+use hil_sim::ur_controller::{start, Fault, UrSimConfig};
 
 /// Arguments of `equact sim`.
 #[derive(Args, Debug)]
@@ -62,6 +62,23 @@ pub fn run(args: SimArgs) -> anyhow::Result<()> {
         p.dashboard,
         p.secondary
     );
+    println!(
+        "fault injection: type pstop, estop, release-estop, drop, lose <cycles>, delay <ms> or stall <ms>"
+    );
+    for line in std::io::stdin().lines() {
+        let line = line?;
+        if line.trim().is_empty() {
+            continue;
+        }
+        match line.parse::<Fault>() {
+            Ok(f) => {
+                sim.inject(f);
+                println!("injected {f:?}");
+            }
+            Err(e) => println!("{e}"),
+        }
+    }
+    // stdin closed (run in the background): keep serving until interrupted.
     loop {
         std::thread::park();
     }

@@ -76,6 +76,8 @@ pub struct UrSimConfig {
     pub max_accel: f64,
     /// The tool: flange to TCP.
     pub flange_from_tcp: Transform<Flange, Tcp>,
+    /// Table top height in the base frame (m); links below it raise a protective stop.
+    pub floor_z: Option<f64>,
     /// Lockstep: after each cycle, wait (up to one real period) for a client's input
     /// package before the next. With a [`cell_types::ManualClock`] shared by the simulator
     /// and the driver, the pair then runs as fast as the round trip allows, faster than
@@ -98,6 +100,7 @@ impl Default for UrSimConfig {
             initial_mode: RobotMode::PowerOff,
             max_accel: 15.0,
             flange_from_tcp: Transform::identity(),
+            floor_z: Some(0.0),
             lockstep: false,
         }
     }
@@ -156,6 +159,43 @@ pub enum Fault {
 
 /// How far the control thread may fall behind its cadence before it stops catching up.
 const CATCH_UP_LIMIT: Duration = Duration::from_millis(250);
+
+/// A fault command line (`equact sim` reads them on stdin) that could not be parsed.
+#[derive(Debug, Error, Clone, PartialEq, Eq)]
+#[error("cannot parse fault {line:?}: expected one of pstop, estop, release-estop, drop, lose <cycles>, delay <ms>, stall <ms>")]
+pub struct FaultParseError {
+    /// The line given.
+    pub line: String,
+}
+
+impl std::str::FromStr for Fault {
+    type Err = FaultParseError;
+
+    fn from_str(line: &str) -> Result<Self, Self::Err> {
+        let err = || FaultParseError {
+            line: line.to_string(),
+        };
+        let mut words = line.split_whitespace();
+        let cmd = words.next().ok_or_else(err)?;
+        let mut number = || -> Result<u64, FaultParseError> {
+            words.next().and_then(|w| w.parse().ok()).ok_or_else(err)
+        };
+        let fault = match cmd {
+            "pstop" => Fault::ProtectiveStop,
+            "estop" => Fault::EmergencyStop,
+            "release-estop" => Fault::ReleaseEmergencyStop,
+            "drop" => Fault::DropConnections,
+            "lose" => Fault::LosePackets(u32::try_from(number()?).map_err(|_| err())?),
+            "delay" => Fault::Delay(Duration::from_millis(number()?)),
+            "stall" => Fault::Stall(Duration::from_millis(number()?)),
+            _ => return Err(err()),
+        };
+        if words.next().is_some() {
+            return Err(err());
+        }
+        Ok(fault)
+    }
+}
 
 pub(crate) enum Outgoing {
     Data(Arc<ControllerSnapshot>, Duration),
@@ -348,6 +388,7 @@ pub fn start(config: UrSimConfig, clock: Arc<dyn Clock>) -> Result<UrSimHandle, 
         period: config.period(),
         max_accel: config.max_accel,
         flange_from_tcp: config.flange_from_tcp,
+        floor_z: config.floor_z,
     };
     let core = Core::new(model, config.initial_q, config.initial_mode);
     let shared = Arc::new(Shared {
@@ -499,5 +540,24 @@ impl UrSimHandle {
 impl Drop for UrSimHandle {
     fn drop(&mut self) {
         self.stop_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fault_lines_parse() {
+        assert_eq!("pstop".parse(), Ok(Fault::ProtectiveStop));
+        assert_eq!(" lose 12 ".parse(), Ok(Fault::LosePackets(12)));
+        assert_eq!(
+            "stall 250".parse(),
+            Ok(Fault::Stall(Duration::from_millis(250)))
+        );
+        assert!("stall".parse::<Fault>().is_err());
+        assert!("stall -1".parse::<Fault>().is_err());
+        assert!("pstop now".parse::<Fault>().is_err());
+        assert!("explode".parse::<Fault>().is_err());
     }
 }
