@@ -506,3 +506,35 @@ fn lockstep_on_a_shared_manual_clock_runs_on_simulated_time() {
         wall.elapsed().as_secs_f64()
     );
 }
+
+#[test]
+fn delayed_packages_still_complete_and_a_long_delay_is_caught() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    // A constant 16 ms latency (two cycles): the loop keeps its rate, the arm its goal.
+    h.inject(Fault::Delay(Duration::from_millis(16)));
+    let start = arm.state().unwrap().joints.position;
+    let goal = goal_from(start);
+    let outcome = arm.execute(&quintic(start, goal, 1.0, 0.008)).unwrap();
+    assert!(
+        matches!(outcome, ExecutionOutcome::Completed { .. }),
+        "{outcome:?}"
+    );
+    h.inject(Fault::Delay(Duration::ZERO));
+    std::thread::sleep(Duration::from_millis(50));
+    assert!(cell_types::joints::max_abs_diff(&h.snapshot().actual_q, &goal) < 0.01);
+    // A sudden 300 ms delay is a gap of ~37 cycles: over the bound.
+    let (outcome, _) = run_with_fault(
+        &h,
+        &mut arm,
+        Duration::from_millis(300),
+        Fault::Delay(Duration::from_millis(300)),
+    );
+    match outcome {
+        ExecutionOutcome::Stopped {
+            cause: StopCause::NoData { .. },
+            ..
+        } => {}
+        o => panic!("{o:?}"),
+    }
+}
