@@ -57,7 +57,10 @@ pub(crate) fn serve(shared: Arc<Shared>, stream: TcpStream, id: u64) {
         started: false,
     }));
     let closed = Arc::new(AtomicBool::new(false));
-    let (tx, rx) = sync_channel::<Outgoing>(4);
+    // Room for half a second at 125 Hz: a writer starved of CPU for a moment catches up
+    // instead of dropping packages (a real controller's socket buffer does the same); a
+    // client that stops reading for longer loses packages, never slows the controller.
+    let (tx, rx) = sync_channel::<Outgoing>(64);
     shared.subscribe(tx);
     let w = {
         let (shared, writer, session, closed) = (
