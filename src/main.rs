@@ -17,14 +17,25 @@ struct Cli {
 
 #[derive(Subcommand, Debug)]
 enum Command {
-    /// Check a cell configuration file and print the checked configuration.
     /// Run episodes end to end (the built-in simulated cell when no --config is given).
     Run(cmd::run::RunArgs),
+    /// Serve the simulated UR controller (RTDE, dashboard, secondary) until interrupted.
+    Sim(cmd::sim::SimArgs),
+    /// Check a cell configuration file and print the checked configuration.
     Config(cmd::config::ConfigArgs),
     /// Summarise an episode recording (topics, counts, outcome, timings).
     Inspect(cmd::inspect::InspectArgs),
     /// The EquAct network: check parity fixtures, predict, benchmark.
     Policy(cmd::policy::PolicyArgs),
+    /// Benchmarks that print JSON.
+    #[command(subcommand)]
+    Bench(BenchCommand),
+}
+
+#[derive(Subcommand, Debug)]
+enum BenchCommand {
+    /// The UR driver's streaming-loop jitter at 125 and 500 Hz.
+    Ur(cmd::bench_ur::BenchUrArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -51,8 +62,12 @@ fn main() -> std::process::ExitCode {
 fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Run(args) => cmd::run::run(args),
+        Command::Sim(args) => cmd::sim::run(args),
         Command::Config(args) => cmd::config::run(args),
         Command::Inspect(args) => cmd::inspect::run(args),
         Command::Policy(args) => cmd::policy::run(args),
+        Command::Bench(b) => match b {
+            BenchCommand::Ur(args) => cmd::bench_ur::run(args),
+        },
     }
 }

@@ -458,6 +458,40 @@ impl<A: Arm> Arm for LimitedArm<A> {
     }
 }
 
+/// Wraps an arm: refuses to move unless the controller reports RUNNING and NORMAL.
+pub struct ModeGuard<A: Arm> {
+    inner: A,
+}
+
+impl<A: Arm> ModeGuard<A> {
+    /// Wraps `inner`.
+    pub fn new(inner: A) -> Self {
+        Self { inner }
+    }
+}
+
+impl<A: Arm> Arm for ModeGuard<A> {
+    fn state(&self) -> Result<ArmState, ArmError> {
+        self.inner.state()
+    }
+    fn execute(&mut self, trajectory: &Trajectory) -> Result<ExecutionOutcome, ArmError> {
+        let s = self.inner.state()?;
+        if s.robot_mode != RobotMode::Running || s.safety_mode != SafetyMode::Normal {
+            return Err(ArmError::NotReady {
+                robot_mode: s.robot_mode,
+                safety_mode: s.safety_mode,
+            });
+        }
+        self.inner.execute(trajectory)
+    }
+    fn stop_handle(&self) -> StopHandle {
+        self.inner.stop_handle()
+    }
+    fn stop(&mut self) -> Result<(), ArmError> {
+        self.inner.stop()
+    }
+}
+
 /// Forward kinematics to the TCP position (m); firmware_iface does not depend on the
 /// planner, so the caller passes its model in (e.g. `planner::kinematics::UR5`).
 pub type TcpPosition = Box<dyn Fn(&Joints) -> [f64; 3] + Send>;
@@ -516,11 +550,25 @@ mod tests {
     /// An arm that records whether anything reached it.
     struct Recorder {
         executed: usize,
+        state: ArmState,
+    }
+
+    impl Recorder {
+        fn new(safety_mode: SafetyMode) -> Self {
+            Self {
+                executed: 0,
+                state: ArmState {
+                    robot_mode: RobotMode::Running,
+                    safety_mode,
+                    ..ArmState::default()
+                },
+            }
+        }
     }
 
     impl Arm for Recorder {
         fn state(&self) -> Result<ArmState, ArmError> {
-            Ok(ArmState::default())
+            Ok(self.state)
         }
         fn execute(&mut self, _: &Trajectory) -> Result<ExecutionOutcome, ArmError> {
             self.executed += 1;
@@ -556,7 +604,7 @@ mod tests {
 
     #[test]
     fn limits_refuse_before_the_inner_arm_sees_anything() {
-        let mut arm = LimitedArm::new(Recorder { executed: 0 }, JointLimits::ur5());
+        let mut arm = LimitedArm::new(Recorder::new(SafetyMode::Normal), JointLimits::ur5());
         let bad_pos = traj(&[[0.0; 6], [0.0, 0.0, 7.0, 0.0, 0.0, 0.0]]);
         assert!(matches!(
             arm.execute(&bad_pos),
@@ -585,13 +633,31 @@ mod tests {
     #[test]
     fn workspace_guard_refuses_tcp_outside_the_box() {
         let fk: TcpPosition = Box::new(|q: &Joints| [q[0], q[1], q[2]]);
-        let mut arm = WorkspaceGuard::new(Recorder { executed: 0 }, fk, [-1.0; 3], [1.0; 3]);
+        let mut arm =
+            WorkspaceGuard::new(Recorder::new(SafetyMode::Normal), fk, [-1.0; 3], [1.0; 3]);
         let out = traj(&[[0.0; 6], [0.0, 1.5, 0.0, 0.0, 0.0, 0.0]]);
         assert!(matches!(
             arm.execute(&out),
             Err(ArmError::Workspace { sample: 1, .. })
         ));
         assert!(arm.execute(&traj(&[[0.5; 6]])).is_ok());
+    }
+
+    #[test]
+    fn mode_guard_refuses_unless_running_and_normal() {
+        let t = traj(&[[0.0; 6]]);
+        let mut stopped = ModeGuard::new(Recorder::new(SafetyMode::ProtectiveStop));
+        assert!(matches!(
+            stopped.execute(&t),
+            Err(ArmError::NotReady {
+                safety_mode: SafetyMode::ProtectiveStop,
+                ..
+            })
+        ));
+        assert_eq!(stopped.inner.executed, 0);
+        let mut ok = ModeGuard::new(Recorder::new(SafetyMode::Normal));
+        assert!(ok.execute(&t).is_ok());
+        assert_eq!(ok.inner.executed, 1);
     }
 
     #[test]

@@ -21,6 +21,9 @@ fn config_for(h: &UrSimHandle) -> UrConfig {
     UrConfig {
         host: h.addr(),
         ports: h.ports(),
+        // 3 cycles (the default) is right on a dedicated controller PC; this test machine
+        // is shared, so allow ~100 ms before calling the link lost.
+        lost_cycles: 12,
         ..UrConfig::default()
     }
 }
@@ -227,7 +230,7 @@ fn stalled_controller_is_detected() {
             by: StoppedBy::Driver,
             cause: StopCause::NoData { missed_cycles },
             ..
-        } => assert!(missed_cycles > 3),
+        } => assert!(missed_cycles > 12),
         o => panic!("{o:?}"),
     }
     assert!(
@@ -356,10 +359,10 @@ fn connect_errors_name_the_problem_and_the_fix() {
 #[test]
 fn e_series_runs_at_500_hz() {
     let h = sim(UrSimConfig::for_tests().e_series());
-    // 3 missing packages are only 6 ms at 500 Hz: allow 20 ms on a shared CI machine.
+    // 12 missing packages are only 24 ms at 500 Hz: allow 100 ms on a shared CI machine.
     let arm = UrArm::connect(
         UrConfig {
-            lost_cycles: 10,
+            lost_cycles: 50,
             ..config_for(&h)
         },
         Arc::new(SystemClock::new()),
@@ -367,4 +370,171 @@ fn e_series_runs_at_500_hz() {
     .unwrap();
     assert!((arm.period() - 0.002).abs() < 1e-12);
     run_to_goal(&h, arm);
+}
+
+#[test]
+fn emergency_stop_is_reported_by_the_controller() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    let (outcome, _) = run_with_fault(
+        &h,
+        &mut arm,
+        Duration::from_millis(300),
+        Fault::EmergencyStop,
+    );
+    match outcome {
+        ExecutionOutcome::Stopped {
+            by: StoppedBy::Controller,
+            cause: StopCause::EmergencyStop,
+            last_state,
+            ..
+        } => assert_eq!(last_state.safety_mode, SafetyMode::RobotEmergencyStop),
+        o => panic!("{o:?}"),
+    }
+}
+
+#[test]
+fn dashboard_stop_ends_the_program_and_the_motion() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    let start = arm.state().unwrap().joints.position;
+    let traj = quintic(start, goal_from(start), 2.0, 0.008);
+    let outcome = std::thread::scope(|s| {
+        s.spawn(|| {
+            std::thread::sleep(Duration::from_millis(300));
+            h.with_core(|c| c.stop_program("test: dashboard stop"));
+        });
+        arm.execute(&traj).unwrap()
+    });
+    match outcome {
+        ExecutionOutcome::Stopped {
+            by: StoppedBy::Controller,
+            cause: StopCause::ProgramStopped { .. },
+            ..
+        } => {}
+        o => panic!("{o:?}"),
+    }
+}
+
+#[test]
+fn tracking_error_over_the_bound_stops_the_arm() {
+    // An arm that cannot accelerate as planned falls behind its trajectory.
+    let h = sim(UrSimConfig {
+        max_accel: 0.5,
+        ..UrSimConfig::for_tests()
+    });
+    let mut arm = UrArm::connect(
+        UrConfig {
+            tracking_bound: 0.02,
+            ..config_for(&h)
+        },
+        Arc::new(SystemClock::new()),
+    )
+    .unwrap();
+    let start = arm.state().unwrap().joints.position;
+    let outcome = arm
+        .execute(&quintic(start, goal_from(start), 1.0, 0.008))
+        .unwrap();
+    match outcome {
+        ExecutionOutcome::Stopped {
+            by: StoppedBy::Driver,
+            cause: StopCause::TrackingError { error, bound, .. },
+            ..
+        } => assert!(error > bound && bound == 0.02),
+        o => panic!("{o:?}"),
+    }
+}
+
+#[test]
+fn a_few_lost_packages_are_tolerated_and_many_stop_the_motion() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    let (outcome, _) = run_with_fault(
+        &h,
+        &mut arm,
+        Duration::from_millis(300),
+        Fault::LosePackets(2),
+    );
+    assert!(
+        matches!(outcome, ExecutionOutcome::Completed { .. }),
+        "{outcome:?}"
+    );
+    let (outcome, _) = run_with_fault(
+        &h,
+        &mut arm,
+        Duration::from_millis(300),
+        Fault::LosePackets(40),
+    );
+    match outcome {
+        ExecutionOutcome::Stopped {
+            cause: StopCause::NoData { .. },
+            ..
+        } => {}
+        o => panic!("{o:?}"),
+    }
+}
+
+#[test]
+fn lockstep_on_a_shared_manual_clock_runs_on_simulated_time() {
+    let clock = Arc::new(cell_types::ManualClock::new());
+    let h = start(
+        UrSimConfig {
+            lockstep: true,
+            ..UrSimConfig::for_tests()
+        },
+        clock.clone(),
+    )
+    .unwrap();
+    let mut arm = UrArm::connect(config_for(&h), clock.clone()).unwrap();
+    let start = arm.state().unwrap().joints.position;
+    let goal = goal_from(start);
+    let traj = quintic(start, goal, 4.0, 0.008);
+    let wall = Instant::now();
+    let sim_t0 = h.snapshot().time;
+    let outcome = arm.execute(&traj).unwrap();
+    let ExecutionOutcome::Completed { jitter, .. } = outcome else {
+        panic!("{outcome:?}");
+    };
+    // Every cycle lasts exactly one simulated period: the loop ran on the shared clock.
+    assert_eq!(jitter.late_cycles, 0);
+    assert!((jitter.p50_us - 8000.0).abs() < 1.0, "{jitter:?}");
+    let err = cell_types::joints::max_abs_diff(&h.snapshot().actual_q, &goal);
+    assert!(err < 0.01, "{err}");
+    eprintln!(
+        "lockstep: {:.2} s simulated in {:.2} s wall",
+        h.snapshot().time - sim_t0,
+        wall.elapsed().as_secs_f64()
+    );
+}
+
+#[test]
+fn delayed_packages_still_complete_and_a_long_delay_is_caught() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    // A constant 16 ms latency (two cycles): the loop keeps its rate, the arm its goal.
+    h.inject(Fault::Delay(Duration::from_millis(16)));
+    let start = arm.state().unwrap().joints.position;
+    let goal = goal_from(start);
+    let outcome = arm.execute(&quintic(start, goal, 1.0, 0.008)).unwrap();
+    assert!(
+        matches!(outcome, ExecutionOutcome::Completed { .. }),
+        "{outcome:?}"
+    );
+    h.inject(Fault::Delay(Duration::ZERO));
+    std::thread::sleep(Duration::from_millis(50));
+    assert!(cell_types::joints::max_abs_diff(&h.snapshot().actual_q, &goal) < 0.01);
+    // A sudden 300 ms delay is a gap of ~37 cycles: over the bound.
+    let (outcome, _) = run_with_fault(
+        &h,
+        &mut arm,
+        Duration::from_millis(300),
+        Fault::Delay(Duration::from_millis(300)),
+    );
+    match outcome {
+        ExecutionOutcome::Stopped {
+            cause: StopCause::NoData { .. },
+            ..
+        } => {}
+        o => panic!("{o:?}"),
+    }
 }

@@ -1,6 +1,8 @@
 //! One module per `equact` subcommand.
 
+pub mod bench_ur;
 pub mod config;
 pub mod inspect;
 pub mod policy;
 pub mod run;
+pub mod sim;

@@ -185,6 +185,13 @@ impl UrArm {
     }
 }
 
+impl Drop for UrArm {
+    fn drop(&mut self) {
+        // Ends the link thread; a program still running is stopped by its own watchdog.
+        self.link.close();
+    }
+}
+
 impl Arm for UrArm {
     fn state(&self) -> Result<ArmState, ArmError> {
         let s = self.link.status.lock().unwrap_or_else(|e| e.into_inner());
@@ -222,6 +229,12 @@ impl Arm for UrArm {
         }
         // Hold first, so that neither a stale stop word nor an old sequence number from the
         // previous run reaches the new program.
+        let seen = self
+            .link
+            .status
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .packages;
         rtde_link::hold(&self.link, &state.joints.position)?;
         let params = ServoParams {
             cycle: period,
@@ -230,9 +243,15 @@ impl Arm for UrArm {
             watchdog_cycles: self.config.watchdog_cycles,
             stop_decel: self.config.stop_decel,
         };
+        // Two packages later the controller has applied the hold word; only then may the
+        // new program start reading it.
         self.link
-            .wait_for(Duration::from_secs_f64(4.0 * period), |s| s.packages > 0)
-            .ok();
+            .wait_for(Duration::from_secs_f64(0.5), |s| s.packages >= seen + 2)
+            .map_err(|s| ArmError::LinkDown {
+                detail: s
+                    .down
+                    .unwrap_or_else(|| "no state package for 0.5 s".into()),
+            })?;
         self.upload(&params)?;
         let wait = Duration::from_secs(2);
         self.link

@@ -228,7 +228,18 @@ impl Link {
             frequency: Some(freq),
             names: OUTPUTS.iter().map(|s| s.to_string()).collect(),
         })? {
-            RobotMessage::SetupOutputs { types, .. } => check_types(&OUTPUTS, &types)?,
+            RobotMessage::SetupOutputs { recipe_id, types } => {
+                let t = check_types(&OUTPUTS, &types)?;
+                if recipe_id == Some(0) {
+                    return Err(ArmError::Protocol {
+                        service: "RTDE",
+                        detail: format!(
+                            "controller refused the output recipe at {freq} Hz (recipe id 0)"
+                        ),
+                    });
+                }
+                t
+            }
             m => return Err(unexpected("output setup reply", &m)),
         };
         let out_layout = Layout::new(&out_types);
@@ -236,7 +247,14 @@ impl Link {
             names: INPUTS.iter().map(|s| s.to_string()).collect(),
         })? {
             RobotMessage::SetupInputs { recipe_id, types } => {
-                (recipe_id, check_types(&INPUTS, &types)?)
+                let t = check_types(&INPUTS, &types)?;
+                if recipe_id == 0 {
+                    return Err(ArmError::Protocol {
+                        service: "RTDE",
+                        detail: "controller refused the input recipe (recipe id 0)".into(),
+                    });
+                }
+                (recipe_id, t)
             }
             m => return Err(unexpected("input setup reply", &m)),
         };
@@ -283,6 +301,11 @@ impl Link {
         let size = n as u16;
         pkg[..2].copy_from_slice(&size.to_be_bytes());
         lock(&self.writer).write_all(&pkg[..n]).map_err(io)
+    }
+
+    /// Closes the RTDE socket; the link thread sees the end of the stream and exits.
+    pub(crate) fn close(&self) {
+        let _ = lock(&self.writer).shutdown(std::net::Shutdown::Both);
     }
 
     /// Blocks until the status satisfies `pred` or `timeout` passes; returns the status.
@@ -452,6 +475,17 @@ impl Streamer {
         let Some(job) = slot.as_mut() else {
             return;
         };
+        let Some(last_sample) = job.samples.len().checked_sub(1) else {
+            // execute() never hands over an empty trajectory; finish rather than index.
+            drop(slot);
+            return self.stop(
+                link,
+                StoppedBy::Driver,
+                StopCause::Requested,
+                *state,
+                state.joints.position,
+            );
+        };
         if !self.started {
             self.started = true;
             self.settle_cycles = job.settle_cycles;
@@ -501,7 +535,7 @@ impl Streamer {
             return self.stop(link, by, cause, *state, q);
         }
         let n = job.samples.len();
-        let target = job.samples[self.index.min(n - 1)].position;
+        let target = job.samples[self.index.min(last_sample)].position;
         if self.index >= n {
             let err = (0..JOINT_COUNT)
                 .map(|j| (q[j] - target[j]).abs())

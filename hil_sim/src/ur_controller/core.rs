@@ -160,6 +160,9 @@ pub struct ArmModel {
     pub max_accel: f64,
     /// Flange to TCP.
     pub flange_from_tcp: Transform<Flange, Tcp>,
+    /// Height of the table top in the base frame (m): a link frame (elbow, wrists, flange)
+    /// or the TCP below it is a collision with the scene. None disables the check.
+    pub floor_z: Option<f64>,
 }
 
 /// The whole controller state, stepped once per control cycle.
@@ -520,6 +523,22 @@ impl Core {
             self.qdd[i] = (self.qd[i] - old[i]) / dt;
             self.q[i] += 0.5 * (old[i] + self.qd[i]) * dt;
         }
+        if let Some(floor) = self.model.floor_z {
+            let frames = planner::kinematics::UR5.link_frames(&self.q);
+            let tcp = tcp_pose(&self.q, &self.model.flange_from_tcp);
+            // Frames 0..=1 sit on the base column and never move vertically.
+            let low = frames[2..]
+                .iter()
+                .map(|f| f.translation.vector.z)
+                .chain(std::iter::once(tcp[2]))
+                .fold(f64::INFINITY, f64::min);
+            if low < floor {
+                self.qd = [0.0; JOINT_COUNT];
+                self.protective_stop(&format!(
+                    "collision with the table: a link reached z = {low:.3} m below {floor:.3} m"
+                ));
+            }
+        }
         if let Some(j) = (0..JOINT_COUNT).find(|&j| self.q[j].abs() > JOINT_LIMIT) {
             self.q[j] = self.q[j].clamp(-JOINT_LIMIT, JOINT_LIMIT);
             self.qd[j] = 0.0;
@@ -537,6 +556,7 @@ mod tests {
             period: 0.008,
             max_accel: 15.0,
             flange_from_tcp: Transform::identity(),
+            floor_z: Some(0.0),
         }
     }
 
@@ -616,6 +636,30 @@ mod tests {
         }
         assert!(c.unlock_protective_stop());
         assert_eq!(c.safety_mode(), SafetyMode::Normal);
+    }
+
+    #[test]
+    fn driving_the_tool_into_the_table_raises_protective_stop() {
+        let mut c = running_core();
+        c.start_servo_program(ServoParams::default()).unwrap();
+        let start = c.snapshot().actual_q;
+        // Shoulder down: the forearm and wrist swing into the table.
+        for k in 1..400 {
+            let mut q = start;
+            q[1] = start[1] + 2.0 * (k as f64 / 400.0);
+            c.registers.input_int[SEQ_REGISTER] = k;
+            c.registers.input_double[24..30].copy_from_slice(&q);
+            c.step();
+            if c.safety_mode() != SafetyMode::Normal {
+                break;
+            }
+        }
+        assert_eq!(c.safety_mode(), SafetyMode::ProtectiveStop);
+        assert!(c
+            .take_events()
+            .iter()
+            .any(|e| e.contains("collision with the table")));
+        assert!(c.snapshot().actual_tcp_pose[2] > -0.05);
     }
 
     #[test]

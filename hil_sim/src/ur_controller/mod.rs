@@ -10,6 +10,7 @@
 //! closes only its connection, with the reason recorded in [`UrSimHandle::log`] and printed
 //! to stderr.
 
+pub mod bench;
 pub mod core;
 pub mod dashboard_server;
 pub mod rtde_server;
@@ -22,7 +23,7 @@ use std::io;
 use std::net::{IpAddr, Ipv4Addr, SocketAddr, TcpListener, TcpStream};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::mpsc::{SyncSender, TrySendError};
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::thread::JoinHandle;
 use std::time::Duration;
 
@@ -75,6 +76,13 @@ pub struct UrSimConfig {
     pub max_accel: f64,
     /// The tool: flange to TCP.
     pub flange_from_tcp: Transform<Flange, Tcp>,
+    /// Table top height in the base frame (m); links below it raise a protective stop.
+    pub floor_z: Option<f64>,
+    /// Lockstep: after each cycle, wait (up to one real period) for a client's input
+    /// package before the next. With a [`cell_types::ManualClock`] shared by the simulator
+    /// and the driver, the pair then runs as fast as the round trip allows, faster than
+    /// real time, and each cycle still sees the driver's answer to the previous one.
+    pub lockstep: bool,
 }
 
 impl Default for UrSimConfig {
@@ -92,6 +100,8 @@ impl Default for UrSimConfig {
             initial_mode: RobotMode::PowerOff,
             max_accel: 15.0,
             flange_from_tcp: Transform::identity(),
+            floor_z: Some(0.0),
+            lockstep: false,
         }
     }
 }
@@ -147,6 +157,46 @@ pub enum Fault {
     Stall(Duration),
 }
 
+/// How far the control thread may fall behind its cadence before it stops catching up.
+const CATCH_UP_LIMIT: Duration = Duration::from_millis(250);
+
+/// A fault command line (`equact sim` reads them on stdin) that could not be parsed.
+#[derive(Debug, Error, Clone, PartialEq, Eq)]
+#[error("cannot parse fault {line:?}: expected one of pstop, estop, release-estop, drop, lose <cycles>, delay <ms>, stall <ms>")]
+pub struct FaultParseError {
+    /// The line given.
+    pub line: String,
+}
+
+impl std::str::FromStr for Fault {
+    type Err = FaultParseError;
+
+    fn from_str(line: &str) -> Result<Self, Self::Err> {
+        let err = || FaultParseError {
+            line: line.to_string(),
+        };
+        let mut words = line.split_whitespace();
+        let cmd = words.next().ok_or_else(err)?;
+        let mut number = || -> Result<u64, FaultParseError> {
+            words.next().and_then(|w| w.parse().ok()).ok_or_else(err)
+        };
+        let fault = match cmd {
+            "pstop" => Fault::ProtectiveStop,
+            "estop" => Fault::EmergencyStop,
+            "release-estop" => Fault::ReleaseEmergencyStop,
+            "drop" => Fault::DropConnections,
+            "lose" => Fault::LosePackets(u32::try_from(number()?).map_err(|_| err())?),
+            "delay" => Fault::Delay(Duration::from_millis(number()?)),
+            "stall" => Fault::Stall(Duration::from_millis(number()?)),
+            _ => return Err(err()),
+        };
+        if words.next().is_some() {
+            return Err(err());
+        }
+        Ok(fault)
+    }
+}
+
 pub(crate) enum Outgoing {
     Data(Arc<ControllerSnapshot>, Duration),
     Text(TextMessage),
@@ -175,6 +225,8 @@ pub(crate) struct Shared {
     next_conn: AtomicU64,
     log: Mutex<Vec<String>>,
     faults: Mutex<FaultState>,
+    inputs_seen: Mutex<u64>,
+    input_arrived: Condvar,
 }
 
 fn lock<T>(m: &Mutex<T>) -> MutexGuard<'_, T> {
@@ -198,6 +250,12 @@ impl Shared {
 
     pub(crate) fn subscribe(&self, tx: SyncSender<Outgoing>) {
         lock(&self.subscribers).push(Subscriber { tx });
+    }
+
+    /// Called by RTDE sessions for every input data package (lockstep pacing).
+    pub(crate) fn input_received(&self) {
+        *lock(&self.inputs_seen) += 1;
+        self.input_arrived.notify_all();
     }
 
     pub(crate) fn delay(&self) -> Duration {
@@ -245,9 +303,10 @@ impl Shared {
             next += period;
             self.clock.sleep_until(next);
             let now = self.clock.now();
-            if now > next + 2 * period {
-                // Fell behind (a stall, or a starved CPU): resume the cadence from now
-                // instead of sending a burst of catch-up packages.
+            if now > next + CATCH_UP_LIMIT {
+                // Starved of CPU for long: resume the cadence from now. Shorter delays are
+                // caught up (a short burst of packages), so that the average rate a client
+                // measures stays the controller's rate on a loaded machine.
                 next = now;
             }
             {
@@ -259,6 +318,7 @@ impl Shared {
                     f.stall_until = None;
                 }
             }
+            let seen_before = *lock(&self.inputs_seen);
             let (snap, events) = {
                 let mut core = self.core();
                 core.step();
@@ -280,6 +340,14 @@ impl Shared {
                     Err(TrySendError::Disconnected(_))
                 )
             });
+            if self.config.lockstep {
+                // Real-time wait on purpose: without a streaming client the simulator keeps
+                // real-time pace instead of spinning its simulated clock away.
+                let g = lock(&self.inputs_seen);
+                let _ = self
+                    .input_arrived
+                    .wait_timeout_while(g, period, |n| *n == seen_before);
+            }
         }
     }
 }
@@ -344,6 +412,7 @@ pub fn start(config: UrSimConfig, clock: Arc<dyn Clock>) -> Result<UrSimHandle, 
         period: config.period(),
         max_accel: config.max_accel,
         flange_from_tcp: config.flange_from_tcp,
+        floor_z: config.floor_z,
     };
     let core = Core::new(model, config.initial_q, config.initial_mode);
     let shared = Arc::new(Shared {
@@ -357,6 +426,8 @@ pub fn start(config: UrSimConfig, clock: Arc<dyn Clock>) -> Result<UrSimHandle, 
         next_conn: AtomicU64::new(1),
         log: Mutex::new(Vec::new()),
         faults: Mutex::new(FaultState::default()),
+        inputs_seen: Mutex::new(0),
+        input_arrived: Condvar::new(),
     });
     let mut handle = UrSimHandle {
         shared: shared.clone(),
@@ -490,5 +561,24 @@ impl UrSimHandle {
 impl Drop for UrSimHandle {
     fn drop(&mut self) {
         self.stop_all();
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fault_lines_parse() {
+        assert_eq!("pstop".parse(), Ok(Fault::ProtectiveStop));
+        assert_eq!(" lose 12 ".parse(), Ok(Fault::LosePackets(12)));
+        assert_eq!(
+            "stall 250".parse(),
+            Ok(Fault::Stall(Duration::from_millis(250)))
+        );
+        assert!("stall".parse::<Fault>().is_err());
+        assert!("stall -1".parse::<Fault>().is_err());
+        assert!("pstop now".parse::<Fault>().is_err());
+        assert!("explode".parse::<Fault>().is_err());
     }
 }

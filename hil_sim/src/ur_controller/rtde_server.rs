@@ -57,7 +57,10 @@ pub(crate) fn serve(shared: Arc<Shared>, stream: TcpStream, id: u64) {
         started: false,
     }));
     let closed = Arc::new(AtomicBool::new(false));
-    let (tx, rx) = sync_channel::<Outgoing>(4);
+    // Room for half a second at 125 Hz: a writer starved of CPU for a moment catches up
+    // instead of dropping packages (a real controller's socket buffer does the same); a
+    // client that stops reading for longer loses packages, never slows the controller.
+    let (tx, rx) = sync_channel::<Outgoing>(64);
     shared.subscribe(tx);
     let w = {
         let (shared, writer, session, closed) = (
@@ -321,10 +324,13 @@ fn handle(
                 .layout
                 .decode_all(&values)
                 .map_err(|e| format!("bad input data package: {e}"))?;
-            let mut core = shared.core();
-            for (n, v) in r.names.iter().zip(decoded) {
-                apply_input(n, v, &mut core.registers);
+            {
+                let mut core = shared.core();
+                for (n, v) in r.names.iter().zip(decoded) {
+                    apply_input(n, v, &mut core.registers);
+                }
             }
+            shared.input_received();
             Vec::new()
         }
         HostMessage::Text(t) => {

@@ -178,6 +178,7 @@ mod tests {
                 period: 0.008,
                 max_accel: 10.0,
                 flange_from_tcp: Default::default(),
+                floor_z: None,
             },
             [0.1; 6],
             RobotMode::Running,
