@@ -144,6 +144,23 @@ fn driver_over_can_slcan_on_a_pty() -> anyhow::Result<()> {
 }
 
 #[test]
+fn driver_over_can_socketcand() -> anyhow::Result<()> {
+    let (clock, shared, sim) = sim();
+    let mapping = CanMapping::for_node(9);
+    let server = sim.spawn_socketcand(SocketAddr::from(([127, 0, 0, 1], 0)), "can0", mapping)?;
+    let addr = server.addr().ok_or_else(|| anyhow::anyhow!("no address"))?;
+    let mut g = RobotiqGripper::socketcand(addr, "can0", mapping, shared)?;
+    scenario(&mut g, &sim, &clock)?;
+    assert_eq!(
+        server.stats().rejected(),
+        0,
+        "{}",
+        server.stats().last_reject()
+    );
+    Ok(())
+}
+
+#[test]
 fn urcap_convenience_constructor_serves_a_free_port() -> anyhow::Result<()> {
     let clock: Arc<dyn Clock> = Arc::new(ManualClock::new());
     let (sim, server) = GripperSim::spawn_urcap_on_loopback(clock.clone(), SimConfig::default())?;

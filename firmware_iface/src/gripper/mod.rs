@@ -1,6 +1,6 @@
 //! The Robotiq 2F-85 gripper (fact sheet `robotiq_2f85.md`, issue 6): the register model
 //! ([`registers`]), the wire codecs of its three transports ([`modbus_rtu`], [`urcap`],
-//! [`can`] + [`slcan`]), the byte transports that carry them ([`transport`]) and the driver
+//! [`can`] carried by [`slcan`] adapters or a [`socketcand`] server), the byte transports that carry them ([`transport`]) and the driver
 //! ([`driver::RobotiqGripper`]) implementing the [`Gripper`] trait.
 //!
 //! Libraries: `serialport` opens and configures serial devices (115200 8N1, termios done
@@ -13,6 +13,7 @@ mod error;
 pub mod modbus_rtu;
 pub mod registers;
 pub mod slcan;
+pub mod socketcand;
 pub mod transport;
 pub mod urcap;
 

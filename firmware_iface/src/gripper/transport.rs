@@ -16,6 +16,7 @@ use super::registers::{
     ActivationStatus, RequestImage, StatusImage, IMAGE_REGISTERS, REQUEST_REGISTER, STATUS_REGISTER,
 };
 use super::slcan::{LineSplitter, SlcanLine};
+use super::socketcand::{MessageSplitter, SocketcandMsg};
 use super::urcap::{UrcapCommand, UrcapReply, Var};
 use super::GripperError;
 
@@ -230,6 +231,8 @@ impl RegisterTransport for ModbusRtuTransport {
 pub struct UrcapTransport {
     reader: BufReader<TcpStream>,
     writer: TcpStream,
+    /// Whether ATR/ARD were last set non-zero (so that clearing them is sent too).
+    release_set: bool,
 }
 
 impl UrcapTransport {
@@ -246,6 +249,7 @@ impl UrcapTransport {
         Ok(Self {
             reader: BufReader::new(stream),
             writer,
+            release_set: false,
         })
     }
 
@@ -289,17 +293,26 @@ impl UrcapTransport {
 
 impl RegisterTransport for UrcapTransport {
     fn write_request(&mut self, r: &RequestImage) -> Result<(), GripperError> {
-        let cmd = UrcapCommand::Set(vec![
+        let mut pairs = vec![
             (Var::Act, u8::from(r.activate)),
             (Var::Gto, u8::from(r.go_to)),
-            (Var::Atr, u8::from(r.auto_release)),
-            (Var::Ard, u8::from(r.release_direction)),
             (Var::Pos, r.position),
             (Var::Spe, r.speed),
             (Var::For, r.force),
-        ]);
+        ];
+        // The release variables are sent only when used: their spelling differs between
+        // URCap versions (ARD/ADR), and an unknown name would fail the whole line.
+        let release = r.auto_release || r.release_direction;
+        if release || self.release_set {
+            pairs.push((Var::Atr, u8::from(r.auto_release)));
+            pairs.push((Var::Ard, u8::from(r.release_direction)));
+        }
+        let cmd = UrcapCommand::Set(pairs);
         match self.exchange(&cmd)? {
-            UrcapReply::Ack => Ok(()),
+            UrcapReply::Ack => {
+                self.release_set = release;
+                Ok(())
+            }
             other => Err(GripperError::UnexpectedReply {
                 transport: "urcap",
                 detail: format!("{other:?} in answer to SET"),
@@ -451,5 +464,143 @@ impl RegisterTransport for SlcanTransport {
 impl Drop for SlcanTransport {
     fn drop(&mut self) {
         let _ = self.send(&SlcanLine::Close);
+    }
+}
+
+/// The gripper's CAN mapping through a socketcand server (TCP 29536): the `< hi >`,
+/// `< open BUS >`, `< rawmode >` handshake, then command frames answered by status frames;
+/// status polls are empty frames on the status id (socketcand carries no remote frames).
+pub struct SocketcandTransport {
+    stream: TcpStream,
+    mapping: CanMapping,
+    splitter: MessageSplitter,
+    reply_timeout: Duration,
+}
+
+impl SocketcandTransport {
+    /// Connects to `addr`, opens `bus` (e.g. `"can0"`) in raw mode.
+    pub fn connect(
+        addr: impl ToSocketAddrs,
+        bus: &str,
+        mapping: CanMapping,
+    ) -> Result<Self, GripperError> {
+        let stream = TcpStream::connect(addr).map_err(io_err("connecting to socketcand"))?;
+        stream
+            .set_read_timeout(Some(Duration::from_millis(5)))
+            .and_then(|()| stream.set_nodelay(true))
+            .map_err(io_err("configuring the socketcand socket"))?;
+        let mut t = Self {
+            stream,
+            mapping,
+            splitter: MessageSplitter::new(),
+            reply_timeout: DEFAULT_REPLY_TIMEOUT,
+        };
+        t.expect(&SocketcandMsg::Hi)?;
+        t.send(&SocketcandMsg::Open(bus.to_owned()))?;
+        t.expect(&SocketcandMsg::Ok)?;
+        t.send(&SocketcandMsg::RawMode)?;
+        t.expect(&SocketcandMsg::Ok)?;
+        Ok(t)
+    }
+
+    /// Sets how long to wait for an answer.
+    pub fn with_reply_timeout(mut self, t: Duration) -> Self {
+        self.reply_timeout = t;
+        self
+    }
+
+    fn send(&mut self, m: &SocketcandMsg) -> Result<(), GripperError> {
+        self.stream
+            .write_all(m.encode().as_bytes())
+            .map_err(io_err("writing to socketcand"))
+    }
+
+    /// Waits for the first message that `pick` accepts; other messages are logged.
+    fn wait_for<R>(
+        &mut self,
+        what: &'static str,
+        mut pick: impl FnMut(SocketcandMsg) -> Option<Result<R, GripperError>>,
+    ) -> Result<R, GripperError> {
+        let granularity = Duration::from_millis(5);
+        let mut waited = Duration::ZERO;
+        let mut buf = [0u8; 512];
+        let mut pending: Vec<SocketcandMsg> = Vec::new();
+        loop {
+            for m in pending.drain(..) {
+                if let Some(r) = pick(m) {
+                    return r;
+                }
+            }
+            if waited >= self.reply_timeout {
+                return Err(GripperError::Timeout {
+                    what,
+                    after: self.reply_timeout,
+                });
+            }
+            let n = read_some(&mut self.stream, &mut buf, "socketcand")?;
+            if n == 0 {
+                waited += granularity;
+                continue;
+            }
+            let text = String::from_utf8_lossy(&buf[..n]).into_owned();
+            self.splitter.push(&text, |m| match m {
+                Err(junk) => warn!("socketcand: discarded {junk:?}"),
+                Ok(m) => match SocketcandMsg::parse(m) {
+                    Ok(msg) => pending.push(msg),
+                    Err(e) => warn!("socketcand: rejected message: {e}"),
+                },
+            });
+        }
+    }
+
+    fn expect(&mut self, want: &SocketcandMsg) -> Result<(), GripperError> {
+        let want = want.clone();
+        self.wait_for("a socketcand handshake answer", |m| {
+            Some(if m == want {
+                Ok(())
+            } else {
+                Err(GripperError::UnexpectedReply {
+                    transport: "socketcand",
+                    detail: format!("{m:?} instead of {want:?}"),
+                })
+            })
+        })
+    }
+
+    /// Sends `frame` and waits for the next status frame.
+    pub fn exchange(&mut self, frame: CanFrame) -> Result<StatusImage, GripperError> {
+        self.send(&SocketcandMsg::Send(frame))?;
+        let mapping = self.mapping;
+        self.wait_for("a CAN status frame", |m| match m {
+            SocketcandMsg::Frame(f, _) => match mapping.decode_status(&f) {
+                Ok(Some(s)) => Some(Ok(s)),
+                Ok(None) => None,
+                Err(e) => {
+                    warn!("socketcand: rejected status frame: {e}");
+                    Some(Err(e))
+                }
+            },
+            SocketcandMsg::Error(text) => Some(Err(GripperError::UnexpectedReply {
+                transport: "socketcand",
+                detail: format!("server error: {text}"),
+            })),
+            _ => None,
+        })
+    }
+}
+
+impl RegisterTransport for SocketcandTransport {
+    fn write_request(&mut self, request: &RequestImage) -> Result<(), GripperError> {
+        let frame = self.mapping.command_frame(request);
+        self.exchange(frame).map(|_| ())
+    }
+
+    fn read_status(&mut self) -> Result<StatusImage, GripperError> {
+        let frame = self.mapping.status_poll_empty();
+        self.exchange(frame)
+    }
+
+    fn name(&self) -> &'static str {
+        "socketcand"
     }
 }

@@ -2,7 +2,8 @@
 //! transports, each speaking the real wire protocol through the codecs of
 //! `firmware_iface::gripper`: a Modbus RTU slave on a pseudo-terminal ([`modbus`]), the
 //! URCap text server on loopback TCP ([`urcap`]) and the CAN mapping through an slcan
-//! adapter on a pseudo-terminal ([`slcan`]). Time comes from an injected [`Clock`]; with a
+//! adapter on a pseudo-terminal ([`slcan`]) or a socketcand server on loopback TCP
+//! ([`socketcand`]). Time comes from an injected [`Clock`]; with a
 //! `ManualClock` shared with the driver, the driver's poll sleeps drive simulated time and
 //! tests run faster than real time.
 //!
@@ -13,6 +14,7 @@
 pub mod modbus;
 pub mod model;
 pub mod slcan;
+pub mod socketcand;
 pub mod urcap;
 
 use std::net::SocketAddr;
@@ -122,6 +124,16 @@ impl GripperSim {
     /// Serves the CAN mapping through an emulated slcan adapter on a new pseudo-terminal.
     pub fn spawn_slcan(&self, mapping: CanMapping) -> Result<SimServer, SimError> {
         slcan::spawn(self.clone(), mapping)
+    }
+
+    /// Serves the CAN mapping on bus `bus` through a socketcand server on `addr`.
+    pub fn spawn_socketcand(
+        &self,
+        addr: SocketAddr,
+        bus: &str,
+        mapping: CanMapping,
+    ) -> Result<SimServer, SimError> {
+        socketcand::spawn(self.clone(), addr, bus.to_owned(), mapping)
     }
 
     /// Convenience for the main job: a gripper and its URCap server on a free loopback port.
