@@ -19,11 +19,14 @@ struct Cli {
 enum Command {
     /// Check a cell configuration file and print the checked configuration.
     Config(cmd::config::ConfigArgs),
+    /// Serve the Robotiq gripper emulator, or benchmark its transports.
+    Gripper(cmd::gripper::GripperArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Config(args) => cmd::config::run(args),
+        Command::Gripper(args) => cmd::gripper::run(args),
     }
 }

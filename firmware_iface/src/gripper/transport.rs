@@ -70,6 +70,8 @@ pub struct ModbusRtuTransport {
     slave: u8,
     reader: FrameReader,
     reply_timeout: Duration,
+    /// When the last frame ended, for the inter-frame gap.
+    line_quiet_since: Option<std::time::Instant>,
 }
 
 impl ModbusRtuTransport {
@@ -86,6 +88,7 @@ impl ModbusRtuTransport {
             slave,
             reader: FrameReader::new(Direction::Responses),
             reply_timeout: DEFAULT_REPLY_TIMEOUT,
+            line_quiet_since: None,
         }
     }
 
@@ -101,8 +104,17 @@ impl ModbusRtuTransport {
         // Stale bytes (a late answer, noise) must not be taken for this request's answer.
         let _ = self.port.clear(ClearBuffer::Input);
         self.reader = FrameReader::new(Direction::Responses);
-        // The gripper refreshes its registers at 100 Hz; answers fit well inside the gap.
-        std::thread::sleep(modbus_rtu::frame_gap(115_200));
+        // RTU frames are delimited by 3.5 character times of silence: wait out what is
+        // left of it since the last frame on the line.
+        let gap = modbus_rtu::frame_gap(115_200);
+        if let Some(left) = self
+            .line_quiet_since
+            .map(|t| gap.saturating_sub(t.elapsed()))
+        {
+            if !left.is_zero() {
+                std::thread::sleep(left);
+            }
+        }
         self.port
             .write_all(&frame)
             .and_then(|()| self.port.flush())
@@ -149,6 +161,7 @@ impl ModbusRtuTransport {
                             });
                             continue;
                         }
+                        self.line_quiet_since = Some(std::time::Instant::now());
                         return check_response(req, resp);
                     }
                 }
