@@ -316,6 +316,7 @@ impl GripperModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
     fn ms(n: u64) -> Duration {
         Duration::from_millis(n)
@@ -466,5 +467,49 @@ mod tests {
         m.read_status(t + ms(500));
         assert_eq!(m.width_m(), w0);
         assert_eq!(m.latched.fault, 0x0B);
+    }
+
+    /// One step of a random session: wait `dt_ms`, maybe move the object, write a request.
+    type Step = (u64, [u8; 6], Option<f64>);
+
+    fn run(steps: &[Step]) -> Vec<(StatusImage, f64)> {
+        let mut m = GripperModel::new(SimConfig::default());
+        let mut t = Duration::ZERO;
+        let mut trace = vec![];
+        for (dt_ms, bytes, obj) in steps {
+            t += ms(*dt_ms);
+            m.set_object(*obj);
+            m.write_request(t, RequestImage::decode(*bytes));
+            for _ in 0..5 {
+                t += ms(37);
+                trace.push((m.read_status(t), m.width_m()));
+            }
+        }
+        trace
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(300))]
+        #[test]
+        fn random_sessions_keep_invariants_and_replay_exactly(
+            steps in proptest::collection::vec(
+                (0u64..1500, any::<[u8; 6]>(), proptest::option::of(0.001f64..0.09)),
+                1..40,
+            )
+        ) {
+            let cfg = SimConfig::default();
+            let trace = run(&steps);
+            for (s, w) in &trace {
+                prop_assert!((0.0..=cfg.stroke_m).contains(w), "width {w}");
+                prop_assert!((cfg.open_count..=cfg.closed_count).contains(&s.position), "{s:?}");
+                prop_assert!([0, 5, 7, 9].contains(&s.fault), "unexpected fault {s:?}");
+                prop_assert!(s.current <= cfg.max_holding_current, "{s:?}");
+                if s.activation != ActivationStatus::Activated {
+                    prop_assert!(!s.go_to, "{s:?}");
+                }
+            }
+            // Same inputs, same outputs: a recorded session replays exactly.
+            prop_assert_eq!(run(&steps), trace);
+        }
     }
 }
