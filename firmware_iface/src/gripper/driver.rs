@@ -216,6 +216,19 @@ impl RobotiqGripper<SocketcandTransport> {
     }
 }
 
+#[cfg(all(feature = "socketcan", target_os = "linux"))]
+impl RobotiqGripper<super::socketcan_transport::SocketcanTransport> {
+    /// A driver on CAN through the SocketCAN interface `ifname` (e.g. `"can0"`).
+    pub fn socketcan(
+        ifname: &str,
+        mapping: CanMapping,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Self, GripperError> {
+        let t = super::socketcan_transport::SocketcanTransport::open(ifname, mapping)?;
+        Ok(Self::new(t, clock))
+    }
+}
+
 impl<T: RegisterTransport> RobotiqGripper<T> {
     /// A driver with the default calibration and timing; call [`Gripper::activate`] next.
     pub fn new(transport: T, clock: Arc<dyn Clock>) -> Self {

@@ -5,7 +5,8 @@
 //!
 //! Libraries: `serialport` opens and configures serial devices (115200 8N1, termios done
 //! right on Linux and elsewhere, read timeouts without a hidden thread); `crc` supplies
-//! CRC-16/MODBUS; `log` carries the reasons for rejected bytes. Codecs do no I/O.
+//! CRC-16/MODBUS; `log` carries the reasons for rejected bytes; with the `socketcan`
+//! feature (Linux), the `socketcan` crate opens raw CAN sockets. Codecs do no I/O.
 
 pub mod can;
 pub mod driver;
@@ -13,6 +14,8 @@ mod error;
 pub mod modbus_rtu;
 pub mod registers;
 pub mod slcan;
+#[cfg(all(feature = "socketcan", target_os = "linux"))]
+pub mod socketcan_transport;
 pub mod socketcand;
 pub mod transport;
 pub mod urcap;

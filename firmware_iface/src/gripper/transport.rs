@@ -33,7 +33,7 @@ pub trait RegisterTransport: Send {
 /// Default time to wait for an answer.
 pub const DEFAULT_REPLY_TIMEOUT: Duration = Duration::from_millis(200);
 
-fn io_err(context: impl Into<String>) -> impl FnOnce(std::io::Error) -> GripperError {
+pub(super) fn io_err(context: impl Into<String>) -> impl FnOnce(std::io::Error) -> GripperError {
     let context = context.into();
     move |source| GripperError::Io { context, source }
 }
