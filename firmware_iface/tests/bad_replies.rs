@@ -177,3 +177,38 @@ fn activation_times_out_against_a_silent_gripper() -> anyhow::Result<()> {
     peer.join().map_err(|_| anyhow::anyhow!("peer panicked"))?;
     Ok(())
 }
+
+#[test]
+fn urcap_late_reply_does_not_answer_the_next_command() -> anyhow::Result<()> {
+    use firmware_iface::gripper::urcap::{UrcapCommand, UrcapReply, Var};
+    let listener = TcpListener::bind("127.0.0.1:0")?;
+    let addr = listener.local_addr()?;
+    let peer = std::thread::spawn(move || -> anyhow::Result<()> {
+        let (s, _) = listener.accept()?;
+        let mut w = s.try_clone()?;
+        let mut r = BufReader::new(s);
+        let mut line = String::new();
+        r.read_line(&mut line)?;
+        std::thread::sleep(Duration::from_millis(150));
+        w.write_all(b"ack\n")?;
+        line.clear();
+        r.read_line(&mut line)?;
+        anyhow::ensure!(line == "GET POS\n", "{line:?}");
+        w.write_all(b"POS 7\n")?;
+        Ok(())
+    });
+    let mut t = UrcapTransport::connect(addr, Duration::from_millis(80))?;
+    assert!(matches!(
+        t.write_request(&Default::default()),
+        Err(GripperError::Timeout { .. })
+    ));
+    // Let the late "ack" arrive before the next command goes out.
+    std::thread::sleep(Duration::from_millis(150));
+    assert_eq!(
+        t.exchange(&UrcapCommand::Get(Var::Pos))?,
+        UrcapReply::Value(Var::Pos, 7)
+    );
+    peer.join()
+        .map_err(|_| anyhow::anyhow!("peer panicked"))??;
+    Ok(())
+}

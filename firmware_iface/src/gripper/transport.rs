@@ -17,7 +17,7 @@ use super::registers::{
 };
 use super::slcan::{LineSplitter, SlcanLine};
 use super::socketcand::{MessageSplitter, SocketcandMsg};
-use super::urcap::{UrcapCommand, UrcapReply, Var};
+use super::urcap::{UrcapCommand, UrcapReply, Var, MAX_LINE};
 use super::GripperError;
 
 /// Moves register images to and from a gripper.
@@ -61,6 +61,31 @@ fn read_some(port: &mut dyn Read, buf: &mut [u8], what: &str) -> Result<usize, G
         Err(e) if e.kind() == ErrorKind::Interrupted => Ok(0),
         Err(e) => Err(io_err(format!("reading {what}"))(e)),
     }
+}
+
+/// Reads and discards what a socket holds right now, without waiting.
+fn drain_socket(stream: &mut TcpStream) -> Result<(), GripperError> {
+    stream
+        .set_nonblocking(true)
+        .map_err(io_err("draining a socket"))?;
+    let mut buf = [0u8; 512];
+    let mut dropped = 0;
+    let result = loop {
+        match stream.read(&mut buf) {
+            Ok(0) => break Ok(()),
+            Ok(n) => dropped += n,
+            Err(e) if e.kind() == ErrorKind::WouldBlock => break Ok(()),
+            Err(e) if e.kind() == ErrorKind::Interrupted => {}
+            Err(e) => break Err(io_err("draining a socket")(e)),
+        }
+    };
+    if dropped > 0 {
+        warn!("dropped {dropped} stale bytes from the socket");
+    }
+    stream
+        .set_nonblocking(false)
+        .map_err(io_err("draining a socket"))?;
+    result
 }
 
 /// Modbus RTU master on a serial line: FC16 to write the request image, FC04 to read the
@@ -246,6 +271,8 @@ pub struct UrcapTransport {
     writer: TcpStream,
     /// Whether ATR/ARD were last set non-zero (so that clearing them is sent too).
     release_set: bool,
+    /// The last exchange failed: unread bytes may follow.
+    desynced: bool,
 }
 
 impl UrcapTransport {
@@ -263,21 +290,50 @@ impl UrcapTransport {
             reader: BufReader::new(stream),
             writer,
             release_set: false,
+            desynced: false,
         })
     }
 
     /// Sends one command and returns its reply line, parsed.
     pub fn exchange(&mut self, cmd: &UrcapCommand) -> Result<UrcapReply, GripperError> {
+        if self.desynced {
+            // A reply that came late (or half a line) must not answer this command.
+            self.drain()?;
+            self.desynced = false;
+        }
         self.writer
             .write_all(cmd.encode().as_bytes())
             .map_err(io_err("writing to the URCap socket"))?;
-        let mut line = String::new();
-        match self.reader.read_line(&mut line) {
+        let reply = self.read_reply();
+        if reply.is_err() {
+            self.desynced = true;
+        }
+        reply
+    }
+
+    fn read_reply(&mut self) -> Result<UrcapReply, GripperError> {
+        let mut line = Vec::with_capacity(32);
+        let limit = MAX_LINE as u64 + 1;
+        match (&mut self.reader).take(limit).read_until(b'\n', &mut line) {
             Ok(0) => Err(GripperError::Io {
                 context: "reading the URCap socket".into(),
                 source: std::io::Error::new(ErrorKind::UnexpectedEof, "server closed the socket"),
             }),
-            Ok(_) => UrcapReply::parse(&line).inspect_err(|e| warn!("urcap: rejected reply: {e}")),
+            Ok(_) if line.last() != Some(&b'\n') => {
+                warn!("urcap: reply line cut off or longer than {MAX_LINE} bytes");
+                Err(GripperError::Malformed {
+                    what: "URCap reply",
+                    detail: format!("{} bytes without a newline", line.len()),
+                })
+            }
+            Ok(_) => {
+                let text = std::str::from_utf8(&line).map_err(|_| GripperError::Malformed {
+                    what: "URCap reply",
+                    detail: "not UTF-8".into(),
+                });
+                text.and_then(UrcapReply::parse)
+                    .inspect_err(|e| warn!("urcap: rejected reply: {e}"))
+            }
             Err(e) if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) => {
                 Err(GripperError::Timeout {
                     what: "a URCap reply",
@@ -291,6 +347,13 @@ impl UrcapTransport {
             }
             Err(e) => Err(io_err("reading the URCap socket")(e)),
         }
+    }
+
+    /// Discards whatever the server sent that was not read.
+    fn drain(&mut self) -> Result<(), GripperError> {
+        let held = self.reader.buffer().len();
+        self.reader.consume(held);
+        drain_socket(self.reader.get_mut())
     }
 
     fn get(&mut self, var: Var) -> Result<u8, GripperError> {
@@ -582,6 +645,9 @@ impl SocketcandTransport {
 
     /// Sends `frame` and waits for the next status frame.
     pub fn exchange(&mut self, frame: CanFrame) -> Result<StatusImage, GripperError> {
+        // Frames left from an exchange that timed out must not answer this one.
+        drain_socket(&mut self.stream)?;
+        self.splitter = MessageSplitter::new();
         self.send(&SocketcandMsg::Send(frame))?;
         let mapping = self.mapping;
         self.wait_for("a CAN status frame", |m| match m {
