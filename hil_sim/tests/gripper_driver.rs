@@ -171,3 +171,65 @@ fn urcap_convenience_constructor_serves_a_free_port() -> anyhow::Result<()> {
     assert!(sim.observe().is_activated());
     Ok(())
 }
+
+#[test]
+fn connect_by_link_reaches_the_emulator_on_every_transport() -> anyhow::Result<()> {
+    use firmware_iface::gripper::{connect, Calibration, DriverTiming, GripperLink};
+    let (_clock, shared, sim) = sim();
+    let local = SocketAddr::from(([127, 0, 0, 1], 0));
+    let mapping = CanMapping::default();
+    let servers = [
+        sim.spawn_modbus_rtu()?,
+        sim.spawn_urcap(local)?,
+        sim.spawn_slcan(mapping)?,
+        sim.spawn_socketcand(local, "can0", mapping)?,
+    ];
+    let pty = |i: usize| servers[i].pty_path().map(str::to_owned).unwrap_or_default();
+    let tcp = |i: usize| servers[i].addr().map(|a| a.to_string()).unwrap_or_default();
+    let links = [
+        GripperLink::ModbusRtu {
+            path: pty(0),
+            slave: 9,
+        },
+        GripperLink::Urcap { addr: tcp(1) },
+        GripperLink::Slcan {
+            path: pty(2),
+            mapping,
+        },
+        GripperLink::Socketcand {
+            addr: tcp(3),
+            bus: "can0".into(),
+            mapping,
+        },
+    ];
+    for link in &links {
+        let mut g = connect(
+            link,
+            Calibration::default(),
+            DriverTiming::default(),
+            shared.clone(),
+        )?;
+        let s = g.activate()?;
+        assert!(s.activated, "{link:?}");
+    }
+    for (i, server) in servers.iter().enumerate() {
+        assert!(server.stats().accepted() > 10, "server {i} unused");
+    }
+    // Without the `socketcan` feature the link is refused by type; with it, this kernel
+    // (no CAN) fails to open the interface. Either way: a typed error, no panic.
+    let socketcan = GripperLink::Socketcan {
+        ifname: "nosuchcan7".into(),
+        mapping,
+    };
+    match connect(
+        &socketcan,
+        Calibration::default(),
+        DriverTiming::default(),
+        shared,
+    ) {
+        Err(GripperError::TransportUnavailable { .. } | GripperError::Io { .. }) => {}
+        Err(e) => panic!("unexpected error {e}"),
+        Ok(_) => panic!("connected to a CAN interface that does not exist"),
+    }
+    Ok(())
+}

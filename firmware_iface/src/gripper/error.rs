@@ -121,4 +121,12 @@ pub enum GripperError {
         /// What is wrong.
         detail: String,
     },
+    /// A transport this build or platform does not have.
+    #[error("the {transport} transport is unavailable: {detail}")]
+    TransportUnavailable {
+        /// Which transport.
+        transport: &'static str,
+        /// Why, and what to do.
+        detail: String,
+    },
 }

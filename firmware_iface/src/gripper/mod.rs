@@ -11,6 +11,7 @@
 pub mod can;
 pub mod driver;
 mod error;
+pub mod link;
 pub mod modbus_rtu;
 pub mod registers;
 pub mod slcan;
@@ -24,6 +25,7 @@ use cell_types::{GripperCommand, GripperState};
 
 pub use driver::{Calibration, DriverTiming, RobotiqGripper};
 pub use error::GripperError;
+pub use link::{connect, GripperLink};
 pub use registers::{RequestImage, StatusImage};
 pub use transport::RegisterTransport;
 
