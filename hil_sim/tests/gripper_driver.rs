@@ -60,6 +60,17 @@ fn scenario<T: RegisterTransport>(
         Err(GripperError::OutOfRange { .. })
     ));
 
+    // An inside grasp: opening stops on an obstacle at 70 mm, contact while opening.
+    sim.set_object(None);
+    g.move_to(&GripperCommand::new(0.020, 0.15, 100.0)?)?;
+    sim.set_outer_limit(Some(0.070));
+    let s = g.open()?;
+    assert_eq!(s.object, ObjectStatus::ContactOpening);
+    assert!((s.width_m - 0.070).abs() < 1e-3, "{}", s.width_m);
+    sim.set_outer_limit(None);
+    sim.set_object(Some(0.040));
+    g.open()?;
+
     // Silence for more than a second: fault 0x09, the driver needs re-activation.
     clock.advance(Duration::from_millis(1500));
     match g.state() {

@@ -78,6 +78,11 @@ impl GripperSim {
         self.lock().set_object(width_m);
     }
 
+    /// Places an obstacle that stops the fingers opening past `width_m` (gOBJ = 1).
+    pub fn set_outer_limit(&self, width_m: Option<f64>) {
+        self.lock().set_outer_limit(width_m);
+    }
+
     /// Raises a gripper fault (e.g. 0x0B).
     pub fn inject_fault(&self, code: u8) {
         self.lock().inject_fault(code);

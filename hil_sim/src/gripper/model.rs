@@ -80,6 +80,7 @@ pub struct GripperModel {
     target_current: f64,
     last_comm: Duration,
     object_width_m: Option<f64>,
+    outer_limit_m: Option<f64>,
     latched: StatusImage,
 }
 
@@ -100,6 +101,7 @@ impl GripperModel {
             target_current: 0.0,
             last_comm: Duration::ZERO,
             object_width_m: None,
+            outer_limit_m: None,
             latched: StatusImage::default(),
         };
         m.latch();
@@ -114,6 +116,13 @@ impl GripperModel {
     /// Places an object of `width` metres between the fingers (`None`: nothing).
     pub fn set_object(&mut self, width_m: Option<f64>) {
         self.object_width_m = width_m.filter(|w| w.is_finite() && *w > 0.0);
+    }
+
+    /// Places an obstacle outside the fingers that stops them opening past `width_m`
+    /// (an inside grasp: fingers opening in a bore); `None`: nothing. Contact while opening
+    /// is reported as gOBJ = 1.
+    pub fn set_outer_limit(&mut self, width_m: Option<f64>) {
+        self.outer_limit_m = width_m.filter(|w| w.is_finite() && *w > 0.0);
     }
 
     /// Raises a fault now (e.g. 0x0B); comm and major faults stop the fingers and stay
@@ -291,7 +300,16 @@ impl GripperModel {
                 _ => self.width_m = next,
             }
         } else {
-            self.width_m = (self.width_m + step).min(target);
+            let next = (self.width_m + step).min(target);
+            match self.outer_limit_m {
+                Some(lim) if lim >= self.width_m && lim < target && next >= lim => {
+                    self.width_m = lim;
+                    self.object_status = ObjectStatus::ContactOpening;
+                    let hold = self.holding_current();
+                    self.stop(hold);
+                }
+                _ => self.width_m = next,
+            }
         }
         if self.moving && (self.width_m - target).abs() < 1e-12 {
             self.object_status = ObjectStatus::AtTarget;
@@ -388,6 +406,36 @@ mod tests {
         let last = *currents.last().unwrap_or(&0);
         assert!(last > 15, "holding current {last} not above moving current");
         assert_eq!(m.read_status(t).encode()[0], 0xB9);
+    }
+
+    #[test]
+    fn opening_against_an_outer_limit_is_contact_while_opening() {
+        let (mut m, mut t) = activated();
+        let go = |pos| RequestImage {
+            activate: true,
+            go_to: true,
+            position: pos,
+            speed: 255,
+            force: 50,
+            ..Default::default()
+        };
+        m.write_request(t, go(230));
+        while m.read_status(t).object == ObjectStatus::Moving {
+            t += ms(10);
+        }
+        m.set_outer_limit(Some(0.030));
+        m.write_request(t, go(0));
+        loop {
+            t += ms(10);
+            let s = m.read_status(t);
+            if s.object != ObjectStatus::Moving {
+                assert_eq!(s.object, ObjectStatus::ContactOpening);
+                assert_eq!(s.encode()[0] >> 6, 1);
+                break;
+            }
+            assert!(t < ms(10_000));
+        }
+        assert!((m.width_m() - 0.030).abs() < 1e-12);
     }
 
     #[test]
