@@ -244,3 +244,18 @@ fn connect_by_link_reaches_the_emulator_on_every_transport() -> anyhow::Result<(
     }
     Ok(())
 }
+
+#[test]
+fn urcap_emergency_stop_is_a_typed_error_until_released() -> anyhow::Result<()> {
+    let (_clock, shared, sim) = sim();
+    let server = sim.spawn_urcap(SocketAddr::from(([127, 0, 0, 1], 0)))?;
+    let addr = server.addr().ok_or_else(|| anyhow::anyhow!("no address"))?;
+    let mut g = RobotiqGripper::urcap(addr, shared)?;
+    g.activate()?;
+    sim.set_emergency_stop(true);
+    assert!(matches!(g.state(), Err(GripperError::EmergencyStop)));
+    assert!(matches!(g.close(), Err(GripperError::EmergencyStop)));
+    sim.set_emergency_stop(false);
+    assert!(g.state()?.activated);
+    Ok(())
+}

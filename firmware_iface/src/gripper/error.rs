@@ -129,4 +129,7 @@ pub enum GripperError {
         /// Why, and what to do.
         detail: String,
     },
+    /// The UR controller answered `?`: it is in emergency (or protective) stop.
+    #[error("the UR controller reports an emergency stop (URCap answered `?`); release the stop on the teach pendant, then re-activate the gripper")]
+    EmergencyStop,
 }

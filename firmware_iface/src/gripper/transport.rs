@@ -359,6 +359,7 @@ impl UrcapTransport {
     fn get(&mut self, var: Var) -> Result<u8, GripperError> {
         match self.exchange(&UrcapCommand::Get(var))? {
             UrcapReply::Value(v, x) if v == var => Ok(x),
+            UrcapReply::Unavailable => Err(GripperError::EmergencyStop),
             other => Err(GripperError::UnexpectedReply {
                 transport: "urcap",
                 detail: format!("{other:?} in answer to GET {var}"),
@@ -389,6 +390,7 @@ impl RegisterTransport for UrcapTransport {
                 self.release_set = release;
                 Ok(())
             }
+            UrcapReply::Unavailable => Err(GripperError::EmergencyStop),
             other => Err(GripperError::UnexpectedReply {
                 transport: "urcap",
                 detail: format!("{other:?} in answer to SET"),

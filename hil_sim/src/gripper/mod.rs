@@ -83,6 +83,16 @@ impl GripperSim {
         self.lock().set_outer_limit(width_m);
     }
 
+    /// Sets or releases the UR controller's emergency stop (URCap answers `?`).
+    pub fn set_emergency_stop(&self, on: bool) {
+        self.lock().set_emergency_stop(on);
+    }
+
+    /// True while the emergency stop is set.
+    pub fn emergency_stop(&self) -> bool {
+        self.lock().emergency_stop()
+    }
+
     /// Raises a gripper fault (e.g. 0x0B).
     pub fn inject_fault(&self, code: u8) {
         self.lock().inject_fault(code);

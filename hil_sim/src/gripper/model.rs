@@ -81,6 +81,7 @@ pub struct GripperModel {
     last_comm: Duration,
     object_width_m: Option<f64>,
     outer_limit_m: Option<f64>,
+    emergency_stop: bool,
     latched: StatusImage,
 }
 
@@ -102,6 +103,7 @@ impl GripperModel {
             last_comm: Duration::ZERO,
             object_width_m: None,
             outer_limit_m: None,
+            emergency_stop: false,
             latched: StatusImage::default(),
         };
         m.latch();
@@ -123,6 +125,20 @@ impl GripperModel {
     /// is reported as gOBJ = 1.
     pub fn set_outer_limit(&mut self, width_m: Option<f64>) {
         self.outer_limit_m = width_m.filter(|w| w.is_finite() && *w > 0.0);
+    }
+
+    /// Sets or releases the UR controller's emergency stop: while set, the fingers stop
+    /// and the URCap socket answers `?`.
+    pub fn set_emergency_stop(&mut self, on: bool) {
+        self.emergency_stop = on;
+        if on {
+            self.stop(0.0);
+        }
+    }
+
+    /// True while the emergency stop is set.
+    pub fn emergency_stop(&self) -> bool {
+        self.emergency_stop
     }
 
     /// Raises a fault now (e.g. 0x0B); comm and major faults stop the fingers and stay
@@ -163,6 +179,9 @@ impl GripperModel {
     pub fn write_request(&mut self, now: Duration, r: RequestImage) {
         self.advance(now);
         self.last_comm = now;
+        if self.emergency_stop {
+            return;
+        }
         let old = self.request;
         self.request = r;
         if !r.activate {
