@@ -21,6 +21,8 @@ enum Command {
     Run(cmd::run::RunArgs),
     /// Serve the simulated UR controller (RTDE, dashboard, secondary) until interrupted.
     Sim(cmd::sim::SimArgs),
+    /// Serve the Robotiq gripper emulator, or benchmark its transports.
+    Gripper(cmd::gripper::GripperArgs),
     /// Check a cell configuration file and print the checked configuration.
     Config(cmd::config::ConfigArgs),
     /// Summarise an episode recording (topics, counts, outcome, timings).
@@ -63,6 +65,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Run(args) => cmd::run::run(args),
         Command::Sim(args) => cmd::sim::run(args),
+        Command::Gripper(args) => cmd::gripper::run(args),
         Command::Config(args) => cmd::config::run(args),
         Command::Inspect(args) => cmd::inspect::run(args),
         Command::Policy(args) => cmd::policy::run(args),

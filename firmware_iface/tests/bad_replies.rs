@@ -177,3 +177,98 @@ fn activation_times_out_against_a_silent_gripper() -> anyhow::Result<()> {
     peer.join().map_err(|_| anyhow::anyhow!("peer panicked"))?;
     Ok(())
 }
+
+#[test]
+fn urcap_late_reply_does_not_answer_the_next_command() -> anyhow::Result<()> {
+    use firmware_iface::gripper::urcap::{UrcapCommand, UrcapReply, Var};
+    let listener = TcpListener::bind("127.0.0.1:0")?;
+    let addr = listener.local_addr()?;
+    let peer = std::thread::spawn(move || -> anyhow::Result<()> {
+        let (s, _) = listener.accept()?;
+        let mut w = s.try_clone()?;
+        let mut r = BufReader::new(s);
+        let mut line = String::new();
+        r.read_line(&mut line)?;
+        std::thread::sleep(Duration::from_millis(150));
+        w.write_all(b"ack\n")?;
+        line.clear();
+        r.read_line(&mut line)?;
+        anyhow::ensure!(line == "GET POS\n", "{line:?}");
+        w.write_all(b"POS 7\n")?;
+        Ok(())
+    });
+    let mut t = UrcapTransport::connect(addr, Duration::from_millis(80))?;
+    assert!(matches!(
+        t.write_request(&Default::default()),
+        Err(GripperError::Timeout { .. })
+    ));
+    // Let the late "ack" arrive before the next command goes out.
+    std::thread::sleep(Duration::from_millis(150));
+    assert_eq!(
+        t.exchange(&UrcapCommand::Get(Var::Pos))?,
+        UrcapReply::Value(Var::Pos, 7)
+    );
+    peer.join()
+        .map_err(|_| anyhow::anyhow!("peer panicked"))??;
+    Ok(())
+}
+
+#[test]
+fn slcan_driver_rejects_bad_lines_then_reads_a_good_status() -> anyhow::Result<()> {
+    use firmware_iface::gripper::can::CanMapping;
+    use firmware_iface::gripper::slcan::{LineSplitter, SlcanLine};
+    use firmware_iface::gripper::transport::SlcanTransport;
+    let (mut master, mut slave) = TTYPort::pair()?;
+    slave.set_timeout(Duration::from_millis(5))?;
+    master.set_timeout(Duration::from_millis(500))?;
+    let mapping = CanMapping::default();
+    let status = StatusImage::decode([0xF9, 0, 0, 0x10, 0x10, 0]);
+    let good = SlcanLine::Frame(mapping.status_frame(&status)).encode();
+    // One answer per frame the driver sends: first only junk, then junk followed by the status.
+    let mut junk = b"\x07tXYZ6\rt1236010203040506\rt18930000\r".to_vec();
+    let mut second = junk.clone();
+    second.extend_from_slice(&good);
+    junk.extend_from_slice(&[b'9'; 40]);
+    junk.push(b'\r');
+    let answers = vec![junk, second];
+    let peer = std::thread::spawn(move || -> anyhow::Result<TTYPort> {
+        let mut splitter = LineSplitter::new();
+        let mut buf = [0u8; 64];
+        let mut answers = answers.into_iter();
+        let mut pending = answers.next();
+        while pending.is_some() {
+            let n = master.read(&mut buf)?;
+            let mut frames = 0;
+            splitter.push(&buf[..n], |l| {
+                if matches!(l, Ok(l) if l.first() == Some(&b'r') || l.first() == Some(&b't')) {
+                    frames += 1;
+                }
+            });
+            for _ in 0..frames {
+                if let Some(a) = pending.take() {
+                    master.write_all(&a)?;
+                    pending = answers.next();
+                }
+            }
+        }
+        Ok(master)
+    });
+    let mut t = SlcanTransport::new(Box::new(slave), mapping)?
+        .with_reply_timeout(Duration::from_millis(80));
+    let e = t.read_status().unwrap_err();
+    assert!(
+        matches!(
+            e,
+            GripperError::Malformed { .. }
+                | GripperError::Truncated { .. }
+                | GripperError::UnexpectedReply { .. }
+        ),
+        "{e}"
+    );
+    let last = t.read_status();
+    let _master = peer
+        .join()
+        .map_err(|_| anyhow::anyhow!("peer panicked"))??;
+    assert_eq!(last?, status);
+    Ok(())
+}

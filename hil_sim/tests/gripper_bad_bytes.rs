@@ -175,3 +175,31 @@ fn slcan_adapter_answers_bad_lines_with_bell() -> anyhow::Result<()> {
     assert!(text.starts_with("z\rt1896"), "{text:?}");
     Ok(())
 }
+
+#[test]
+fn socketcand_server_rejects_garbage_and_keeps_serving() -> anyhow::Result<()> {
+    let sim = sim();
+    let mapping = CanMapping::default();
+    let server = sim.spawn_socketcand(SocketAddr::from(([127, 0, 0, 1], 0)), "can0", mapping)?;
+    let addr = server.addr().ok_or_else(|| anyhow::anyhow!("no address"))?;
+    let mut s = TcpStream::connect(addr)?;
+    s.set_read_timeout(Some(Duration::from_millis(100)))?;
+    // Frames before the handshake, junk between brackets, a bad frame and a wrong bus.
+    s.write_all(b"< send 189 0 >junk< open can7 >< bogus >< open can0 >< rawmode >")?;
+    s.write_all(b"< send 209 3 1 2 3 >< send 209 2 zz 1 >\xff\xfe< send 189 0 >")?;
+    std::thread::sleep(GAP);
+    let text = String::from_utf8(read_all(&mut s))?;
+    assert!(text.starts_with("< hi >"), "{text:?}");
+    assert_eq!(text.matches("< ok >").count(), 2, "{text:?}");
+    assert!(text.matches("< error").count() >= 3, "{text:?}");
+    assert!(
+        text.trim_end().ends_with(" >") && text.contains("< frame 189 "),
+        "{text:?}"
+    );
+    assert!(
+        server.stats().rejected() >= 5,
+        "rejected {}",
+        server.stats().rejected()
+    );
+    Ok(())
+}

@@ -60,6 +60,17 @@ fn scenario<T: RegisterTransport>(
         Err(GripperError::OutOfRange { .. })
     ));
 
+    // An inside grasp: opening stops on an obstacle at 70 mm, contact while opening.
+    sim.set_object(None);
+    g.move_to(&GripperCommand::new(0.020, 0.15, 100.0)?)?;
+    sim.set_outer_limit(Some(0.070));
+    let s = g.open()?;
+    assert_eq!(s.object, ObjectStatus::ContactOpening);
+    assert!((s.width_m - 0.070).abs() < 1e-3, "{}", s.width_m);
+    sim.set_outer_limit(None);
+    sim.set_object(Some(0.040));
+    g.open()?;
+
     // Silence for more than a second: fault 0x09, the driver needs re-activation.
     clock.advance(Duration::from_millis(1500));
     match g.state() {
@@ -144,6 +155,23 @@ fn driver_over_can_slcan_on_a_pty() -> anyhow::Result<()> {
 }
 
 #[test]
+fn driver_over_can_socketcand() -> anyhow::Result<()> {
+    let (clock, shared, sim) = sim();
+    let mapping = CanMapping::for_node(9);
+    let server = sim.spawn_socketcand(SocketAddr::from(([127, 0, 0, 1], 0)), "can0", mapping)?;
+    let addr = server.addr().ok_or_else(|| anyhow::anyhow!("no address"))?;
+    let mut g = RobotiqGripper::socketcand(addr, "can0", mapping, shared)?;
+    scenario(&mut g, &sim, &clock)?;
+    assert_eq!(
+        server.stats().rejected(),
+        0,
+        "{}",
+        server.stats().last_reject()
+    );
+    Ok(())
+}
+
+#[test]
 fn urcap_convenience_constructor_serves_a_free_port() -> anyhow::Result<()> {
     let clock: Arc<dyn Clock> = Arc::new(ManualClock::new());
     let (sim, server) = GripperSim::spawn_urcap_on_loopback(clock.clone(), SimConfig::default())?;
@@ -152,5 +180,82 @@ fn urcap_convenience_constructor_serves_a_free_port() -> anyhow::Result<()> {
     let mut g = RobotiqGripper::urcap(addr, clock)?;
     g.activate()?;
     assert!(sim.observe().is_activated());
+    Ok(())
+}
+
+#[test]
+fn connect_by_link_reaches_the_emulator_on_every_transport() -> anyhow::Result<()> {
+    use firmware_iface::gripper::{connect, Calibration, DriverTiming, GripperLink};
+    let (_clock, shared, sim) = sim();
+    let local = SocketAddr::from(([127, 0, 0, 1], 0));
+    let mapping = CanMapping::default();
+    let servers = [
+        sim.spawn_modbus_rtu()?,
+        sim.spawn_urcap(local)?,
+        sim.spawn_slcan(mapping)?,
+        sim.spawn_socketcand(local, "can0", mapping)?,
+    ];
+    let pty = |i: usize| servers[i].pty_path().map(str::to_owned).unwrap_or_default();
+    let tcp = |i: usize| servers[i].addr().map(|a| a.to_string()).unwrap_or_default();
+    let links = [
+        GripperLink::ModbusRtu {
+            path: pty(0),
+            slave: 9,
+        },
+        GripperLink::Urcap { addr: tcp(1) },
+        GripperLink::Slcan {
+            path: pty(2),
+            mapping,
+        },
+        GripperLink::Socketcand {
+            addr: tcp(3),
+            bus: "can0".into(),
+            mapping,
+        },
+    ];
+    for link in &links {
+        let mut g = connect(
+            link,
+            Calibration::default(),
+            DriverTiming::default(),
+            shared.clone(),
+        )?;
+        let s = g.activate()?;
+        assert!(s.activated, "{link:?}");
+    }
+    for (i, server) in servers.iter().enumerate() {
+        assert!(server.stats().accepted() > 10, "server {i} unused");
+    }
+    // Without the `socketcan` feature the link is refused by type; with it, this kernel
+    // (no CAN) fails to open the interface. Either way: a typed error, no panic.
+    let socketcan = GripperLink::Socketcan {
+        ifname: "nosuchcan7".into(),
+        mapping,
+    };
+    match connect(
+        &socketcan,
+        Calibration::default(),
+        DriverTiming::default(),
+        shared,
+    ) {
+        Err(GripperError::TransportUnavailable { .. } | GripperError::Io { .. }) => {}
+        Err(e) => panic!("unexpected error {e}"),
+        Ok(_) => panic!("connected to a CAN interface that does not exist"),
+    }
+    Ok(())
+}
+
+#[test]
+fn urcap_emergency_stop_is_a_typed_error_until_released() -> anyhow::Result<()> {
+    let (_clock, shared, sim) = sim();
+    let server = sim.spawn_urcap(SocketAddr::from(([127, 0, 0, 1], 0)))?;
+    let addr = server.addr().ok_or_else(|| anyhow::anyhow!("no address"))?;
+    let mut g = RobotiqGripper::urcap(addr, shared)?;
+    g.activate()?;
+    sim.set_emergency_stop(true);
+    assert!(matches!(g.state(), Err(GripperError::EmergencyStop)));
+    assert!(matches!(g.close(), Err(GripperError::EmergencyStop)));
+    sim.set_emergency_stop(false);
+    assert!(g.state()?.activated);
     Ok(())
 }

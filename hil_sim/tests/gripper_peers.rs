@@ -3,6 +3,7 @@
 //! interface on the pseudo-terminal) exchanges frames and decodes them with the documented
 //! mapping. These run in real time (SystemClock): the peers pace themselves by the wall clock.
 
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::Command;
 use std::sync::Arc;
@@ -23,11 +24,11 @@ fn python() -> anyhow::Result<PathBuf> {
     Ok(py)
 }
 
-fn run_peer(script: &str, arg: &str) -> anyhow::Result<Value> {
+fn run_peer(script: &str, args: &[&str]) -> anyhow::Result<Value> {
     let script = PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("tests/peers")
         .join(script);
-    let out = Command::new(python()?).arg(&script).arg(arg).output()?;
+    let out = Command::new(python()?).arg(&script).args(args).output()?;
     anyhow::ensure!(
         out.status.success(),
         "{} failed: {}\n{}",
@@ -49,7 +50,7 @@ fn pymodbus_sees_the_fingers_move() -> anyhow::Result<()> {
     sim.set_object(Some(0.040));
     let server = sim.spawn_modbus_rtu()?;
     let path = server.pty_path().ok_or_else(|| anyhow::anyhow!("no pty"))?;
-    let out = run_peer("pymodbus_gripper.py", path)?;
+    let out = run_peer("pymodbus_gripper.py", &[path])?;
 
     let act = out["activation_s"].as_f64().unwrap_or(0.0);
     assert!(act > 0.8, "activation seen after {act} s");
@@ -86,15 +87,7 @@ fn pymodbus_sees_the_fingers_move() -> anyhow::Result<()> {
     Ok(())
 }
 
-#[test]
-fn python_can_exchanges_frames_over_slcan() -> anyhow::Result<()> {
-    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
-    let sim = GripperSim::new(clock, SimConfig::default());
-    sim.set_object(Some(0.040));
-    let server = sim.spawn_slcan(CanMapping::for_node(9))?;
-    let path = server.pty_path().ok_or_else(|| anyhow::anyhow!("no pty"))?;
-    let out = run_peer("python_can_gripper.py", path)?;
-
+fn check_python_can(out: &Value, sim: &GripperSim) {
     assert_eq!(u(&out["after_clear"], "gSTA"), 0, "{out}");
     assert_eq!(u(&out["activated"], "gACT"), 1);
     let closed = &out["closed"];
@@ -102,6 +95,37 @@ fn python_can_exchanges_frames_over_slcan() -> anyhow::Result<()> {
     assert!((122..=124).contains(&u(closed, "gPO")), "{closed}");
     assert_eq!(out["frame_ids"], serde_json::json!([0x189]));
     assert!(sim.request().go_to && sim.request().force == 200);
+}
+
+#[test]
+fn python_can_exchanges_frames_over_slcan() -> anyhow::Result<()> {
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let sim = GripperSim::new(clock, SimConfig::default());
+    sim.set_object(Some(0.040));
+    let server = sim.spawn_slcan(CanMapping::for_node(9))?;
+    let path = server.pty_path().ok_or_else(|| anyhow::anyhow!("no pty"))?;
+    let out = run_peer("python_can_gripper.py", &["slcan", path])?;
+    check_python_can(&out, &sim);
+    assert_eq!(
+        server.stats().rejected(),
+        0,
+        "{}",
+        server.stats().last_reject()
+    );
+    Ok(())
+}
+
+#[test]
+fn python_can_exchanges_frames_over_socketcand() -> anyhow::Result<()> {
+    let clock: Arc<dyn Clock> = Arc::new(SystemClock::new());
+    let sim = GripperSim::new(clock, SimConfig::default());
+    sim.set_object(Some(0.040));
+    let addr = SocketAddr::from(([127, 0, 0, 1], 0));
+    let server = sim.spawn_socketcand(addr, "can0", CanMapping::for_node(9))?;
+    let addr = server.addr().ok_or_else(|| anyhow::anyhow!("no address"))?;
+    let port = addr.port().to_string();
+    let out = run_peer("python_can_gripper.py", &["socketcand", "127.0.0.1", &port])?;
+    check_python_can(&out, &sim);
     assert_eq!(
         server.stats().rejected(),
         0,

@@ -2,6 +2,7 @@
 
 pub mod bench_ur;
 pub mod config;
+pub mod gripper;
 pub mod inspect;
 pub mod policy;
 pub mod run;

@@ -1,8 +1,10 @@
 //! CAN frames and the gripper's mapping onto them (fact sheet "CAN"): one frame each way
 //! holding the 6 register bytes. The ids follow the CANopen PDO convention so that they do
 //! not collide with other nodes on a shared bus: the command (request image) travels on
-//! `0x200 + node`, the status image on `0x180 + node`; a remote (RTR) frame on the status
-//! id asks the gateway for the current status. Every id is configurable. Pure codec.
+//! `0x200 + node`, the status image on `0x180 + node`. Every command frame is answered by a
+//! status frame; a remote (RTR) frame, or an empty data frame (for carriers without remote
+//! frames, like socketcand), on the status id asks for the current status. Every id is
+//! configurable. Pure codec.
 
 use super::registers::{RequestImage, StatusImage, IMAGE_LEN};
 use super::GripperError;
@@ -152,6 +154,21 @@ impl CanMapping {
         }
     }
 
+    /// The empty data frame that polls the status where remote frames are unavailable.
+    pub fn status_poll_empty(&self) -> CanFrame {
+        CanFrame {
+            id: self.status_id,
+            rtr: false,
+            len: 0,
+            data: [0; 8],
+        }
+    }
+
+    /// True for a status poll: a remote frame or an empty data frame on the status id.
+    pub fn is_status_poll(&self, f: &CanFrame) -> bool {
+        f.id == self.status_id && (f.rtr || f.len == 0)
+    }
+
     /// The request image in a command frame; `Ok(None)` for a frame with another id.
     pub fn decode_command(&self, f: &CanFrame) -> Result<Option<RequestImage>, GripperError> {
         if f.id != self.command_id || f.rtr {
@@ -162,7 +179,7 @@ impl CanMapping {
 
     /// The status image in a status frame; `Ok(None)` for a frame with another id or a poll.
     pub fn decode_status(&self, f: &CanFrame) -> Result<Option<StatusImage>, GripperError> {
-        if f.id != self.status_id || f.rtr {
+        if f.id != self.status_id || self.is_status_poll(f) {
             return Ok(None);
         }
         Ok(Some(StatusImage::decode(image(f, "status frame")?)))
@@ -211,6 +228,10 @@ mod tests {
         assert_eq!(m.decode_status(&f).unwrap(), None);
         let short = CanFrame::data(m.command_id, &[1, 2, 3]).unwrap();
         assert!(m.decode_command(&short).is_err());
+        assert!(m.is_status_poll(&m.status_poll()));
+        assert!(m.is_status_poll(&m.status_poll_empty()));
+        assert!(!m.is_status_poll(&m.status_frame(&StatusImage::default())));
+        assert_eq!(m.decode_status(&m.status_poll_empty()).unwrap(), None);
         assert!(CanId::standard(0x800).is_err());
         assert!(CanId::extended(0x2000_0000).is_err());
         assert!(CanFrame::data(m.command_id, &[0; 9]).is_err());

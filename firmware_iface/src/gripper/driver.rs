@@ -12,7 +12,8 @@ use cell_types::{Clock, GripperCommand, GripperFault, GripperState, ObjectStatus
 use super::can::CanMapping;
 use super::registers::{fault_from_code, ActivationStatus, RequestImage, StatusImage};
 use super::transport::{
-    ModbusRtuTransport, RegisterTransport, SlcanTransport, UrcapTransport, DEFAULT_REPLY_TIMEOUT,
+    ModbusRtuTransport, RegisterTransport, SlcanTransport, SocketcandTransport, UrcapTransport,
+    DEFAULT_REPLY_TIMEOUT,
 };
 use super::{Gripper, GripperError};
 
@@ -198,6 +199,32 @@ impl RobotiqGripper<SlcanTransport> {
         clock: Arc<dyn Clock>,
     ) -> Result<Self, GripperError> {
         let t = SlcanTransport::open(path, mapping)?;
+        Ok(Self::new(t, clock))
+    }
+}
+
+impl RobotiqGripper<SocketcandTransport> {
+    /// A driver on CAN through a socketcand server at `addr`, bus `bus` (e.g. `"can0"`).
+    pub fn socketcand(
+        addr: impl ToSocketAddrs,
+        bus: &str,
+        mapping: CanMapping,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Self, GripperError> {
+        let t = SocketcandTransport::connect(addr, bus, mapping)?;
+        Ok(Self::new(t, clock))
+    }
+}
+
+#[cfg(all(feature = "socketcan", target_os = "linux"))]
+impl RobotiqGripper<super::socketcan_transport::SocketcanTransport> {
+    /// A driver on CAN through the SocketCAN interface `ifname` (e.g. `"can0"`).
+    pub fn socketcan(
+        ifname: &str,
+        mapping: CanMapping,
+        clock: Arc<dyn Clock>,
+    ) -> Result<Self, GripperError> {
+        let t = super::socketcan_transport::SocketcanTransport::open(ifname, mapping)?;
         Ok(Self::new(t, clock))
     }
 }

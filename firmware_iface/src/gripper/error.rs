@@ -121,4 +121,15 @@ pub enum GripperError {
         /// What is wrong.
         detail: String,
     },
+    /// A transport this build or platform does not have.
+    #[error("the {transport} transport is unavailable: {detail}")]
+    TransportUnavailable {
+        /// Which transport.
+        transport: &'static str,
+        /// Why, and what to do.
+        detail: String,
+    },
+    /// The UR controller answered `?`: it is in emergency (or protective) stop.
+    #[error("the UR controller reports an emergency stop (URCap answered `?`); release the stop on the teach pendant, then re-activate the gripper")]
+    EmergencyStop,
 }

@@ -1,18 +1,23 @@
 //! The Robotiq 2F-85 gripper (fact sheet `robotiq_2f85.md`, issue 6): the register model
 //! ([`registers`]), the wire codecs of its three transports ([`modbus_rtu`], [`urcap`],
-//! [`can`] + [`slcan`]), the byte transports that carry them ([`transport`]) and the driver
+//! [`can`] carried by [`slcan`] adapters or a [`socketcand`] server), the byte transports that carry them ([`transport`]) and the driver
 //! ([`driver::RobotiqGripper`]) implementing the [`Gripper`] trait.
 //!
 //! Libraries: `serialport` opens and configures serial devices (115200 8N1, termios done
 //! right on Linux and elsewhere, read timeouts without a hidden thread); `crc` supplies
-//! CRC-16/MODBUS; `log` carries the reasons for rejected bytes. Codecs do no I/O.
+//! CRC-16/MODBUS; `log` carries the reasons for rejected bytes; with the `socketcan`
+//! feature (Linux), the `socketcan` crate opens raw CAN sockets. Codecs do no I/O.
 
 pub mod can;
 pub mod driver;
 mod error;
+pub mod link;
 pub mod modbus_rtu;
 pub mod registers;
 pub mod slcan;
+#[cfg(all(feature = "socketcan", target_os = "linux"))]
+pub mod socketcan_transport;
+pub mod socketcand;
 pub mod transport;
 pub mod urcap;
 
@@ -20,6 +25,7 @@ use cell_types::{GripperCommand, GripperState};
 
 pub use driver::{Calibration, DriverTiming, RobotiqGripper};
 pub use error::GripperError;
+pub use link::{connect, GripperLink};
 pub use registers::{RequestImage, StatusImage};
 pub use transport::RegisterTransport;
 

@@ -16,7 +16,8 @@ use super::registers::{
     ActivationStatus, RequestImage, StatusImage, IMAGE_REGISTERS, REQUEST_REGISTER, STATUS_REGISTER,
 };
 use super::slcan::{LineSplitter, SlcanLine};
-use super::urcap::{UrcapCommand, UrcapReply, Var};
+use super::socketcand::{MessageSplitter, SocketcandMsg};
+use super::urcap::{UrcapCommand, UrcapReply, Var, MAX_LINE};
 use super::GripperError;
 
 /// Moves register images to and from a gripper.
@@ -32,7 +33,7 @@ pub trait RegisterTransport: Send {
 /// Default time to wait for an answer.
 pub const DEFAULT_REPLY_TIMEOUT: Duration = Duration::from_millis(200);
 
-fn io_err(context: impl Into<String>) -> impl FnOnce(std::io::Error) -> GripperError {
+pub(super) fn io_err(context: impl Into<String>) -> impl FnOnce(std::io::Error) -> GripperError {
     let context = context.into();
     move |source| GripperError::Io { context, source }
 }
@@ -62,6 +63,31 @@ fn read_some(port: &mut dyn Read, buf: &mut [u8], what: &str) -> Result<usize, G
     }
 }
 
+/// Reads and discards what a socket holds right now, without waiting.
+fn drain_socket(stream: &mut TcpStream) -> Result<(), GripperError> {
+    stream
+        .set_nonblocking(true)
+        .map_err(io_err("draining a socket"))?;
+    let mut buf = [0u8; 512];
+    let mut dropped = 0;
+    let result = loop {
+        match stream.read(&mut buf) {
+            Ok(0) => break Ok(()),
+            Ok(n) => dropped += n,
+            Err(e) if e.kind() == ErrorKind::WouldBlock => break Ok(()),
+            Err(e) if e.kind() == ErrorKind::Interrupted => {}
+            Err(e) => break Err(io_err("draining a socket")(e)),
+        }
+    };
+    if dropped > 0 {
+        warn!("dropped {dropped} stale bytes from the socket");
+    }
+    stream
+        .set_nonblocking(false)
+        .map_err(io_err("draining a socket"))?;
+    result
+}
+
 /// Modbus RTU master on a serial line: FC16 to write the request image, FC04 to read the
 /// status image, each answered before the next request (the gripper is a slave).
 pub struct ModbusRtuTransport {
@@ -69,6 +95,8 @@ pub struct ModbusRtuTransport {
     slave: u8,
     reader: FrameReader,
     reply_timeout: Duration,
+    /// When the last frame ended, for the inter-frame gap.
+    line_quiet_since: Option<std::time::Instant>,
 }
 
 impl ModbusRtuTransport {
@@ -85,6 +113,7 @@ impl ModbusRtuTransport {
             slave,
             reader: FrameReader::new(Direction::Responses),
             reply_timeout: DEFAULT_REPLY_TIMEOUT,
+            line_quiet_since: None,
         }
     }
 
@@ -100,8 +129,17 @@ impl ModbusRtuTransport {
         // Stale bytes (a late answer, noise) must not be taken for this request's answer.
         let _ = self.port.clear(ClearBuffer::Input);
         self.reader = FrameReader::new(Direction::Responses);
-        // The gripper refreshes its registers at 100 Hz; answers fit well inside the gap.
-        std::thread::sleep(modbus_rtu::frame_gap(115_200));
+        // RTU frames are delimited by 3.5 character times of silence: wait out what is
+        // left of it since the last frame on the line.
+        let gap = modbus_rtu::frame_gap(115_200);
+        if let Some(left) = self
+            .line_quiet_since
+            .map(|t| gap.saturating_sub(t.elapsed()))
+        {
+            if !left.is_zero() {
+                std::thread::sleep(left);
+            }
+        }
         self.port
             .write_all(&frame)
             .and_then(|()| self.port.flush())
@@ -148,6 +186,7 @@ impl ModbusRtuTransport {
                             });
                             continue;
                         }
+                        self.line_quiet_since = Some(std::time::Instant::now());
                         return check_response(req, resp);
                     }
                 }
@@ -230,6 +269,10 @@ impl RegisterTransport for ModbusRtuTransport {
 pub struct UrcapTransport {
     reader: BufReader<TcpStream>,
     writer: TcpStream,
+    /// Whether ATR/ARD were last set non-zero (so that clearing them is sent too).
+    release_set: bool,
+    /// The last exchange failed: unread bytes may follow.
+    desynced: bool,
 }
 
 impl UrcapTransport {
@@ -246,21 +289,51 @@ impl UrcapTransport {
         Ok(Self {
             reader: BufReader::new(stream),
             writer,
+            release_set: false,
+            desynced: false,
         })
     }
 
     /// Sends one command and returns its reply line, parsed.
     pub fn exchange(&mut self, cmd: &UrcapCommand) -> Result<UrcapReply, GripperError> {
+        if self.desynced {
+            // A reply that came late (or half a line) must not answer this command.
+            self.drain()?;
+            self.desynced = false;
+        }
         self.writer
             .write_all(cmd.encode().as_bytes())
             .map_err(io_err("writing to the URCap socket"))?;
-        let mut line = String::new();
-        match self.reader.read_line(&mut line) {
+        let reply = self.read_reply();
+        if reply.is_err() {
+            self.desynced = true;
+        }
+        reply
+    }
+
+    fn read_reply(&mut self) -> Result<UrcapReply, GripperError> {
+        let mut line = Vec::with_capacity(32);
+        let limit = MAX_LINE as u64 + 1;
+        match (&mut self.reader).take(limit).read_until(b'\n', &mut line) {
             Ok(0) => Err(GripperError::Io {
                 context: "reading the URCap socket".into(),
                 source: std::io::Error::new(ErrorKind::UnexpectedEof, "server closed the socket"),
             }),
-            Ok(_) => UrcapReply::parse(&line).inspect_err(|e| warn!("urcap: rejected reply: {e}")),
+            Ok(_) if line.last() != Some(&b'\n') => {
+                warn!("urcap: reply line cut off or longer than {MAX_LINE} bytes");
+                Err(GripperError::Malformed {
+                    what: "URCap reply",
+                    detail: format!("{} bytes without a newline", line.len()),
+                })
+            }
+            Ok(_) => {
+                let text = std::str::from_utf8(&line).map_err(|_| GripperError::Malformed {
+                    what: "URCap reply",
+                    detail: "not UTF-8".into(),
+                });
+                text.and_then(UrcapReply::parse)
+                    .inspect_err(|e| warn!("urcap: rejected reply: {e}"))
+            }
             Err(e) if matches!(e.kind(), ErrorKind::TimedOut | ErrorKind::WouldBlock) => {
                 Err(GripperError::Timeout {
                     what: "a URCap reply",
@@ -276,9 +349,17 @@ impl UrcapTransport {
         }
     }
 
+    /// Discards whatever the server sent that was not read.
+    fn drain(&mut self) -> Result<(), GripperError> {
+        let held = self.reader.buffer().len();
+        self.reader.consume(held);
+        drain_socket(self.reader.get_mut())
+    }
+
     fn get(&mut self, var: Var) -> Result<u8, GripperError> {
         match self.exchange(&UrcapCommand::Get(var))? {
             UrcapReply::Value(v, x) if v == var => Ok(x),
+            UrcapReply::Unavailable => Err(GripperError::EmergencyStop),
             other => Err(GripperError::UnexpectedReply {
                 transport: "urcap",
                 detail: format!("{other:?} in answer to GET {var}"),
@@ -289,17 +370,27 @@ impl UrcapTransport {
 
 impl RegisterTransport for UrcapTransport {
     fn write_request(&mut self, r: &RequestImage) -> Result<(), GripperError> {
-        let cmd = UrcapCommand::Set(vec![
+        let mut pairs = vec![
             (Var::Act, u8::from(r.activate)),
             (Var::Gto, u8::from(r.go_to)),
-            (Var::Atr, u8::from(r.auto_release)),
-            (Var::Ard, u8::from(r.release_direction)),
             (Var::Pos, r.position),
             (Var::Spe, r.speed),
             (Var::For, r.force),
-        ]);
+        ];
+        // The release variables are sent only when used: their spelling differs between
+        // URCap versions (ARD/ADR), and an unknown name would fail the whole line.
+        let release = r.auto_release || r.release_direction;
+        if release || self.release_set {
+            pairs.push((Var::Atr, u8::from(r.auto_release)));
+            pairs.push((Var::Ard, u8::from(r.release_direction)));
+        }
+        let cmd = UrcapCommand::Set(pairs);
         match self.exchange(&cmd)? {
-            UrcapReply::Ack => Ok(()),
+            UrcapReply::Ack => {
+                self.release_set = release;
+                Ok(())
+            }
+            UrcapReply::Unavailable => Err(GripperError::EmergencyStop),
             other => Err(GripperError::UnexpectedReply {
                 transport: "urcap",
                 detail: format!("{other:?} in answer to SET"),
@@ -451,5 +542,146 @@ impl RegisterTransport for SlcanTransport {
 impl Drop for SlcanTransport {
     fn drop(&mut self) {
         let _ = self.send(&SlcanLine::Close);
+    }
+}
+
+/// The gripper's CAN mapping through a socketcand server (TCP 29536): the `< hi >`,
+/// `< open BUS >`, `< rawmode >` handshake, then command frames answered by status frames;
+/// status polls are empty frames on the status id (socketcand carries no remote frames).
+pub struct SocketcandTransport {
+    stream: TcpStream,
+    mapping: CanMapping,
+    splitter: MessageSplitter,
+    reply_timeout: Duration,
+}
+
+impl SocketcandTransport {
+    /// Connects to `addr`, opens `bus` (e.g. `"can0"`) in raw mode.
+    pub fn connect(
+        addr: impl ToSocketAddrs,
+        bus: &str,
+        mapping: CanMapping,
+    ) -> Result<Self, GripperError> {
+        let stream = TcpStream::connect(addr).map_err(io_err("connecting to socketcand"))?;
+        stream
+            .set_read_timeout(Some(Duration::from_millis(5)))
+            .and_then(|()| stream.set_nodelay(true))
+            .map_err(io_err("configuring the socketcand socket"))?;
+        let mut t = Self {
+            stream,
+            mapping,
+            splitter: MessageSplitter::new(),
+            reply_timeout: DEFAULT_REPLY_TIMEOUT,
+        };
+        t.expect(&SocketcandMsg::Hi)?;
+        t.send(&SocketcandMsg::Open(bus.to_owned()))?;
+        t.expect(&SocketcandMsg::Ok)?;
+        t.send(&SocketcandMsg::RawMode)?;
+        t.expect(&SocketcandMsg::Ok)?;
+        Ok(t)
+    }
+
+    /// Sets how long to wait for an answer.
+    pub fn with_reply_timeout(mut self, t: Duration) -> Self {
+        self.reply_timeout = t;
+        self
+    }
+
+    fn send(&mut self, m: &SocketcandMsg) -> Result<(), GripperError> {
+        self.stream
+            .write_all(m.encode().as_bytes())
+            .map_err(io_err("writing to socketcand"))
+    }
+
+    /// Waits for the first message that `pick` accepts; other messages are logged.
+    fn wait_for<R>(
+        &mut self,
+        what: &'static str,
+        mut pick: impl FnMut(SocketcandMsg) -> Option<Result<R, GripperError>>,
+    ) -> Result<R, GripperError> {
+        let granularity = Duration::from_millis(5);
+        let mut waited = Duration::ZERO;
+        let mut buf = [0u8; 512];
+        let mut pending: Vec<SocketcandMsg> = Vec::new();
+        loop {
+            for m in pending.drain(..) {
+                if let Some(r) = pick(m) {
+                    return r;
+                }
+            }
+            if waited >= self.reply_timeout {
+                return Err(GripperError::Timeout {
+                    what,
+                    after: self.reply_timeout,
+                });
+            }
+            let n = read_some(&mut self.stream, &mut buf, "socketcand")?;
+            if n == 0 {
+                waited += granularity;
+                continue;
+            }
+            let text = String::from_utf8_lossy(&buf[..n]).into_owned();
+            self.splitter.push(&text, |m| match m {
+                Err(junk) => warn!("socketcand: discarded {junk:?}"),
+                Ok(m) => match SocketcandMsg::parse(m) {
+                    Ok(msg) => pending.push(msg),
+                    Err(e) => warn!("socketcand: rejected message: {e}"),
+                },
+            });
+        }
+    }
+
+    fn expect(&mut self, want: &SocketcandMsg) -> Result<(), GripperError> {
+        let want = want.clone();
+        self.wait_for("a socketcand handshake answer", |m| {
+            Some(if m == want {
+                Ok(())
+            } else {
+                Err(GripperError::UnexpectedReply {
+                    transport: "socketcand",
+                    detail: format!("{m:?} instead of {want:?}"),
+                })
+            })
+        })
+    }
+
+    /// Sends `frame` and waits for the next status frame.
+    pub fn exchange(&mut self, frame: CanFrame) -> Result<StatusImage, GripperError> {
+        // Frames left from an exchange that timed out must not answer this one.
+        drain_socket(&mut self.stream)?;
+        self.splitter = MessageSplitter::new();
+        self.send(&SocketcandMsg::Send(frame))?;
+        let mapping = self.mapping;
+        self.wait_for("a CAN status frame", |m| match m {
+            SocketcandMsg::Frame(f, _) => match mapping.decode_status(&f) {
+                Ok(Some(s)) => Some(Ok(s)),
+                Ok(None) => None,
+                Err(e) => {
+                    warn!("socketcand: rejected status frame: {e}");
+                    Some(Err(e))
+                }
+            },
+            SocketcandMsg::Error(text) => Some(Err(GripperError::UnexpectedReply {
+                transport: "socketcand",
+                detail: format!("server error: {text}"),
+            })),
+            _ => None,
+        })
+    }
+}
+
+impl RegisterTransport for SocketcandTransport {
+    fn write_request(&mut self, request: &RequestImage) -> Result<(), GripperError> {
+        let frame = self.mapping.command_frame(request);
+        self.exchange(frame).map(|_| ())
+    }
+
+    fn read_status(&mut self) -> Result<StatusImage, GripperError> {
+        let frame = self.mapping.status_poll_empty();
+        self.exchange(frame)
+    }
+
+    fn name(&self) -> &'static str {
+        "socketcand"
     }
 }

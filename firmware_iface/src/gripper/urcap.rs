@@ -71,8 +71,12 @@ impl Var {
         }
     }
 
-    /// Parses a wire name (exact, upper case).
+    /// Parses a wire name (exact, upper case). `ADR` is accepted for `ARD`: Robotiq's own
+    /// examples spell the release-direction variable that way, the fact sheet `ARD`.
     pub fn parse(name: &str) -> Result<Self, GripperError> {
+        if name == "ADR" {
+            return Ok(Var::Ard);
+        }
         Self::ALL
             .into_iter()
             .find(|v| v.name() == name)
@@ -228,6 +232,10 @@ mod tests {
             UrcapReply::Value(Var::Pos, 123)
         );
         assert_eq!(UrcapReply::parse("?\n").unwrap(), UrcapReply::Unavailable);
+        assert_eq!(
+            UrcapCommand::parse("SET ADR 1").unwrap(),
+            UrcapCommand::Set(vec![(Var::Ard, 1)])
+        );
     }
 
     #[test]

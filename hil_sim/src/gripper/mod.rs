@@ -2,7 +2,8 @@
 //! transports, each speaking the real wire protocol through the codecs of
 //! `firmware_iface::gripper`: a Modbus RTU slave on a pseudo-terminal ([`modbus`]), the
 //! URCap text server on loopback TCP ([`urcap`]) and the CAN mapping through an slcan
-//! adapter on a pseudo-terminal ([`slcan`]). Time comes from an injected [`Clock`]; with a
+//! adapter on a pseudo-terminal ([`slcan`]) or a socketcand server on loopback TCP
+//! ([`socketcand`]). Time comes from an injected [`Clock`]; with a
 //! `ManualClock` shared with the driver, the driver's poll sleeps drive simulated time and
 //! tests run faster than real time.
 //!
@@ -13,6 +14,7 @@
 pub mod modbus;
 pub mod model;
 pub mod slcan;
+pub mod socketcand;
 pub mod urcap;
 
 use std::net::SocketAddr;
@@ -76,6 +78,21 @@ impl GripperSim {
         self.lock().set_object(width_m);
     }
 
+    /// Places an obstacle that stops the fingers opening past `width_m` (gOBJ = 1).
+    pub fn set_outer_limit(&self, width_m: Option<f64>) {
+        self.lock().set_outer_limit(width_m);
+    }
+
+    /// Sets or releases the UR controller's emergency stop (URCap answers `?`).
+    pub fn set_emergency_stop(&self, on: bool) {
+        self.lock().set_emergency_stop(on);
+    }
+
+    /// True while the emergency stop is set.
+    pub fn emergency_stop(&self) -> bool {
+        self.lock().emergency_stop()
+    }
+
     /// Raises a gripper fault (e.g. 0x0B).
     pub fn inject_fault(&self, code: u8) {
         self.lock().inject_fault(code);
@@ -122,6 +139,16 @@ impl GripperSim {
     /// Serves the CAN mapping through an emulated slcan adapter on a new pseudo-terminal.
     pub fn spawn_slcan(&self, mapping: CanMapping) -> Result<SimServer, SimError> {
         slcan::spawn(self.clone(), mapping)
+    }
+
+    /// Serves the CAN mapping on bus `bus` through a socketcand server on `addr`.
+    pub fn spawn_socketcand(
+        &self,
+        addr: SocketAddr,
+        bus: &str,
+        mapping: CanMapping,
+    ) -> Result<SimServer, SimError> {
+        socketcand::spawn(self.clone(), addr, bus.to_owned(), mapping)
     }
 
     /// Convenience for the main job: a gripper and its URCap server on a free loopback port.

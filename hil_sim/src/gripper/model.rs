@@ -80,6 +80,8 @@ pub struct GripperModel {
     target_current: f64,
     last_comm: Duration,
     object_width_m: Option<f64>,
+    outer_limit_m: Option<f64>,
+    emergency_stop: bool,
     latched: StatusImage,
 }
 
@@ -100,6 +102,8 @@ impl GripperModel {
             target_current: 0.0,
             last_comm: Duration::ZERO,
             object_width_m: None,
+            outer_limit_m: None,
+            emergency_stop: false,
             latched: StatusImage::default(),
         };
         m.latch();
@@ -114,6 +118,27 @@ impl GripperModel {
     /// Places an object of `width` metres between the fingers (`None`: nothing).
     pub fn set_object(&mut self, width_m: Option<f64>) {
         self.object_width_m = width_m.filter(|w| w.is_finite() && *w > 0.0);
+    }
+
+    /// Places an obstacle outside the fingers that stops them opening past `width_m`
+    /// (an inside grasp: fingers opening in a bore); `None`: nothing. Contact while opening
+    /// is reported as gOBJ = 1.
+    pub fn set_outer_limit(&mut self, width_m: Option<f64>) {
+        self.outer_limit_m = width_m.filter(|w| w.is_finite() && *w > 0.0);
+    }
+
+    /// Sets or releases the UR controller's emergency stop: while set, the fingers stop
+    /// and the URCap socket answers `?`.
+    pub fn set_emergency_stop(&mut self, on: bool) {
+        self.emergency_stop = on;
+        if on {
+            self.stop(0.0);
+        }
+    }
+
+    /// True while the emergency stop is set.
+    pub fn emergency_stop(&self) -> bool {
+        self.emergency_stop
     }
 
     /// Raises a fault now (e.g. 0x0B); comm and major faults stop the fingers and stay
@@ -154,6 +179,9 @@ impl GripperModel {
     pub fn write_request(&mut self, now: Duration, r: RequestImage) {
         self.advance(now);
         self.last_comm = now;
+        if self.emergency_stop {
+            return;
+        }
         let old = self.request;
         self.request = r;
         if !r.activate {
@@ -291,7 +319,16 @@ impl GripperModel {
                 _ => self.width_m = next,
             }
         } else {
-            self.width_m = (self.width_m + step).min(target);
+            let next = (self.width_m + step).min(target);
+            match self.outer_limit_m {
+                Some(lim) if lim >= self.width_m && lim < target && next >= lim => {
+                    self.width_m = lim;
+                    self.object_status = ObjectStatus::ContactOpening;
+                    let hold = self.holding_current();
+                    self.stop(hold);
+                }
+                _ => self.width_m = next,
+            }
         }
         if self.moving && (self.width_m - target).abs() < 1e-12 {
             self.object_status = ObjectStatus::AtTarget;
@@ -316,6 +353,7 @@ impl GripperModel {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use proptest::prelude::*;
 
     fn ms(n: u64) -> Duration {
         Duration::from_millis(n)
@@ -387,6 +425,36 @@ mod tests {
         let last = *currents.last().unwrap_or(&0);
         assert!(last > 15, "holding current {last} not above moving current");
         assert_eq!(m.read_status(t).encode()[0], 0xB9);
+    }
+
+    #[test]
+    fn opening_against_an_outer_limit_is_contact_while_opening() {
+        let (mut m, mut t) = activated();
+        let go = |pos| RequestImage {
+            activate: true,
+            go_to: true,
+            position: pos,
+            speed: 255,
+            force: 50,
+            ..Default::default()
+        };
+        m.write_request(t, go(230));
+        while m.read_status(t).object == ObjectStatus::Moving {
+            t += ms(10);
+        }
+        m.set_outer_limit(Some(0.030));
+        m.write_request(t, go(0));
+        loop {
+            t += ms(10);
+            let s = m.read_status(t);
+            if s.object != ObjectStatus::Moving {
+                assert_eq!(s.object, ObjectStatus::ContactOpening);
+                assert_eq!(s.encode()[0] >> 6, 1);
+                break;
+            }
+            assert!(t < ms(10_000));
+        }
+        assert!((m.width_m() - 0.030).abs() < 1e-12);
     }
 
     #[test]
@@ -466,5 +534,49 @@ mod tests {
         m.read_status(t + ms(500));
         assert_eq!(m.width_m(), w0);
         assert_eq!(m.latched.fault, 0x0B);
+    }
+
+    /// One step of a random session: wait `dt_ms`, maybe move the object, write a request.
+    type Step = (u64, [u8; 6], Option<f64>);
+
+    fn run(steps: &[Step]) -> Vec<(StatusImage, f64)> {
+        let mut m = GripperModel::new(SimConfig::default());
+        let mut t = Duration::ZERO;
+        let mut trace = vec![];
+        for (dt_ms, bytes, obj) in steps {
+            t += ms(*dt_ms);
+            m.set_object(*obj);
+            m.write_request(t, RequestImage::decode(*bytes));
+            for _ in 0..5 {
+                t += ms(37);
+                trace.push((m.read_status(t), m.width_m()));
+            }
+        }
+        trace
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(300))]
+        #[test]
+        fn random_sessions_keep_invariants_and_replay_exactly(
+            steps in proptest::collection::vec(
+                (0u64..1500, any::<[u8; 6]>(), proptest::option::of(0.001f64..0.09)),
+                1..40,
+            )
+        ) {
+            let cfg = SimConfig::default();
+            let trace = run(&steps);
+            for (s, w) in &trace {
+                prop_assert!((0.0..=cfg.stroke_m).contains(w), "width {w}");
+                prop_assert!((cfg.open_count..=cfg.closed_count).contains(&s.position), "{s:?}");
+                prop_assert!([0, 5, 7, 9].contains(&s.fault), "unexpected fault {s:?}");
+                prop_assert!(s.current <= cfg.max_holding_current, "{s:?}");
+                if s.activation != ActivationStatus::Activated {
+                    prop_assert!(!s.go_to, "{s:?}");
+                }
+            }
+            // Same inputs, same outputs: a recorded session replays exactly.
+            prop_assert_eq!(run(&steps), trace);
+        }
     }
 }

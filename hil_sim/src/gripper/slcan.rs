@@ -8,7 +8,7 @@ use std::io::{ErrorKind, Read, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
-use firmware_iface::gripper::can::{CanId, CanMapping};
+use firmware_iface::gripper::can::{CanFrame, CanId, CanMapping};
 use firmware_iface::gripper::slcan::{LineSplitter, SlcanLine};
 
 use super::{pty_pair, spawn_thread, Endpoint, GripperSim, ServerStats, SimError, SimServer};
@@ -124,27 +124,44 @@ fn handle(
                 CanId::Standard(_) => b"z\r".to_vec(),
                 CanId::Extended(_) => b"Z\r".to_vec(),
             };
-            if f.rtr && f.id == mapping.status_id {
-                stats.accept();
-                let s = sim.read_status();
-                reply.extend(SlcanLine::Frame(mapping.status_frame(&s)).encode());
-            } else {
-                match mapping.decode_command(&f) {
-                    Ok(Some(r)) => {
-                        stats.accept();
-                        sim.write_request(r);
-                        let s = sim.read_status();
-                        reply.extend(SlcanLine::Frame(mapping.status_frame(&s)).encode());
-                    }
-                    Ok(None) => log::debug!("gripper sim (slcan): frame {f:?} is not for us"),
-                    Err(e) => stats.reject(NAME, e.to_string()),
-                }
+            if let Some(status) = gateway(sim, mapping, &f, stats) {
+                reply.extend(SlcanLine::Frame(status).encode());
             }
             reply
         }
         SlcanLine::TxAck | SlcanLine::Error => {
             stats.reject(NAME, "adapter answer sent by the host");
             SlcanLine::Error.encode()
+        }
+    }
+}
+
+/// The gateway behind any CAN carrier: a command frame updates the request image and is
+/// answered with the status frame; a status poll is answered with the status frame; frames
+/// for other ids are not ours.
+pub(crate) fn gateway(
+    sim: &GripperSim,
+    mapping: CanMapping,
+    f: &CanFrame,
+    stats: &ServerStats,
+) -> Option<CanFrame> {
+    if mapping.is_status_poll(f) {
+        stats.accept();
+        return Some(mapping.status_frame(&sim.read_status()));
+    }
+    match mapping.decode_command(f) {
+        Ok(Some(r)) => {
+            stats.accept();
+            sim.write_request(r);
+            Some(mapping.status_frame(&sim.read_status()))
+        }
+        Ok(None) => {
+            log::debug!("gripper sim (CAN): frame {f:?} is not for us");
+            None
+        }
+        Err(e) => {
+            stats.reject("can", e.to_string());
+            None
         }
     }
 }

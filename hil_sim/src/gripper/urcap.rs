@@ -122,6 +122,10 @@ fn serve(stream: TcpStream, sim: &GripperSim, stats: &ServerStats, stop: &Atomic
 }
 
 fn answer(sim: &GripperSim, cmd: &UrcapCommand) -> UrcapReply {
+    // In emergency stop the controller cannot reach the gripper: every request gets `?`.
+    if sim.emergency_stop() {
+        return UrcapReply::Unavailable;
+    }
     match cmd {
         UrcapCommand::Set(pairs) => {
             let mut r = sim.request();

@@ -1,9 +1,11 @@
 """Independent CAN peer (python-can, slcan interface) against the gripper emulator.
 
-Usage: python_can_gripper.py PTY_PATH
+Usage: python_can_gripper.py slcan PTY_PATH
+       python_can_gripper.py socketcand HOST PORT
 Speaks the documented CAN mapping: command frames (request image, 6 bytes) on 0x209,
-status frames on 0x189, a remote frame on 0x189 polls the status. Activates, closes, and
-prints the decoded status frames it received as one JSON object on stdout.
+status frames on 0x189; a remote frame on 0x189 (slcan) or an empty data frame on 0x189
+(socketcand, which has no remote frames) polls the status. Activates, closes, and prints
+the decoded status frames it received as one JSON object on stdout.
 """
 
 import json
@@ -30,8 +32,13 @@ def decode_status(data):
     }
 
 
-def main(port):
-    bus = can.Bus(interface="slcan", channel=port, bitrate=500000, sleep_after_open=0)
+def main(args):
+    if args[0] == "slcan":
+        bus = can.Bus(interface="slcan", channel=args[1], bitrate=500000, sleep_after_open=0)
+        remote_poll = True
+    else:
+        bus = can.Bus(interface="socketcand", channel="can0", host=args[1], port=int(args[2]))
+        remote_poll = False
     frames = []
 
     def recv_status():
@@ -60,11 +67,13 @@ def main(port):
         return recv_status()
 
     def poll():
-        bus.send(
-            can.Message(
+        if remote_poll:
+            msg = can.Message(
                 arbitration_id=STATUS_ID, is_extended_id=False, is_remote_frame=True, dlc=6
             )
-        )
+        else:
+            msg = can.Message(arbitration_id=STATUS_ID, is_extended_id=False, data=[])
+        bus.send(msg)
         return recv_status()
 
     def wait(done, limit_s):
@@ -89,4 +98,4 @@ def main(port):
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    main(sys.argv[1:])
