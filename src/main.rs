@@ -19,11 +19,14 @@ struct Cli {
 enum Command {
     /// Check a cell configuration file and print the checked configuration.
     Config(cmd::config::ConfigArgs),
+    /// Render (or capture) the three depth cameras and write the fused cloud as PLY and PNG.
+    Perceive(cmd::perceive::PerceiveArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Config(args) => cmd::config::run(args),
+        Command::Perceive(args) => cmd::perceive::run(args),
     }
 }

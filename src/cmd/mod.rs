@@ -1,3 +1,4 @@
 //! One module per `equact` subcommand.
 
 pub mod config;
+pub mod perceive;
