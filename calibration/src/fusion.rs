@@ -733,7 +733,7 @@ pub fn remove_statistical_outliers(
     let keys: Vec<u64> = order.iter().map(|e| e.0).collect();
     let xyz: Vec<Point3<f32>> = order.iter().map(|e| points.xyz[e.1 as usize]).collect();
     let mut mean_dist = vec![f32::INFINITY; n];
-    let mut best = [f32::INFINITY; 64];
+    let mut best = [0.0f32; 64];
     // The 9 row ranges of the first ring, shared by all the points of a cell (the points
     // come in cell order), so the binary searches run once per cell, not per point.
     let row_range = |key: u64, ring: i64, dy: i64, dz: i64| {
@@ -745,6 +745,7 @@ pub fn remove_statistical_outliers(
     let mut ring1 = [(0usize, 0usize); 9];
     let mut ring1_key = None;
     let mut ranges: Vec<(usize, usize)> = Vec::with_capacity(49);
+    let mut cand: Vec<f32> = Vec::with_capacity(512);
     for (qi, p) in xyz.iter().enumerate() {
         let key = keys[qi];
         if ring1_key != Some(key) {
@@ -770,28 +771,30 @@ pub fn remove_statistical_outliers(
                     }
                 }
             }
-            best[..k].fill(f32::INFINITY);
-            found = 0usize;
+            // Gather every candidate's squared distance, then select the k smallest in
+            // linear time (an insertion-sorted top-k mispredicts on every other candidate).
+            cand.clear();
             for &(start, end) in &ranges {
                 for (j, q) in xyz[start..end].iter().enumerate() {
-                    if start + j == qi {
-                        continue;
-                    }
-                    let d2 = (q - p).norm_squared();
-                    if d2 < best[k - 1] {
-                        // Insertion into the sorted k best.
-                        let mut m = k - 1;
-                        while m > 0 && best[m - 1] > d2 {
-                            best[m] = best[m - 1];
-                            m -= 1;
-                        }
-                        best[m] = d2;
-                        found += 1;
+                    if start + j != qi {
+                        cand.push((q - p).norm_squared());
                     }
                 }
             }
+            found = cand.len();
+            if found > k {
+                cand.select_nth_unstable_by(k - 1, f32::total_cmp);
+            }
+            let got = found.min(k);
+            best[..got].copy_from_slice(&cand[..got]);
+            // The k-th nearest distance: only then are all k provably inside the ring.
+            let kth = if got == k {
+                best[..k].iter().copied().fold(0.0, f32::max)
+            } else {
+                f32::INFINITY
+            };
             let reach = ring as f32 * cell;
-            if (found >= k && best[k - 1] <= reach * reach) || ring >= 3 {
+            if kth <= reach * reach || ring >= 3 {
                 break;
             }
             ring += 1;

@@ -99,7 +99,7 @@ pub fn run(args: PerceiveArgs) -> anyhow::Result<()> {
     let top = splat(
         &fused.dense,
         &view,
-        Point3::new(0.57, 0.0, 1.6),
+        Point3::new(0.57, 0.0, 0.95),
         Point3::new(0.57, 0.0, 0.0),
         1,
     );
