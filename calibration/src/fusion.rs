@@ -706,33 +706,52 @@ pub fn remove_robot(points: &Points, robot: &[Capsule], margin: f64) -> Points {
 /// its `k` nearest neighbours exceeds the mean of that over all points by `std_ratio`
 /// standard deviations. Neighbours come from a hashed grid of `cell_m` cells searched in
 /// growing rings until the k-th neighbour is provably found (or 3 rings: such a point is
-/// isolated, and its mean distance is taken over the neighbours found, at least the ring
-/// radius).
+/// isolated; see [`mean_neighbour_distances`]).
 pub fn remove_statistical_outliers(
     points: &Points,
     k: usize,
     std_ratio: f64,
     cell_m: f64,
 ) -> Points {
-    let n = points.len();
-    if n == 0 || k == 0 {
+    if points.is_empty() || k == 0 {
         return points.clone();
     }
+    let mean_dist = mean_neighbour_distances(&points.xyz, k, cell_m);
+    let finite: Vec<f64> = mean_dist
+        .iter()
+        .filter(|d| d.is_finite())
+        .map(|&d| f64::from(d))
+        .collect();
+    if finite.is_empty() {
+        return Points::default();
+    }
+    let m = finite.iter().sum::<f64>() / finite.len() as f64;
+    let var =
+        finite.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (finite.len().max(2) - 1) as f64;
+    let threshold = m + std_ratio * var.sqrt();
+    points.select(|i| f64::from(mean_dist[i]) <= threshold)
+}
+
+/// Each point's mean distance to its `k` nearest neighbours (itself excluded), with each
+/// distance capped at 3 grid cells (`cell_m`) and missing neighbours counted at that cap:
+/// exact whenever the k-th neighbour lies within 3 cells.
+pub fn mean_neighbour_distances(points: &[Point3<f32>], k: usize, cell_m: f64) -> Vec<f32> {
+    let n = points.len();
+    let k = k.clamp(1, 64);
     let inv = (1.0 / cell_m) as f32;
     let cell = cell_m as f32;
     // Sort the points by cell. x sits in the key's low bits, so the cells x-1..=x+1 of one
     // (y, z) row are one contiguous run of the sorted keys: a 3x3x3 search is 9 range
     // look-ups (binary searches), and candidates are read sequentially.
     let mut order: Vec<(u64, u32)> = points
-        .xyz
         .iter()
         .enumerate()
         .map(|(i, p)| (cell_key(p, inv), i as u32))
         .collect();
     order.sort_unstable_by_key(|e| e.0);
     let keys: Vec<u64> = order.iter().map(|e| e.0).collect();
-    let xyz: Vec<Point3<f32>> = order.iter().map(|e| points.xyz[e.1 as usize]).collect();
-    let mut mean_dist = vec![f32::INFINITY; n];
+    let xyz: Vec<Point3<f32>> = order.iter().map(|e| points[e.1 as usize]).collect();
+    let mut mean_dist = vec![0.0f32; n];
     let mut best = [0.0f32; 64];
     // The 9 row ranges of the first ring, shared by all the points of a cell (the points
     // come in cell order), so the binary searches run once per cell, not per point.
@@ -799,27 +818,15 @@ pub fn remove_statistical_outliers(
             }
             ring += 1;
         }
+        // Distances are capped at the search's reach (3 cells; everything within it is in
+        // the searched cube) and missing neighbours count as at the reach: isolated points
+        // score high, and the value does not depend on which cube corners were searched.
+        let reach = 3.0 * cell;
         let got = found.min(k);
-        if got > 0 {
-            let sum: f32 = best[..got].iter().map(|d2| d2.sqrt()).sum();
-            // Missing neighbours count as at the search's reach: isolated points score high.
-            let reach = 3.0 * cell;
-            mean_dist[order[qi].1 as usize] = (sum + (k - got) as f32 * reach) / k as f32;
-        }
+        let sum: f32 = best[..got].iter().map(|d2| d2.sqrt().min(reach)).sum();
+        mean_dist[order[qi].1 as usize] = (sum + (k - got) as f32 * reach) / k as f32;
     }
-    let finite: Vec<f64> = mean_dist
-        .iter()
-        .filter(|d| d.is_finite())
-        .map(|&d| f64::from(d))
-        .collect();
-    if finite.is_empty() {
-        return Points::default();
-    }
-    let m = finite.iter().sum::<f64>() / finite.len() as f64;
-    let var =
-        finite.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (finite.len().max(2) - 1) as f64;
-    let threshold = m + std_ratio * var.sqrt();
-    points.select(|i| f64::from(mean_dist[i]) <= threshold)
+    mean_dist
 }
 
 /// Farthest point sampling of `count` of the points `candidates` (indices into `xyz`),
@@ -1091,6 +1098,58 @@ mod tests {
             "{} of {n_plane}",
             kept.len()
         );
+    }
+
+    #[test]
+    fn grid_knn_matches_brute_force_on_random_clouds() {
+        use rand::Rng;
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let cell = 0.015;
+        let reach = 3.0 * cell as f32;
+        for trial in 0..20 {
+            // Clusters of different densities and sizes, some sparse enough to need the
+            // second and third rings, some points isolated.
+            let mut pts = Vec::new();
+            for _ in 0..rng.random_range(1..6) {
+                let c = Point3::new(
+                    rng.random_range(-0.3f32..0.3),
+                    rng.random_range(-0.3f32..0.3),
+                    rng.random_range(-0.3f32..0.3),
+                );
+                let spread = rng.random_range(0.002f32..0.05);
+                for _ in 0..rng.random_range(5..300) {
+                    pts.push(
+                        c + Vector3::new(
+                            rng.random_range(-spread..spread),
+                            rng.random_range(-spread..spread),
+                            rng.random_range(-spread..spread),
+                        ),
+                    );
+                }
+            }
+            let k = rng.random_range(1..25);
+            let fast = mean_neighbour_distances(&pts, k, cell);
+            for (i, p) in pts.iter().enumerate() {
+                let mut d: Vec<f32> = pts
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, _)| *j != i)
+                    .map(|(_, q)| (q - p).norm())
+                    .collect();
+                d.sort_by(f32::total_cmp);
+                // Exact when the k-th neighbour is within reach; otherwise the neighbours
+                // within reach plus "reach" for each missing one.
+                let within: Vec<f32> = d.iter().copied().filter(|&x| x <= reach).take(k).collect();
+                let expected =
+                    (within.iter().sum::<f32>() + (k - within.len()) as f32 * reach) / k as f32;
+                let ok = (fast[i] - expected).abs() < 1e-5;
+                assert!(
+                    ok,
+                    "trial {trial} point {i} k {k}: {} vs {expected}",
+                    fast[i]
+                );
+            }
+        }
     }
 
     #[test]
