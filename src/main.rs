@@ -23,6 +23,8 @@ enum Command {
     Sim(cmd::sim::SimArgs),
     /// Serve the Robotiq gripper emulator, or benchmark its transports.
     Gripper(cmd::gripper::GripperArgs),
+    /// Render (or capture) the three depth cameras and write the fused cloud as PLY and PNG.
+    Perceive(cmd::perceive::PerceiveArgs),
     /// Check a cell configuration file and print the checked configuration.
     Config(cmd::config::ConfigArgs),
     /// Summarise an episode recording (topics, counts, outcome, timings).
@@ -66,6 +68,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Run(args) => cmd::run::run(args),
         Command::Sim(args) => cmd::sim::run(args),
         Command::Gripper(args) => cmd::gripper::run(args),
+        Command::Perceive(args) => cmd::perceive::run(args),
         Command::Config(args) => cmd::config::run(args),
         Command::Inspect(args) => cmd::inspect::run(args),
         Command::Policy(args) => cmd::policy::run(args),

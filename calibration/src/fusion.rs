@@ -342,6 +342,14 @@ impl FusionPipeline {
         })
     }
 
+    /// The voxel grid's corner: half a voxel below the workspace's lower corner, which puts
+    /// the EquAct table height (-0.06 m) mid-voxel instead of on a voxel boundary (where
+    /// noise splits the table into two layers of voxels).
+    pub fn voxel_origin(&self) -> [f64; 3] {
+        let h = self.params.voxel_m / 2.0;
+        self.params.workspace.min.map(|v| v - h)
+    }
+
     /// The parameters.
     pub fn params(&self) -> &FusionParams {
         &self.params
@@ -506,7 +514,7 @@ impl FusionPipeline {
             stats.valid_pixels.push(valid);
         }
         stats.cropped = merged.len();
-        let voxels = voxel_downsample(&merged, self.params.voxel_m);
+        let voxels = voxel_downsample(&merged, self.params.voxel_m, self.voxel_origin());
         stats.voxels = voxels.len();
         let without_robot = remove_robot(&voxels, robot, self.params.robot_margin_m);
         stats.without_robot = without_robot.len();
@@ -611,7 +619,12 @@ impl Hasher for KeyHasher {
         }
     }
     fn write_u64(&mut self, v: u64) {
-        self.0 = (v ^ (v >> 29)).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        // splitmix64's finaliser: every key bit reaches the low bits hashbrown indexes by
+        // (a bare multiply left the bucket chosen by x alone: 10x slower neighbour search).
+        let mut z = v ^ self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xbf58_476d_1ce4_e5b9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94d0_49bb_1331_11eb);
+        self.0 = z ^ (z >> 31);
     }
 }
 
@@ -630,16 +643,19 @@ fn key_offset(key: u64, dx: i64, dy: i64, dz: i64) -> u64 {
     a(0, dx) | a(21, dy) | a(42, dz)
 }
 
-/// Replaces the points of each occupied voxel (edge `voxel_m`) by their centroid (and mean
-/// colour), like Open3D's `voxel_down_sample`. Output order: first occurrence.
-pub fn voxel_downsample(points: &Points, voxel_m: f64) -> Points {
+/// Replaces the points of each occupied voxel (edge `voxel_m`, grid corner at `origin`) by
+/// their centroid (and mean colour), like Open3D's `voxel_down_sample`. Output order: first
+/// occurrence. Anchor the grid in the base frame (not at the cloud's minimum, as Open3D
+/// does) so that voxels stay put from frame to frame.
+pub fn voxel_downsample(points: &Points, voxel_m: f64, origin: [f64; 3]) -> Points {
     let inv = (1.0 / voxel_m) as f32;
+    let o = Vector3::new(origin[0] as f32, origin[1] as f32, origin[2] as f32);
     let has_rgb = points.rgb.len() == points.len();
     let mut slots: KeyMap<u32> = KeyMap::default();
     slots.reserve(points.len() / 4);
     let mut acc: Vec<([f64; 3], [u32; 3], u32)> = Vec::new();
     for (i, p) in points.xyz.iter().enumerate() {
-        let key = cell_key(p, inv);
+        let key = cell_key(&(p - o), inv);
         let slot = *slots.entry(key).or_insert_with(|| {
             acc.push(([0.0; 3], [0; 3], 0));
             (acc.len() - 1) as u32
@@ -690,88 +706,17 @@ pub fn remove_robot(points: &Points, robot: &[Capsule], margin: f64) -> Points {
 /// its `k` nearest neighbours exceeds the mean of that over all points by `std_ratio`
 /// standard deviations. Neighbours come from a hashed grid of `cell_m` cells searched in
 /// growing rings until the k-th neighbour is provably found (or 3 rings: such a point is
-/// isolated, and its mean distance is taken over the neighbours found, at least the ring
-/// radius).
+/// isolated; see [`mean_neighbour_distances`]).
 pub fn remove_statistical_outliers(
     points: &Points,
     k: usize,
     std_ratio: f64,
     cell_m: f64,
 ) -> Points {
-    let n = points.len();
-    if n == 0 || k == 0 {
+    if points.is_empty() || k == 0 {
         return points.clone();
     }
-    let inv = (1.0 / cell_m) as f32;
-    let cell = cell_m as f32;
-    // Sort point indices by cell, then index cells by their run in the sorted order.
-    let mut order: Vec<(u64, u32)> = points
-        .xyz
-        .iter()
-        .enumerate()
-        .map(|(i, p)| (cell_key(p, inv), i as u32))
-        .collect();
-    order.sort_unstable_by_key(|e| e.0);
-    let mut cells: KeyMap<(u32, u32)> = KeyMap::default();
-    cells.reserve(n / 4);
-    let mut start = 0;
-    while start < order.len() {
-        let key = order[start].0;
-        let mut end = start;
-        while end < order.len() && order[end].0 == key {
-            end += 1;
-        }
-        cells.insert(key, (start as u32, end as u32));
-        start = end;
-    }
-    let mut mean_dist = vec![f32::INFINITY; n];
-    let mut best = [f32::INFINITY; 64];
-    for (i, p) in points.xyz.iter().enumerate() {
-        let key = cell_key(p, inv);
-        let mut found;
-        let mut ring = 1i64;
-        loop {
-            best[..k].fill(f32::INFINITY);
-            found = 0usize;
-            for dz in -ring..=ring {
-                for dy in -ring..=ring {
-                    for dx in -ring..=ring {
-                        let Some(&(s, e)) = cells.get(&key_offset(key, dx, dy, dz)) else {
-                            continue;
-                        };
-                        for &(_, j) in &order[s as usize..e as usize] {
-                            if j as usize == i {
-                                continue;
-                            }
-                            let d2 = (points.xyz[j as usize] - p).norm_squared();
-                            if d2 < best[k - 1] {
-                                // Insertion into the sorted k best.
-                                let mut m = k - 1;
-                                while m > 0 && best[m - 1] > d2 {
-                                    best[m] = best[m - 1];
-                                    m -= 1;
-                                }
-                                best[m] = d2;
-                                found += 1;
-                            }
-                        }
-                    }
-                }
-            }
-            let reach = ring as f32 * cell;
-            if (found >= k && best[k - 1] <= reach * reach) || ring >= 3 {
-                break;
-            }
-            ring += 1;
-        }
-        let got = found.min(k);
-        if got > 0 {
-            let sum: f32 = best[..got].iter().map(|d2| d2.sqrt()).sum();
-            // Missing neighbours count as at the search's reach: isolated points score high.
-            let reach = 3.0 * cell;
-            mean_dist[i] = (sum + (k - got) as f32 * reach) / k as f32;
-        }
-    }
+    let mean_dist = mean_neighbour_distances(&points.xyz, k, cell_m);
     let finite: Vec<f64> = mean_dist
         .iter()
         .filter(|d| d.is_finite())
@@ -785,6 +730,103 @@ pub fn remove_statistical_outliers(
         finite.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (finite.len().max(2) - 1) as f64;
     let threshold = m + std_ratio * var.sqrt();
     points.select(|i| f64::from(mean_dist[i]) <= threshold)
+}
+
+/// Each point's mean distance to its `k` nearest neighbours (itself excluded), with each
+/// distance capped at 3 grid cells (`cell_m`) and missing neighbours counted at that cap:
+/// exact whenever the k-th neighbour lies within 3 cells.
+pub fn mean_neighbour_distances(points: &[Point3<f32>], k: usize, cell_m: f64) -> Vec<f32> {
+    let n = points.len();
+    let k = k.clamp(1, 64);
+    let inv = (1.0 / cell_m) as f32;
+    let cell = cell_m as f32;
+    // Sort the points by cell. x sits in the key's low bits, so the cells x-1..=x+1 of one
+    // (y, z) row are one contiguous run of the sorted keys: a 3x3x3 search is 9 range
+    // look-ups (binary searches), and candidates are read sequentially.
+    let mut order: Vec<(u64, u32)> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (cell_key(p, inv), i as u32))
+        .collect();
+    order.sort_unstable_by_key(|e| e.0);
+    let keys: Vec<u64> = order.iter().map(|e| e.0).collect();
+    let xyz: Vec<Point3<f32>> = order.iter().map(|e| points[e.1 as usize]).collect();
+    let mut mean_dist = vec![0.0f32; n];
+    let mut best = [0.0f32; 64];
+    // The 9 row ranges of the first ring, shared by all the points of a cell (the points
+    // come in cell order), so the binary searches run once per cell, not per point.
+    let row_range = |key: u64, ring: i64, dy: i64, dz: i64| {
+        let lo = key_offset(key, -ring, dy, dz);
+        let hi = key_offset(key, ring, dy, dz);
+        let start = keys.partition_point(|&x| x < lo);
+        (start, start + keys[start..].partition_point(|&x| x <= hi))
+    };
+    let mut ring1 = [(0usize, 0usize); 9];
+    let mut ring1_key = None;
+    let mut ranges: Vec<(usize, usize)> = Vec::with_capacity(49);
+    let mut cand: Vec<f32> = Vec::with_capacity(512);
+    for (qi, p) in xyz.iter().enumerate() {
+        let key = keys[qi];
+        if ring1_key != Some(key) {
+            let mut r = 0;
+            for dz in -1..=1 {
+                for dy in -1..=1 {
+                    ring1[r] = row_range(key, 1, dy, dz);
+                    r += 1;
+                }
+            }
+            ring1_key = Some(key);
+        }
+        let mut found;
+        let mut ring = 1i64;
+        loop {
+            ranges.clear();
+            if ring == 1 {
+                ranges.extend_from_slice(&ring1);
+            } else {
+                for dz in -ring..=ring {
+                    for dy in -ring..=ring {
+                        ranges.push(row_range(key, ring, dy, dz));
+                    }
+                }
+            }
+            // Gather every candidate's squared distance, then select the k smallest in
+            // linear time (an insertion-sorted top-k mispredicts on every other candidate).
+            cand.clear();
+            for &(start, end) in &ranges {
+                for (j, q) in xyz[start..end].iter().enumerate() {
+                    if start + j != qi {
+                        cand.push((q - p).norm_squared());
+                    }
+                }
+            }
+            found = cand.len();
+            if found > k {
+                cand.select_nth_unstable_by(k - 1, f32::total_cmp);
+            }
+            let got = found.min(k);
+            best[..got].copy_from_slice(&cand[..got]);
+            // The k-th nearest distance: only then are all k provably inside the ring.
+            let kth = if got == k {
+                best[..k].iter().copied().fold(0.0, f32::max)
+            } else {
+                f32::INFINITY
+            };
+            let reach = ring as f32 * cell;
+            if kth <= reach * reach || ring >= 3 {
+                break;
+            }
+            ring += 1;
+        }
+        // Distances are capped at the search's reach (3 cells; everything within it is in
+        // the searched cube) and missing neighbours count as at the reach: isolated points
+        // score high, and the value does not depend on which cube corners were searched.
+        let reach = 3.0 * cell;
+        let got = found.min(k);
+        let sum: f32 = best[..got].iter().map(|d2| d2.sqrt().min(reach)).sum();
+        mean_dist[order[qi].1 as usize] = (sum + (k - got) as f32 * reach) / k as f32;
+    }
+    mean_dist
 }
 
 /// Farthest point sampling of `count` of the points `candidates` (indices into `xyz`),
@@ -1027,7 +1069,7 @@ mod tests {
             ],
             rgb: vec![[0, 0, 0], [100, 200, 50], [9, 9, 9]],
         };
-        let v = voxel_downsample(&pts, 0.005);
+        let v = voxel_downsample(&pts, 0.005, [0.0; 3]);
         assert_eq!(v.len(), 2);
         assert!((v.xyz[0] - Point3::new(0.002, 0.002, 0.002)).norm() < 1e-7);
         assert_eq!(v.rgb, vec![[50, 100, 25], [9, 9, 9]]);
@@ -1056,6 +1098,58 @@ mod tests {
             "{} of {n_plane}",
             kept.len()
         );
+    }
+
+    #[test]
+    fn grid_knn_matches_brute_force_on_random_clouds() {
+        use rand::Rng;
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let cell = 0.015;
+        let reach = 3.0 * cell as f32;
+        for trial in 0..20 {
+            // Clusters of different densities and sizes, some sparse enough to need the
+            // second and third rings, some points isolated.
+            let mut pts = Vec::new();
+            for _ in 0..rng.random_range(1..6) {
+                let c = Point3::new(
+                    rng.random_range(-0.3f32..0.3),
+                    rng.random_range(-0.3f32..0.3),
+                    rng.random_range(-0.3f32..0.3),
+                );
+                let spread = rng.random_range(0.002f32..0.05);
+                for _ in 0..rng.random_range(5..300) {
+                    pts.push(
+                        c + Vector3::new(
+                            rng.random_range(-spread..spread),
+                            rng.random_range(-spread..spread),
+                            rng.random_range(-spread..spread),
+                        ),
+                    );
+                }
+            }
+            let k = rng.random_range(1..25);
+            let fast = mean_neighbour_distances(&pts, k, cell);
+            for (i, p) in pts.iter().enumerate() {
+                let mut d: Vec<f32> = pts
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, _)| *j != i)
+                    .map(|(_, q)| (q - p).norm())
+                    .collect();
+                d.sort_by(f32::total_cmp);
+                // Exact when the k-th neighbour is within reach; otherwise the neighbours
+                // within reach plus "reach" for each missing one.
+                let within: Vec<f32> = d.iter().copied().filter(|&x| x <= reach).take(k).collect();
+                let expected =
+                    (within.iter().sum::<f32>() + (k - within.len()) as f32 * reach) / k as f32;
+                let ok = (fast[i] - expected).abs() < 1e-5;
+                assert!(
+                    ok,
+                    "trial {trial} point {i} k {k}: {} vs {expected}",
+                    fast[i]
+                );
+            }
+        }
     }
 
     #[test]

@@ -1,7 +1,8 @@
 //! D455 camera models, board detection, hand-eye and joint bundle adjustment, cloud fusion.
 //!
 //! Modules: [`camera`] (the D455 camera model, issue 7 item 1), [`fusion`] (the fused point
-//! cloud, issue 7 item 3). Board detection and the bundle adjustment (issue 8) build on
+//! cloud, issue 7 item 3),
+//! [`view`] (PLY export and point splats, issue 7 item 5). Board detection and the bundle adjustment (issue 8) build on
 //! [`camera::Intrinsics`] and the IR images of `cell_types::CameraFrame`.
 //!
 //! Libraries: `nalgebra` (the workspace's matrix library) for geometry; no image-processing
@@ -10,6 +11,7 @@
 pub mod camera;
 pub mod error;
 pub mod fusion;
+pub mod view;
 
 pub use camera::{DepthMode, Distortion, Intrinsics};
 pub use error::CalibrationError;

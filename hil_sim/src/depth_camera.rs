@@ -14,6 +14,11 @@
 //! The IR image shares the depth intrinsics (the left imager; rectified); the colour image
 //! is rendered already aligned to depth (what librealsense's `align_to(depth)` delivers),
 //! which keeps the colour model's distortion out of the simulated fusion path.
+//!
+//! Libraries: parry3d (BVH ray casting, via [`crate::scene`]), rand_chacha (a seedable,
+//! portable stream cipher RNG with independent streams per row), rand_distr (the normal
+//! distribution). Rows are split over scoped std threads (no pool, no threads left behind):
+//! see the `fusion` benchmark for single- vs multi-thread render times.
 
 use std::sync::{Arc, RwLock};
 use std::time::Duration;

@@ -4,6 +4,7 @@ pub mod bench_ur;
 pub mod config;
 pub mod gripper;
 pub mod inspect;
+pub mod perceive;
 pub mod policy;
 pub mod run;
 pub mod sim;
