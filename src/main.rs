@@ -19,11 +19,17 @@ struct Cli {
 enum Command {
     /// Check a cell configuration file and print the checked configuration.
     Config(cmd::config::ConfigArgs),
+    /// Run a benchmark and print its summary (e.g. `bench planner --problems FILE`).
+    Bench(cmd::bench::BenchArgs),
+    /// Plan one keyframe from a joint configuration against a cloud file (PLY or PCD).
+    Plan(cmd::plan::PlanArgs),
 }
 
 fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     match cli.command {
         Command::Config(args) => cmd::config::run(args),
+        Command::Bench(args) => cmd::bench::run(args),
+        Command::Plan(args) => cmd::plan::run(args),
     }
 }

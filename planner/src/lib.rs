@@ -6,6 +6,7 @@
 //! client; `rand_chacha` gives seeded, platform-independent sampling for RRT-Connect.
 
 pub mod checker;
+pub mod cloud_io;
 pub mod collision;
 pub mod error;
 pub mod ik;

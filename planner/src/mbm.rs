@@ -384,6 +384,33 @@ pub fn summarize(results: &[ProblemResult]) -> Vec<SceneSummary> {
         .collect()
 }
 
+/// Times single-configuration collision checks (FK + all spheres vs the world + self pairs)
+/// on `n` seeded random configurations within limits; returns (median, p95) in nanoseconds
+/// and the fraction of configurations in collision. Each call is timed on its own (the
+/// clock read costs some tens of ns, included).
+pub fn time_collision_checks(
+    model: &RobotModel,
+    world: &World,
+    n: usize,
+    seed: u64,
+) -> (f64, f64, f64) {
+    use rand::{Rng, SeedableRng};
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed);
+    let mut checker = crate::checker::Checker::new(model, world, 0.01);
+    let mut times = Vec::with_capacity(n);
+    let mut hits = 0usize;
+    for _ in 0..n {
+        let q: Joints =
+            std::array::from_fn(|j| rng.random_range(model.limits[j].0..=model.limits[j].1));
+        let t = Instant::now();
+        let hit = checker.contact(&q).is_some();
+        times.push(t.elapsed().as_secs_f64() * 1e9);
+        hits += usize::from(hit);
+    }
+    let (m, p) = median_p95(&mut times);
+    (m, p, hits as f64 / n.max(1) as f64)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -73,6 +73,21 @@ impl Obstacle {
         }
     }
 
+    /// A ball containing the obstacle (`None` for unbounded ones).
+    pub fn bounding_ball(&self) -> Option<(Point3<f64>, f64)> {
+        match self {
+            Obstacle::Cuboid { pose, half, .. } => Some((pose * Point3::origin(), half.norm())),
+            Obstacle::Cylinder {
+                pose,
+                radius,
+                half_length,
+                ..
+            } => Some((pose * Point3::origin(), radius.hypot(*half_length))),
+            Obstacle::Ball { center, radius, .. } => Some((*center, *radius)),
+            Obstacle::HalfSpace { .. } => None,
+        }
+    }
+
     /// Signed distance from `p` to the obstacle's surface (negative inside); exact.
     pub fn distance(&self, p: &Point3<f64>) -> f64 {
         match self {
@@ -332,6 +347,9 @@ pub enum Hit {
 pub struct World {
     /// Static obstacles.
     pub obstacles: Vec<Obstacle>,
+    /// Bounding ball of each obstacle (centre, radius; infinite radius when unbounded): one
+    /// distance rejects most sphere/obstacle pairs before the exact test.
+    bounds: Vec<(Point3<f64>, f64)>,
     field: Option<DistanceField>,
     points: Vec<Point3<f32>>,
     params: Option<CloudParams>,
@@ -355,6 +373,7 @@ impl World {
         }
         Ok(Self {
             obstacles: Vec::new(),
+            bounds: Vec::new(),
             field: DistanceField::build(&cloud.points, params)?,
             points: cloud.points.clone(),
             params: Some(*params),
@@ -363,6 +382,10 @@ impl World {
 
     /// Adds a static obstacle.
     pub fn with_obstacle(mut self, o: Obstacle) -> Self {
+        self.bounds.push(
+            o.bounding_ball()
+                .unwrap_or((Point3::origin(), f64::INFINITY)),
+        );
         self.obstacles.push(o);
         self
     }
@@ -371,6 +394,7 @@ impl World {
     pub fn without_cloud(&self) -> Self {
         Self {
             obstacles: self.obstacles.clone(),
+            bounds: self.bounds.clone(),
             field: None,
             points: Vec::new(),
             params: None,
@@ -397,6 +421,7 @@ impl World {
         }
         Ok(Some(Self {
             obstacles: self.obstacles.clone(),
+            bounds: self.bounds.clone(),
             field: DistanceField::build(&kept, &params)?,
             points: kept,
             params: Some(params),
@@ -421,7 +446,11 @@ impl World {
                 return Some(Hit::Cloud);
             }
         }
-        for (i, o) in self.obstacles.iter().enumerate() {
+        for (i, (o, (c, r))) in self.obstacles.iter().zip(&self.bounds).enumerate() {
+            let reach = r + s.radius;
+            if (s.center - c).norm_squared() > reach * reach {
+                continue;
+            }
             if o.distance(&s.center) <= s.radius {
                 return Some(Hit::Obstacle(i));
             }
