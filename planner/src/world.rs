@@ -155,10 +155,11 @@ pub struct DistanceField {
 const FAR: f64 = 1e18;
 
 /// 1-D squared distance transform of `f` (sites where `f < FAR`) into `d`.
-fn edt_1d(f: &[f64], d: &mut [f64], v: &mut [usize], z: &mut [f64]) {
+fn edt_1d(f: &[f32], d: &mut [f32], v: &mut [usize], z: &mut [f64]) {
     let n = f.len();
-    let Some(first) = f.iter().position(|x| *x < FAR) else {
-        d.iter_mut().for_each(|x| *x = FAR);
+    let far = FAR as f32;
+    let Some(first) = f.iter().position(|x| *x < far) else {
+        d.iter_mut().for_each(|x| *x = far);
         return;
     };
     let mut k = 0usize;
@@ -167,10 +168,10 @@ fn edt_1d(f: &[f64], d: &mut [f64], v: &mut [usize], z: &mut [f64]) {
     z[1] = f64::INFINITY;
     let inter = |q: usize, p: usize| {
         let (qf, pf) = (q as f64, p as f64);
-        ((f[q] + qf * qf) - (f[p] + pf * pf)) / (2.0 * (qf - pf))
+        ((f64::from(f[q]) + qf * qf) - (f64::from(f[p]) + pf * pf)) / (2.0 * (qf - pf))
     };
     for q in first + 1..n {
-        if f[q] >= FAR {
+        if f[q] >= far {
             continue;
         }
         let mut s = inter(q, v[k]);
@@ -190,7 +191,7 @@ fn edt_1d(f: &[f64], d: &mut [f64], v: &mut [usize], z: &mut [f64]) {
             k += 1;
         }
         let dx = q as f64 - v[k] as f64;
-        *dq = dx * dx + f[v[k]];
+        *dq = (dx * dx + f64::from(f[v[k]])) as f32;
     }
 }
 
@@ -237,48 +238,86 @@ impl DistanceField {
                 ),
             });
         }
-        let idx = |x: usize, y: usize, z: usize| x + dims[0] * (y + dims[1] * z);
-        let mut f = vec![FAR; cells];
+        let (nx, ny, nz) = (dims[0], dims[1], dims[2]);
+        let mut f = vec![FAR as f32; cells];
+        let mut row_has = vec![false; ny * nz];
         for p in points {
             let c = (p.cast::<f64>() - origin) / h;
             let (x, y, z) = (c.x as usize, c.y as usize, c.z as usize);
-            if x < dims[0] && y < dims[1] && z < dims[2] {
-                f[idx(x, y, z)] = 0.0;
+            if x < nx && y < ny && z < nz {
+                f[x + nx * (y + ny * z)] = 0.0;
+                row_has[y + ny * z] = true;
             }
         }
-        let nmax = dims[0].max(dims[1]).max(dims[2]);
-        let mut line = vec![0.0; nmax];
-        let mut out = vec![0.0; nmax];
+        // X pass: rows are contiguous and sites are binary, so two sweeps give the 1-D
+        // distance to the nearest site; rows without sites stay far.
+        let mut dist = vec![f32::INFINITY; nx];
+        for (r, row) in f.chunks_exact_mut(nx).enumerate() {
+            if !row_has[r] {
+                continue;
+            }
+            let mut last: Option<usize> = None;
+            dist.iter_mut().for_each(|d| *d = f32::INFINITY);
+            for x in 0..nx {
+                if row[x] == 0.0 {
+                    last = Some(x);
+                }
+                if let Some(l) = last {
+                    dist[x] = (x - l) as f32;
+                }
+            }
+            last = None;
+            for x in (0..nx).rev() {
+                if row[x] == 0.0 {
+                    last = Some(x);
+                }
+                if let Some(l) = last {
+                    dist[x] = dist[x].min((l - x) as f32);
+                }
+                row[x] = dist[x] * dist[x];
+            }
+        }
+        // Y and Z passes: copy a block whose lines run along the pass axis into a transposed
+        // buffer (contiguous reads of x rows, cache-resident writes), transform each line,
+        // and copy back: strided per-line gathers over a grid of millions of cells thrash.
+        let nmax = nx.max(ny).max(nz);
+        let mut buf = vec![0f32; nx * nmax];
+        let mut out = vec![0f32; nmax];
         let mut v = vec![0usize; nmax];
-        let mut zb = vec![0.0; nmax + 1];
-        for axis in 0..3 {
-            let n = dims[axis];
-            let (a, b) = match axis {
-                0 => (1, 2),
-                1 => (0, 2),
-                _ => (0, 1),
-            };
-            for j in 0..dims[b] {
-                for i in 0..dims[a] {
-                    let at = |t: usize| {
-                        let mut c = [0usize; 3];
-                        c[axis] = t;
-                        c[a] = i;
-                        c[b] = j;
-                        idx(c[0], c[1], c[2])
-                    };
-                    for t in 0..n {
-                        line[t] = f[at(t)];
+        let mut zb = vec![0.0f64; nmax + 1];
+        let far = FAR as f32;
+        for pass in 0..2 {
+            let (outer, n) = if pass == 0 { (nz, ny) } else { (ny, nz) };
+            for o in 0..outer {
+                // Row (x-run) index of line position t in this block.
+                let row = |t: usize| if pass == 0 { t + ny * o } else { o + ny * t };
+                for t in 0..n {
+                    let src = &f[row(t) * nx..row(t) * nx + nx];
+                    for (x, val) in src.iter().enumerate() {
+                        buf[x * n + t] = *val;
                     }
-                    edt_1d(&line[..n], &mut out[..n], &mut v, &mut zb);
-                    for t in 0..n {
-                        f[at(t)] = out[t];
+                }
+                for x in 0..nx {
+                    let line = &mut buf[x * n..x * n + n];
+                    if line.iter().all(|d| *d >= far) {
+                        continue;
+                    }
+                    edt_1d(line, &mut out[..n], &mut v, &mut zb);
+                    line.copy_from_slice(&out[..n]);
+                }
+                for t in 0..n {
+                    let dst = &mut f[row(t) * nx..row(t) * nx + nx];
+                    for (x, val) in dst.iter_mut().enumerate() {
+                        *val = buf[x * n + t];
                     }
                 }
             }
         }
         let two_hd = 3f64.sqrt() * h;
-        let dist = f.iter().map(|d2| (d2.sqrt() * h) as f32).collect();
+        let dist = f
+            .iter()
+            .map(|d2| (f64::from(*d2).sqrt() * h) as f32)
+            .collect();
         Ok(Some(Self {
             origin,
             inv_h: 1.0 / h,
