@@ -31,15 +31,10 @@ enum Command {
     Inspect(cmd::inspect::InspectArgs),
     /// The EquAct network: check parity fixtures, predict, benchmark.
     Policy(cmd::policy::PolicyArgs),
-    /// Benchmarks that print JSON.
-    #[command(subcommand)]
-    Bench(BenchCommand),
-}
-
-#[derive(Subcommand, Debug)]
-enum BenchCommand {
-    /// The UR driver's streaming-loop jitter at 125 and 500 Hz.
-    Ur(cmd::bench_ur::BenchUrArgs),
+    /// Run a benchmark and print its summary (e.g. `bench planner --problems FILE`).
+    Bench(cmd::bench::BenchArgs),
+    /// Plan one keyframe from a joint configuration against a cloud file (PLY or PCD).
+    Plan(cmd::plan::PlanArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -72,8 +67,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Config(args) => cmd::config::run(args),
         Command::Inspect(args) => cmd::inspect::run(args),
         Command::Policy(args) => cmd::policy::run(args),
-        Command::Bench(b) => match b {
-            BenchCommand::Ur(args) => cmd::bench_ur::run(args),
-        },
+        Command::Bench(args) => cmd::bench::run(args),
+        Command::Plan(args) => cmd::plan::run(args),
     }
 }

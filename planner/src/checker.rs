@@ -51,7 +51,7 @@ fn downstream(model: &RobotModel, joint: usize, link: usize) -> bool {
 pub struct Checker<'a> {
     model: &'a RobotModel,
     world: &'a World,
-    poses: Vec<Isometry3<f64>>,
+    poses: [Isometry3<f64>; 7],
     placed: Vec<Sphere>,
     levers: Joints,
     resolution: f64,
@@ -65,7 +65,7 @@ impl<'a> Checker<'a> {
         Self {
             model,
             world,
-            poses: vec![Isometry3::identity(); model.chain.links.len()],
+            poses: [Isometry3::identity(); 7],
             placed: vec![Sphere::default(); model.spheres.spheres.len()],
             levers: lever_arms(model),
             resolution: resolution.max(1e-4),
@@ -81,9 +81,11 @@ impl<'a> Checker<'a> {
     /// What touches what at `q`, or `None` when it is free.
     pub fn contact(&mut self, q: &Joints) -> Option<Contact> {
         self.checks += 1;
-        self.model.chain.link_poses_into(q, &mut self.poses);
         let sm = &self.model.spheres;
-        sm.place_into(&self.poses, &mut self.placed);
+        self.model
+            .chain
+            .anchor_poses_into(q, &sm.link_anchors, &mut self.poses);
+        sm.place_from_anchors(&self.poses, &mut self.placed);
         for &i in &sm.world_spheres {
             if let Some(h) = self.world.sphere_hit(&self.placed[i as usize]) {
                 return Some(Contact {

@@ -142,7 +142,7 @@ fn polish(ur: &UrParams, target: &Isometry3<f64>, q: &mut [f64; 6]) {
     };
     for _ in 0..3 {
         let r0 = residual(q);
-        if r0.norm() < 1e-14 {
+        if r0.norm() < 1e-12 {
             return;
         }
         let mut jac = Matrix6::zeros();

@@ -6,10 +6,13 @@
 //! client; `rand_chacha` gives seeded, platform-independent sampling for RRT-Connect.
 
 pub mod checker;
+pub mod cloud_io;
 pub mod collision;
 pub mod error;
 pub mod ik;
+pub mod kdtree;
 pub mod kinematics;
+pub mod mbm;
 pub mod model;
 pub mod planner;
 pub mod rrt;

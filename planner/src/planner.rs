@@ -228,7 +228,35 @@ impl Planner {
         Ok(m)
     }
 
+    /// Search, shortcut, time and validate; when the dense re-check finds a contact the
+    /// coarser search missed (a sphere clipping an edge between two search checks), search
+    /// again at half the spacing, down to the validation spacing / 2.
     fn plan_joints_inner(
+        &self,
+        start: &Joints,
+        goal: &Joints,
+        checker: &mut Checker<'_>,
+        world: &World,
+    ) -> Result<PlannedMotion, PlanError> {
+        let first = self.plan_joints_once(start, goal, checker, world);
+        let mut spent = checker.checks;
+        let mut res = self.config.check_resolution;
+        let mut result = first;
+        while matches!(result, Err(PlanError::TrajectoryCollides { .. }))
+            && res > self.config.validate_resolution / 2.0
+        {
+            res /= 2.0;
+            let mut finer = Checker::new(&self.model, world, res);
+            result = self.plan_joints_once(start, goal, &mut finer, world);
+            spent += finer.checks;
+        }
+        result.map(|mut m| {
+            m.stats.checks = m.stats.checks.max(spent);
+            m
+        })
+    }
+
+    fn plan_joints_once(
         &self,
         start: &Joints,
         goal: &Joints,

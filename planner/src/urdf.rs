@@ -467,6 +467,58 @@ impl Chain {
         out
     }
 
+    /// For every link, the rigid body it belongs to as an anchor slot (0: the root body,
+    /// `k + 1`: the body moved by actuated joint `k`) and its fixed pose in that anchor.
+    pub fn anchors(&self) -> Vec<(usize, Isometry3<f64>)> {
+        let poses = self.link_poses(&[0.0; 6]);
+        let mut slot_of = vec![0usize; self.links.len()];
+        for j in &self.joints {
+            slot_of[j.child] = match self
+                .actuated
+                .iter()
+                .position(|&a| self.joints[a].child == j.child)
+            {
+                Some(k) => k + 1,
+                None => slot_of[j.parent],
+            };
+        }
+        let anchor_link = |slot: usize| -> Option<usize> {
+            if slot == 0 {
+                (0..self.links.len()).find(|i| self.joints.iter().all(|j| j.child != *i))
+            } else {
+                self.actuated.get(slot - 1).map(|&a| self.joints[a].child)
+            }
+        };
+        (0..self.links.len())
+            .map(|l| {
+                let s = slot_of[l];
+                let a = anchor_link(s).unwrap_or(0);
+                (s, poses[a].inverse() * poses[l])
+            })
+            .collect()
+    }
+
+    /// Poses of the 7 anchor bodies (root, then each actuated joint's child) at `q`, computing
+    /// only the six joint rotations (fixed joints are folded into constant offsets).
+    pub fn anchor_poses_into(
+        &self,
+        q: &[f64; 6],
+        anchors: &[(usize, Isometry3<f64>)],
+        out: &mut [Isometry3<f64>; 7],
+    ) {
+        out[0] = Isometry3::identity();
+        for (k, &ji) in self.actuated.iter().enumerate() {
+            let j = &self.joints[ji];
+            let (slot, off) = anchors
+                .get(j.parent)
+                .copied()
+                .unwrap_or((0, Isometry3::identity()));
+            let axis = j.axis.unwrap_or_else(Vector3::z_axis);
+            out[k + 1] =
+                out[slot.min(6)] * off * j.origin * UnitQuaternion::from_axis_angle(&axis, q[k]);
+        }
+    }
+
     /// Joint limits of the six actuated joints.
     pub fn limits(&self) -> [(f64, f64); 6] {
         let mut l = [(0.0, 0.0); 6];

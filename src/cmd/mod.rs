@@ -1,10 +1,12 @@
 //! One module per `equact` subcommand.
 
+pub mod bench;
 pub mod bench_ur;
 pub mod config;
 pub mod gripper;
 pub mod inspect;
 pub mod perceive;
+pub mod plan;
 pub mod policy;
 pub mod run;
 pub mod sim;
