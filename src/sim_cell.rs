@@ -149,6 +149,9 @@ impl SimCell {
                 Vector3::new(0.0, 0.0, tcp_offset),
                 Default::default(),
             ),
+            // The controller's table check must see the same table as the planner and the
+            // scene: the simulated table top is below the base plate.
+            floor_z: Some(cfg.workspace.table_height),
             ..UrSimConfig::for_tests()
         };
         let sim_cfg = match cfg.robot.model {
