@@ -167,6 +167,51 @@ fn ns(clock: &dyn Clock) -> u64 {
     u64::try_from(clock.now().as_nanos()).unwrap_or(u64::MAX)
 }
 
+/// Records every arm state the driver received since the last call, at the controller
+/// rate: `/joint_states` and the TCP in `/tf` (from the controller's own `actual_TCP_pose`),
+/// each at its receive time. A full driver log is reported on `/log`, not hidden.
+fn record_arm_states(
+    rec: &mut EpisodeRecorder,
+    arm: &firmware_iface::ur::UrArm,
+    buf: &mut Vec<(std::time::Duration, firmware_iface::arm::ArmState)>,
+) -> anyhow::Result<()> {
+    buf.clear();
+    let dropped = arm.drain_states(buf);
+    for (at, state) in buf.iter() {
+        let t = u64::try_from(at.as_nanos()).unwrap_or(u64::MAX);
+        rec.write(
+            "/joint_states",
+            t,
+            &recording::joint_states_message(t, &state.joints),
+        )?;
+        let [x, y, z, rx, ry, rz] = state.tcp_pose;
+        let pose = nalgebra::Isometry3::from_parts(
+            nalgebra::Translation3::new(x, y, z),
+            nalgebra::UnitQuaternion::from_scaled_axis(Vector3::new(rx, ry, rz)),
+        );
+        rec.write(
+            "/tf",
+            t,
+            &json!({ "transforms": [recording::frame_transform(t, "base", "tcp", &pose)] }),
+        )?;
+    }
+    if dropped > 0 {
+        let t = buf.last().map_or(0, |(at, _)| {
+            u64::try_from(at.as_nanos()).unwrap_or(u64::MAX)
+        });
+        rec.write(
+            "/log",
+            t,
+            &recording::log_message(
+                t,
+                LogLevel::Warning,
+                &format!("{dropped} arm states were not recorded: the driver's log was full"),
+            ),
+        )?;
+    }
+    Ok(())
+}
+
 /// Runs one episode in the simulated cell with `policy`, recording into `recorder`.
 /// `interrupt` is set by Ctrl-C. Never returns with the arm moving.
 pub fn run_sim_episode(
@@ -198,6 +243,10 @@ pub fn run_sim_episode(
                 ),
             );
         }
+    }
+    // The stop's deceleration and the final rest belong to the recording too.
+    if let Err(e) = record_arm_states(recorder, &cell.arm, &mut Vec::new()) {
+        eprintln!("warning: recording the last arm states failed: {e:#}");
     }
     let t = ns(clock);
     let _ = recorder.write(
@@ -257,6 +306,7 @@ fn episode_steps(
         offset: cfg.workspace.table_height,
     };
 
+    let mut states = Vec::new();
     for step in 0..MAX_KEYFRAMES {
         if interrupt.load(Ordering::SeqCst) {
             return Ok((
@@ -269,12 +319,8 @@ fn episode_steps(
             Err(e) => return Ok((Outcome::ArmStopped, format!("before keyframe {step}: {e}"))),
         };
         let q = arm_state.joints.position;
+        record_arm_states(rec, &cell.arm, &mut states)?;
         let t = ns(clock);
-        rec.write(
-            "/joint_states",
-            t,
-            &recording::joint_states_message(t, &arm_state.joints),
-        )?;
         rec.write("/gripper", t, &gripper_message(&gstate))?;
         let mut transforms = vec![recording::frame_transform(
             t,
@@ -413,6 +459,7 @@ fn episode_steps(
             Err(e) => return Ok((Outcome::ArmStopped, format!("keyframe {step}: {e}"))),
         };
         let exec_s = t4.elapsed().as_secs_f64();
+        record_arm_states(rec, &cell.arm, &mut states)?;
         let (final_q, jitter) = match &outcome {
             ExecutionOutcome::Completed {
                 final_state,
@@ -425,12 +472,6 @@ fn episode_steps(
                 last_state,
                 ..
             } => {
-                let t = ns(clock);
-                rec.write(
-                    "/joint_states",
-                    t,
-                    &recording::joint_states_message(t, &last_state.joints),
-                )?;
                 cell.world
                     .update_robot(&last_state.joints.position, opening)?;
                 let detail = format!("keyframe {step}: arm stopped by {by:?}: {cause:?}");

@@ -104,6 +104,45 @@ fn trajectory_reaches_its_goal_v2() {
 }
 
 #[test]
+fn state_log_holds_every_package_of_a_motion_in_order() {
+    let h = sim(UrSimConfig::for_tests());
+    let mut arm = connect(&h);
+    let mut log = Vec::new();
+    arm.drain_states(&mut log);
+    log.clear();
+    let start = arm.state().unwrap().joints.position;
+    let goal = goal_from(start);
+    let traj = quintic(start, goal, 1.0, arm.period());
+    let outcome = arm.execute(&traj).unwrap();
+    assert!(
+        matches!(outcome, ExecutionOutcome::Completed { .. }),
+        "{outcome:?}"
+    );
+    let dropped = arm.drain_states(&mut log);
+    assert_eq!(dropped, 0);
+    // At least the trajectory's samples (one package per cycle), all in receive order.
+    assert!(
+        log.len() >= traj.len() * 9 / 10,
+        "{} states for {} samples",
+        log.len(),
+        traj.len()
+    );
+    assert!(log.windows(2).all(|w| w[0].0 <= w[1].0));
+    assert!(log
+        .windows(2)
+        .all(|w| w[0].1.controller_time < w[1].1.controller_time));
+    // The log moves from start to goal: its first state is near the start, its last at the goal.
+    let first = log.first().unwrap().1.joints.position;
+    let last = log.last().unwrap().1.joints.position;
+    assert!(cell_types::joints::max_abs_diff(&first, &start) < 0.05);
+    assert!(cell_types::joints::max_abs_diff(&last, &goal) < 0.01);
+    // Drained means gone: a second drain right away holds only the few packages since.
+    log.clear();
+    arm.drain_states(&mut log);
+    assert!(log.len() < traj.len() / 4, "{}", log.len());
+}
+
+#[test]
 fn trajectory_reaches_its_goal_in_protocol_v1() {
     let h = sim(UrSimConfig::for_tests());
     let arm = UrArm::connect(

@@ -3,7 +3,8 @@
 Reads FILE with mcap's own reader (not our Rust code), decodes every message as JSON,
 validates each `foxglove.*` message against Foxglove's published JSON schema (fetched from
 npm by scripts/fetch_foxglove_schemas.sh) and each `equact.*` message against the schema
-stored in the file, then prints a JSON summary: {"complete", "counts", "outcome", "errors"}.
+stored in the file, then prints a JSON summary: {"complete", "counts", "outcome", "errors", "median_period_s"}
+(the median gap between log times per topic).
 
 With --truncated the file may end anywhere: it is read record by record with mcap's
 stream reader until the data runs out, and only complete chunks count.
@@ -48,10 +49,11 @@ def main():
     official = load_official(args.schemas)
 
     counts, errors, outcome = {}, [], None
+    times = {}
     validators = {}
     complete = False
 
-    def handle(channel, schema, data):
+    def handle(channel, schema, data, log_time):
         nonlocal outcome
         key = channel.topic
         if key not in validators:
@@ -60,6 +62,7 @@ def main():
         for err in validators[key].iter_errors(msg):
             errors.append(f"{key}: {err.message[:200]}")
         counts[key] = counts.get(key, 0) + 1
+        times.setdefault(key, []).append(log_time)
         if key == "/episode/outcome":
             outcome = msg
 
@@ -67,7 +70,7 @@ def main():
         if not args.truncated:
             reader = make_reader(f)
             for schema, channel, message in reader.iter_messages():
-                handle(channel, schema, message.data)
+                handle(channel, schema, message.data, message.log_time)
             complete = reader.get_summary() is not None
         else:
             schemas, channels = {}, {}
@@ -79,10 +82,16 @@ def main():
                         channels[record.id] = record
                     elif isinstance(record, Message):
                         ch = channels[record.channel_id]
-                        handle(ch, schemas[ch.schema_id], record.data)
+                        handle(ch, schemas[ch.schema_id], record.data, record.log_time)
             except (McapError, EOFError, ValueError, KeyError) as e:
                 errors.append(f"stream ended: {type(e).__name__}")
-    print(json.dumps({"complete": complete, "counts": counts, "outcome": outcome, "errors": errors}))
+    median_period_s = {}
+    for key, ts in times.items():
+        gaps = sorted(b - a for a, b in zip(ts, ts[1:]) if b > a)
+        if gaps:
+            median_period_s[key] = gaps[len(gaps) // 2] * 1e-9
+    print(json.dumps({"complete": complete, "counts": counts, "outcome": outcome, "errors": errors,
+                      "median_period_s": median_period_s}))
 
 
 if __name__ == "__main__":

@@ -83,6 +83,14 @@ fn check_recording(report: &EpisodeReport) {
     for (topic, n) in &report.counts {
         assert_eq!(v["counts"][topic].as_u64(), Some(*n), "{topic}: {v}");
     }
+    // Joint states and the TCP come at the controller rate (CB3: 8 ms), not once per step.
+    for topic in ["/joint_states", "/tf"] {
+        let period = v["median_period_s"][topic].as_f64().unwrap();
+        assert!(
+            (period - 0.008).abs() < 0.002,
+            "{topic}: median period {period} s"
+        );
+    }
 }
 
 #[test]

@@ -144,6 +144,17 @@ impl UrArm {
         Ok(arm)
     }
 
+    /// Moves every state received since the last call (one per RTDE package, at the
+    /// controller rate, with the local clock's receive time) into `out`; returns how many
+    /// were dropped because nobody drained them for a minute.
+    pub fn drain_states(&self, out: &mut Vec<(Duration, ArmState)>) -> u64 {
+        self.link
+            .state_log
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .drain_into(out)
+    }
+
     /// The negotiated RTDE protocol version.
     pub fn protocol(&self) -> crate::rtde::ProtocolVersion {
         self.link.version

@@ -70,6 +70,44 @@ pub struct LinkStatus {
     pub down: Option<String>,
 }
 
+/// Every state package received, with the local clock's receive time, in a buffer
+/// allocated once at connect (the link thread never allocates for it): the controller-rate
+/// history that recordings need. When nobody drains it and it is full, new states are
+/// counted as dropped instead of stored.
+#[derive(Debug, Default)]
+pub(crate) struct StateLog {
+    entries: Vec<(Duration, ArmState)>,
+    dropped: u64,
+}
+
+impl StateLog {
+    /// Seconds of history kept between drains.
+    const SECONDS: f64 = 60.0;
+
+    fn with_period(period: f64) -> Self {
+        let capacity = (Self::SECONDS / period).ceil() as usize;
+        Self {
+            entries: Vec::with_capacity(capacity),
+            dropped: 0,
+        }
+    }
+
+    fn push(&mut self, at: Duration, state: ArmState) {
+        if self.entries.len() < self.entries.capacity() {
+            self.entries.push((at, state));
+        } else {
+            self.dropped += 1;
+        }
+    }
+
+    /// Moves the entries into `out` (keeping this buffer's capacity); returns and resets the
+    /// dropped count.
+    pub(crate) fn drain_into(&mut self, out: &mut Vec<(Duration, ArmState)>) -> u64 {
+        out.extend(self.entries.drain(..));
+        std::mem::take(&mut self.dropped)
+    }
+}
+
 /// Parameters of one motion, handed to the link thread.
 pub(crate) struct Job {
     pub samples: Vec<TrajectorySample>,
@@ -85,6 +123,7 @@ pub(crate) struct Job {
 /// Shared between the driver and its link thread.
 pub(crate) struct Link {
     pub status: Mutex<LinkStatus>,
+    pub state_log: Mutex<StateLog>,
     pub changed: Condvar,
     pub job: Mutex<Option<Job>>,
     writer: Mutex<TcpStream>,
@@ -267,6 +306,7 @@ impl Link {
         let writer = c.s.try_clone().map_err(io)?;
         let link = Arc::new(Link {
             status: Mutex::new(LinkStatus::default()),
+            state_log: Mutex::new(StateLog::with_period(period)),
             changed: Condvar::new(),
             job: Mutex::new(None),
             writer: Mutex::new(writer),
@@ -369,6 +409,7 @@ impl Link {
                         drop(st);
                         return self.die(format!("data package does not match the recipe: {e}"));
                     }
+                    lock(&self.state_log).push(clock.now(), st.state);
                     got_data = true;
                 }
                 at += used;
