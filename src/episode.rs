@@ -452,6 +452,12 @@ fn episode_steps(
 
         // Execute.
         let t4 = Instant::now();
+        let t = ns(clock);
+        rec.write(
+            "/trajectory/joints",
+            t,
+            &recording::joint_trajectory_message(step, &motion.trajectory, &cfg.limits),
+        )?;
         let outcome = match cell.arm.execute(&motion.trajectory) {
             Ok(o) => o,
             // Refused before the first sample (a stop already active) or the link went down:

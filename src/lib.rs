@@ -6,6 +6,7 @@
 //! encoding, `ctrlc` to turn Ctrl-C into a controlled stop.
 
 pub mod episode;
+pub mod plot;
 pub mod recording;
 pub mod sim_cell;
 pub mod task;

@@ -35,6 +35,8 @@ enum Command {
     Bench(cmd::bench::BenchArgs),
     /// Plan one keyframe from a joint configuration against a cloud file (PLY or PCD).
     Plan(cmd::plan::PlanArgs),
+    /// Draw a recording: joint motions with their limits, tracking error, cloud + robot per step.
+    Plot(cmd::plot::PlotArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -69,5 +71,6 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Policy(args) => cmd::policy::run(args),
         Command::Bench(args) => cmd::bench::run(args),
         Command::Plan(args) => cmd::plan::run(args),
+        Command::Plot(args) => cmd::plot::run(args),
     }
 }

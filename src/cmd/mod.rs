@@ -7,6 +7,7 @@ pub mod gripper;
 pub mod inspect;
 pub mod perceive;
 pub mod plan;
+pub mod plot;
 pub mod policy;
 pub mod run;
 pub mod sim;

@@ -240,3 +240,24 @@ pub fn log_message(t_ns: u64, level: LogLevel, message: &str) -> Value {
         "line": 0,
     })
 }
+
+/// An `equact.JointTrajectory`: the planned joint samples of one motion with the limits it
+/// was planned under, logged when its execution starts (what `equact plot` draws).
+pub fn joint_trajectory_message(
+    step: usize,
+    trajectory: &cell_types::Trajectory,
+    limits: &cell_types::config::LimitsSection,
+) -> Value {
+    let samples = trajectory.samples();
+    json!({
+        "step": step,
+        "period_s": trajectory.period(),
+        "positions": samples.iter().map(|s| s.position).collect::<Vec<_>>(),
+        "velocities": samples.iter().map(|s| s.velocity).collect::<Vec<_>>(),
+        "accelerations": samples.iter().map(|s| s.acceleration).collect::<Vec<_>>(),
+        "max_velocity": limits.max_velocity,
+        "max_acceleration": limits.max_acceleration,
+        "max_jerk": limits.max_jerk,
+        "tracking_bound": limits.tracking_error_bound,
+    })
+}

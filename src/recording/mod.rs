@@ -16,8 +16,8 @@ mod schemas;
 
 pub use inspect::{inspect_bytes, inspect_file, PhaseTiming, RecordingSummary};
 pub use messages::{
-    cloud_message, depth_image_message, frame_transform, joint_states_message, keyframe_scene,
-    log_message, trajectory_scene, LogLevel,
+    cloud_message, depth_image_message, frame_transform, joint_states_message,
+    joint_trajectory_message, keyframe_scene, log_message, trajectory_scene, LogLevel,
 };
 
 use std::collections::BTreeMap;
@@ -37,6 +37,7 @@ pub const TOPICS: &[(&str, &str)] = &[
     ("/cloud/fused", "foxglove.PointCloud"),
     ("/keyframes", "foxglove.SceneUpdate"),
     ("/trajectory/planned", "foxglove.SceneUpdate"),
+    ("/trajectory/joints", "equact.JointTrajectory"),
     ("/gripper", "equact.GripperState"),
     ("/episode/step", "equact.StepEvent"),
     ("/episode/outcome", "equact.EpisodeOutcome"),

@@ -105,6 +105,45 @@ fn expert_picks_the_fruit_and_the_recording_checks_out() {
     assert_eq!(run.report.steps, 3);
     assert!(run.still);
     check_recording(&run.report);
+    check_plots(&run.report);
+}
+
+/// `equact plot` draws one motion picture per keyframe and one scene per step, and the
+/// measured joints track the plan within the configured bound.
+fn check_plots(report: &EpisodeReport) {
+    let out = report.recording.with_extension("plots");
+    let written = equact::plot::plot_file(&report.recording, &out).unwrap();
+    let names: Vec<String> = written
+        .iter()
+        .map(|p| p.file_name().unwrap().to_string_lossy().into_owned())
+        .collect();
+    for step in 0..report.steps {
+        assert!(
+            names.contains(&format!("motion_{step:02}.png")),
+            "{names:?}"
+        );
+        assert!(names.contains(&format!("scene_{step:02}.png")), "{names:?}");
+    }
+    for path in &written {
+        let decoder =
+            png::Decoder::new(std::io::BufReader::new(std::fs::File::open(path).unwrap()));
+        let reader = decoder.read_info().unwrap();
+        assert!(reader.info().width >= 1000, "{}", path.display());
+    }
+    let bytes = std::fs::read(&report.recording).unwrap();
+    let data = equact::plot::EpisodeData::from_bytes(&bytes).unwrap();
+    assert_eq!(data.motions.len(), report.steps);
+    for m in &data.motions {
+        let e = equact::plot::tracking_error(m, &data.joints);
+        assert!(
+            e.len() * 2 >= m.samples.len(),
+            "step {}: {} errors",
+            m.step,
+            e.len()
+        );
+        let worst = e.iter().map(|x| x.1).fold(0.0, f64::max);
+        assert!(worst < m.tracking_bound, "step {}: {worst} rad", m.step);
+    }
 }
 
 #[test]
