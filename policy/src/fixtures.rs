@@ -26,6 +26,7 @@ use crate::so3::{
     angles_to_xyz, edge_rot_mat, matrix_to_angles, num_coefficients, spherical_harmonics,
     xyz_to_angles, WignerCalculator,
 };
+use crate::weights::Weights;
 
 /// Tolerance for values that do not involve Wigner matrices.
 pub const TOL: f64 = 1e-5;
@@ -160,6 +161,24 @@ impl FixtureFile {
                 got: "I64".into(),
             }),
         }
+    }
+
+    /// A float32 tensor of any shape.
+    pub fn f32_any(&self, key: &str) -> Result<(&[usize], &[f32])> {
+        let t = self.get(key)?;
+        match &t.data {
+            TensorData::F32(v) => Ok((&t.shape, v)),
+            TensorData::I64(_) => Err(PolicyError::WrongDtype {
+                name: key.to_string(),
+                expected: "F32",
+                got: "I64".into(),
+            }),
+        }
+    }
+
+    /// The fixture's tensors as a parameter store (keys unchanged, e.g. `param.x.weight`).
+    pub fn weights(&self) -> Weights {
+        Weights::from_tensors(&self.path.display().to_string(), self.tensors.clone())
     }
 
     /// An int64 tensor, checked against an expected shape.
@@ -440,6 +459,7 @@ pub fn check_file(path: &Path) -> FixtureReport {
         "s2_grid" => check_s2_grid(&fx),
         "rotation_head" => check_rotation_head(&fx),
         "pool_upsample" => check_pool_upsample(&fx),
+        "linear_norm_rbf" => check_linear_norm_rbf(&fx),
         _ => {
             return FixtureReport {
                 name,
@@ -916,5 +936,96 @@ fn check_pool_upsample(fx: &FixtureFile) -> Result<Vec<Comparison>> {
             TOL,
         ));
     }
+    Ok(out)
+}
+
+fn check_linear_norm_rbf(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::layers::{
+        smooth_leaky_relu, FilmLinear, GaussianRbf, RadialMlp, RmsNormSh, So3Linear,
+    };
+    let mut out = Vec::new();
+    let w = fx.weights();
+    let p = w.scope("param.");
+    let so3_linear = So3Linear::load(&p.sub("so3_linear"))?;
+    let rms = RmsNormSh::load_any(&p.sub("rms_norm"))?;
+    let film_cin = fx.f32("in.film_linear.x", &[None, None, None])?.0[2];
+    let film_cout = fx.f32("out.film_linear.y", &[None, None, None])?.0[2];
+    let film = FilmLinear::load(&p.sub("film_linear"), 3, film_cin, film_cout)?;
+    let cutoff = |name: &str| -> Result<f64> {
+        fx.sidecar
+            .pointer(&format!("/submodules/{name}/args/cutoff"))
+            .and_then(|v| v.as_f64())
+            .ok_or_else(|| PolicyError::Sidecar {
+                path: fx.path.with_extension("json"),
+                message: format!("submodules.{name}.args.cutoff missing"),
+            })
+    };
+    let rbf = GaussianRbf::load(&p.sub("rbf"), cutoff("rbf")?)?;
+    let rbf_field = GaussianRbf::load(&p.sub("rbf_field"), cutoff("rbf_field")?)?;
+    let radial = RadialMlp::load(&p.sub("radial_mlp"))?;
+
+    // The degree-balance buffer of the norm.
+    let bdw: Vec<f64> = (0..num_coefficients(rms.lmax))
+        .map(|i| rms.balance_weight(i))
+        .collect();
+    out.push(compare(
+        "buf.rms_norm.balance_degree_weight",
+        &bdw,
+        fx.f32_any("buf.rms_norm.balance_degree_weight")?.1,
+        TOL,
+    ));
+    for prefix in ["", "rot."] {
+        let x = fx.f32_any(&format!("{prefix}in.so3_linear.x"))?.1;
+        out.push(compare_f32(
+            &format!("{prefix}out.so3_linear.y"),
+            &so3_linear.forward(x)?,
+            fx.f32_any(&format!("{prefix}out.so3_linear.y"))?.1,
+            TOL,
+        ));
+        let x = fx.f32_any(&format!("{prefix}in.rms_norm.x"))?.1;
+        out.push(compare_f32(
+            &format!("{prefix}out.rms_norm.y"),
+            &rms.forward(x)?,
+            fx.f32_any(&format!("{prefix}out.rms_norm.y"))?.1,
+            TOL,
+        ));
+        let x = fx.f32_any(&format!("{prefix}in.film_linear.x"))?.1;
+        let cond = fx.f32_any("in.film_linear.condition")?.1;
+        out.push(compare_f32(
+            &format!("{prefix}out.film_linear.y"),
+            &film.forward(x, cond)?,
+            fx.f32_any(&format!("{prefix}out.film_linear.y"))?.1,
+            TOL,
+        ));
+    }
+    let d = fx.f32_any("in.rbf.dist")?.1;
+    let y = rbf.forward(d);
+    out.push(compare_f32(
+        "out.rbf.y",
+        &y,
+        fx.f32_any("out.rbf.y")?.1,
+        TOL,
+    ));
+    out.push(compare_f32(
+        "out.radial_mlp.y",
+        &radial.forward(fx.f32_any("out.rbf.y")?.1)?,
+        fx.f32_any("out.radial_mlp.y")?.1,
+        TOL,
+    ));
+    let d = fx.f32_any("in.rbf_field.dist")?.1;
+    out.push(compare_f32(
+        "out.rbf_field.y",
+        &rbf_field.forward(d),
+        fx.f32_any("out.rbf_field.y")?.1,
+        TOL,
+    ));
+    let x = fx.f32_any("in.smooth_leaky_relu.x")?.1;
+    let y: Vec<f32> = x.iter().map(|v| smooth_leaky_relu(*v, 0.2)).collect();
+    out.push(compare_f32(
+        "out.smooth_leaky_relu.y",
+        &y,
+        fx.f32_any("out.smooth_leaky_relu.y")?.1,
+        TOL,
+    ));
     Ok(out)
 }

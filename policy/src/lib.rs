@@ -16,8 +16,10 @@
 pub mod error;
 pub mod fixtures;
 pub mod grids;
+pub mod layers;
 pub mod points;
 pub mod rotation_head;
 pub mod so3;
+pub mod weights;
 
 pub use error::{PolicyError, Result};

@@ -12,7 +12,13 @@ fn fixture_dir() -> PathBuf {
 }
 
 /// Fixture kinds this crate implements so far; each must pass.
-const IMPLEMENTED: &[&str] = &["sh_wigner", "s2_grid", "rotation_head", "pool_upsample"];
+const IMPLEMENTED: &[&str] = &[
+    "sh_wigner",
+    "s2_grid",
+    "rotation_head",
+    "pool_upsample",
+    "linear_norm_rbf",
+];
 
 #[test]
 fn implemented_fixtures_pass_and_the_rest_are_reported_as_failures() {

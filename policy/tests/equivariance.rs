@@ -1,0 +1,95 @@
+//! Equivariance of each layer: rotating the input features by D(R) (and the geometry by R)
+//! rotates the output by D(R). Layers use the fixtures' weights on seeded random inputs.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // tests may unwrap (CONVENTIONS 6)
+
+use std::path::{Path, PathBuf};
+
+use nalgebra::{DMatrix, Matrix3, Rotation3, Vector3};
+use policy::layers::{rotate_embedding, FilmLinear, RmsNormSh, So3Linear};
+use policy::so3::WignerCalculator;
+use policy::weights::Weights;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+fn fixture(name: &str) -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("tests/fixtures")
+        .join(format!("{name}.safetensors"))
+}
+
+fn random_rotation(rng: &mut ChaCha8Rng) -> Matrix3<f64> {
+    let axis = Vector3::new(
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+        rng.random_range(-1.0..1.0),
+    );
+    let angle = rng.random_range(-3.1..3.1);
+    Rotation3::from_scaled_axis(axis.normalize() * angle).into_inner()
+}
+
+fn random_values(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {
+    (0..n).map(|_| rng.random_range(-1.5f32..1.5)).collect()
+}
+
+fn wigner(r: &Matrix3<f64>, lmax: usize) -> DMatrix<f64> {
+    WignerCalculator::new(lmax)
+        .unwrap()
+        .wigner(lmax, r)
+        .unwrap()
+}
+
+/// max |a - b| / max |b|.
+fn rel_err(a: &[f32], b: &[f32]) -> f64 {
+    assert_eq!(a.len(), b.len());
+    let m = b.iter().fold(0.0f64, |m, v| m.max(f64::from(v.abs())));
+    let d = a
+        .iter()
+        .zip(b)
+        .fold(0.0f64, |m, (x, y)| m.max(f64::from((x - y).abs())));
+    d / m
+}
+
+/// Checks f(D x) = D f(x) for a per-node map f on `[n, 16, cin]` features.
+fn check_layer(name: &str, cin: usize, cout: usize, f: impl Fn(&[f32]) -> Vec<f32>) {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for _ in 0..5 {
+        let r = random_rotation(&mut rng);
+        let d = wigner(&r, 3);
+        let x = random_values(&mut rng, 10 * 16 * cin);
+        let y = f(&x);
+        let y_of_rot = f(&rotate_embedding(&x, cin, &d).unwrap());
+        let rot_of_y = rotate_embedding(&y, cout, &d).unwrap();
+        let e = rel_err(&y_of_rot, &rot_of_y);
+        assert!(e < 1e-5, "{name}: relative equivariance error {e}");
+    }
+}
+
+#[test]
+fn so3_linear_rms_norm_and_film_are_equivariant() {
+    let w = Weights::from_file(&fixture("linear_norm_rbf")).unwrap();
+    let p = w.scope("param.");
+    let lin = So3Linear::load(&p.sub("so3_linear")).unwrap();
+    check_layer("so3_linear", 16, 24, |x| lin.forward(x).unwrap());
+    let norm = RmsNormSh::load_any(&p.sub("rms_norm")).unwrap();
+    check_layer("rms_norm", 16, 16, |x| norm.forward(x).unwrap());
+    let film = FilmLinear::load(&p.sub("film_linear"), 3, 8, 12).unwrap();
+    let cond: Vec<f32> = (0..256).map(|i| ((i as f32) * 0.37).sin()).collect();
+    check_layer("film_linear", 8, 12, |x| film.forward(x, &cond).unwrap());
+}
+
+#[test]
+fn weights_report_missing_and_misshapen_parameters_by_name() {
+    let w = Weights::from_file(&fixture("linear_norm_rbf")).unwrap();
+    let p = w.scope("param.");
+    let e = p.sub("so3_linear").f32("weight", &[4, 24, 15]).unwrap_err();
+    let msg = e.to_string();
+    assert!(msg.contains("param.so3_linear.weight"), "{msg}");
+    assert!(msg.contains("[4, 24, 16]"), "{msg}");
+    let e = So3Linear::load(&p.sub("nonexistent")).unwrap_err();
+    let msg = e.to_string();
+    assert!(
+        msg.contains("param.nonexistent.weight") && msg.contains("missing"),
+        "{msg}"
+    );
+}
