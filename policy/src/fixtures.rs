@@ -460,6 +460,7 @@ pub fn check_file(path: &Path) -> FixtureReport {
         "rotation_head" => check_rotation_head(&fx),
         "pool_upsample" => check_pool_upsample(&fx),
         "linear_norm_rbf" => check_linear_norm_rbf(&fx),
+        "so2_conv" => check_so2_conv(&fx),
         _ => {
             return FixtureReport {
                 name,
@@ -1027,5 +1028,120 @@ fn check_linear_norm_rbf(fx: &FixtureFile) -> Result<Vec<Comparison>> {
         fx.f32_any("out.smooth_leaky_relu.y")?.1,
         TOL,
     ));
+    Ok(out)
+}
+
+/// A sidecar integer at a JSON pointer.
+fn sidecar_usize(fx: &FixtureFile, pointer: &str) -> Result<usize> {
+    fx.sidecar
+        .pointer(pointer)
+        .and_then(|v| v.as_u64())
+        .map(|v| v as usize)
+        .ok_or_else(|| PolicyError::Sidecar {
+            path: fx.path.with_extension("json"),
+            message: format!("{pointer} missing or not an integer"),
+        })
+}
+
+fn check_so2_conv(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::layers::separable_s2_activation;
+    use crate::so2_conv::{CoefficientMapping, EdgeWigners, So2Conv};
+    let mut out = Vec::new();
+    let c1 = "/constructor/so2_conv_1";
+    let lmax = sidecar_usize(fx, &format!("{c1}/lmax_list/0"))?;
+    let mmax = sidecar_usize(fx, &format!("{c1}/mmax_list/0"))?;
+    let cin = sidecar_usize(fx, &format!("{c1}/sphere_channels"))?;
+    let hidden = sidecar_usize(fx, &format!("{c1}/m_output_channels"))?;
+    let extra = sidecar_usize(fx, &format!("{c1}/extra_m0_output_channels"))?;
+    let cout2 = sidecar_usize(fx, "/constructor/so2_conv_2/m_output_channels")?;
+    let map = CoefficientMapping::new(lmax, mmax)?;
+    let w = fx.weights();
+    let p = w.scope("param.");
+    let conv1 = So2Conv::load(&p.sub("so2_conv_1"), &map, cin, hidden, extra, true)?;
+    let conv2 = So2Conv::load(&p.sub("so2_conv_2"), &map, hidden, cout2, 0, false)?;
+    let grid = S2Grid::reference(lmax, mmax)?;
+    let calc = WignerCalculator::new(lmax)?;
+    let nr = map.len();
+    let k = num_coefficients(lmax);
+
+    // The mapping tables.
+    let mm = map.m_major();
+    let mut to_m = vec![0.0f64; nr * nr];
+    for (row, &col) in mm.iter().enumerate() {
+        to_m[row * nr + col] = 1.0;
+    }
+    out.push(compare(
+        "buf.mapping.to_m",
+        &to_m,
+        fx.f32("buf.mapping.to_m", &[Some(nr), Some(nr)])?.1,
+        0.0,
+    ));
+    out.push(compare_indices(
+        "buf.mapping.reduced_coef_idx",
+        &map.reduced,
+        fx.i64("buf.mapping.reduced_coef_idx", &[Some(nr)])?.1,
+    ));
+    // Rescaled inside the diagonal blocks of degree > mmax (elsewhere D is zero anyway).
+    let mut rescale = vec![1.0f64; k * nr];
+    for i in 0..k {
+        for (r, &j) in map.reduced.iter().enumerate() {
+            if crate::layers::degree_of(i) == crate::layers::degree_of(j) {
+                rescale[i * nr + r] = f64::from(map.rotate_inv_rescale(i));
+            }
+        }
+    }
+    out.push(compare(
+        "buf.mapping.rotate_inv_rescale",
+        &rescale,
+        fx.f32("buf.mapping.rotate_inv_rescale", &[Some(k), Some(nr)])?
+            .1,
+        TOL,
+    ));
+
+    let x_edge = fx.f32_any("in.x_edge")?.1;
+    for prefix in ["", "rot."] {
+        let ev = vec3s_f32(fx.f32(&format!("{prefix}in.edge_vec"), &[None, Some(3)])?.1);
+        let ne = ev.len();
+        let wig = EdgeWigners::new(&calc, lmax, &ev)?;
+        if prefix.is_empty() {
+            out.push(compare_f32(
+                "out.wigner",
+                &wig.d,
+                fx.f32("out.wigner", &[Some(ne), Some(k), Some(k)])?.1,
+                TOL_WIGNER,
+            ));
+        }
+        let x = fx
+            .f32(&format!("{prefix}in.x"), &[Some(ne), Some(k), Some(cin)])?
+            .1;
+        let x_rot = wig.rotate(&map, x, cin)?;
+        let (y1, x0_extra) = conv1.forward(&x_rot, Some(x_edge))?;
+        let gating: Vec<f32> = x0_extra
+            .chunks_exact(extra)
+            .flat_map(|r| r[extra - hidden..].iter().copied())
+            .collect();
+        let act = separable_s2_activation(&grid, &gating, &y1, hidden)?;
+        let (y2, _) = conv2.forward(&act, None)?;
+        let y = wig.rotate_back(&map, &y2, cout2)?;
+        let back1 = wig.rotate_back(&map, &y1, hidden)?;
+        if prefix.is_empty() {
+            for (key, v) in [
+                ("out.x_rot", &x_rot),
+                ("out.conv1", &y1),
+                ("out.s2act", &act),
+                ("out.conv2", &y2),
+            ] {
+                out.push(compare_f32(key, v, fx.f32_any(key)?.1, TOL_WIGNER));
+            }
+        }
+        for (key, v) in [
+            ("out.x0_extra", &x0_extra),
+            ("out.conv1_back", &back1),
+            ("out.y", &y),
+        ] {
+            let key = format!("{prefix}{key}");
+            out.push(compare_f32(&key, v, fx.f32_any(&key)?.1, TOL_WIGNER));
+        }
+    }
     Ok(out)
 }

@@ -610,3 +610,23 @@ pub fn rotate_embedding(x: &[f32], c: usize, d: &nalgebra::DMatrix<f64>) -> Resu
     }
     Ok(y)
 }
+
+/// The separable S2 activation: l > 0 rows through `grid` (to grid, SiLU, back); the l = 0
+/// row replaced by SiLU(`gating`). `x` is `[n, grid.reduced.len(), c]`, `gating` `[n, c]`.
+pub fn separable_s2_activation(
+    grid: &crate::grids::S2Grid,
+    gating: &[f32],
+    x: &[f32],
+    c: usize,
+) -> Result<Vec<f32>> {
+    let nr = grid.reduced.len();
+    let n = rows_of("S2 activation input", x.len(), nr * c)?;
+    check_len("S2 activation gating", gating.len(), &[n, c])?;
+    let mut y = grid.activate(x, n, c)?;
+    for node in 0..n {
+        for ch in 0..c {
+            y[node * nr * c + ch] = silu(gating[node * c + ch]);
+        }
+    }
+    Ok(y)
+}

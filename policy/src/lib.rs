@@ -19,6 +19,7 @@ pub mod grids;
 pub mod layers;
 pub mod points;
 pub mod rotation_head;
+pub mod so2_conv;
 pub mod so3;
 pub mod weights;
 

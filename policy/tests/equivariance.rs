@@ -93,3 +93,53 @@ fn weights_report_missing_and_misshapen_parameters_by_name() {
         "{msg}"
     );
 }
+
+#[test]
+fn so2_convolution_in_edge_frames_is_equivariant() {
+    use policy::so2_conv::{CoefficientMapping, EdgeWigners, So2Conv};
+    let w = Weights::from_file(&fixture("so2_conv")).unwrap();
+    let p = w.scope("param.");
+    let map = CoefficientMapping::new(3, 2).unwrap();
+    let conv = So2Conv::load(&p.sub("so2_conv_1"), &map, 16, 16, 24, true).unwrap();
+    let calc = WignerCalculator::new(3).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(12);
+    let edges = 20;
+    let run = |x: &[f32], ev: &[[f32; 3]], x_edge: &[f32]| {
+        let wig = EdgeWigners::new(&calc, 3, ev).unwrap();
+        let (y, extra) = conv
+            .forward(&wig.rotate(&map, x, 16).unwrap(), Some(x_edge))
+            .unwrap();
+        (wig.rotate_back(&map, &y, 16).unwrap(), extra)
+    };
+    for _ in 0..3 {
+        let r = random_rotation(&mut rng);
+        let d = wigner(&r, 3);
+        let x = random_values(&mut rng, edges * 16 * 16);
+        let x_edge = random_values(&mut rng, edges * 16);
+        let ev: Vec<[f32; 3]> = (0..edges)
+            .map(|_| {
+                [
+                    rng.random_range(-1.0f32..1.0),
+                    rng.random_range(-1.0f32..1.0),
+                    rng.random_range(-1.0f32..1.0),
+                ]
+            })
+            .collect();
+        let ev_rot: Vec<[f32; 3]> = ev
+            .iter()
+            .map(|v| {
+                let u = r * Vector3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]));
+                [u[0] as f32, u[1] as f32, u[2] as f32]
+            })
+            .collect();
+        let (y, extra) = run(&x, &ev, &x_edge);
+        let (y_rot, extra_rot) = run(&rotate_embedding(&x, 16, &d).unwrap(), &ev_rot, &x_edge);
+        let e = rel_err(&y_rot, &rotate_embedding(&y, 16, &d).unwrap());
+        assert!(e < 1e-5, "SO(2) conv: relative equivariance error {e}");
+        let e = rel_err(&extra_rot, &extra);
+        assert!(
+            e < 1e-5,
+            "SO(2) conv extra scalars: relative invariance error {e}"
+        );
+    }
+}

@@ -18,6 +18,7 @@ const IMPLEMENTED: &[&str] = &[
     "rotation_head",
     "pool_upsample",
     "linear_norm_rbf",
+    "so2_conv",
 ];
 
 #[test]
