@@ -461,6 +461,7 @@ pub fn check_file(path: &Path) -> FixtureReport {
         "pool_upsample" => check_pool_upsample(&fx),
         "linear_norm_rbf" => check_linear_norm_rbf(&fx),
         "so2_conv" => check_so2_conv(&fx),
+        "graph_attention" => check_graph_attention(&fx),
         _ => {
             return FixtureReport {
                 name,
@@ -1142,6 +1143,132 @@ fn check_so2_conv(fx: &FixtureFile) -> Result<Vec<Comparison>> {
             let key = format!("{prefix}{key}");
             out.push(compare_f32(&key, v, fx.f32_any(&key)?.1, TOL_WIGNER));
         }
+    }
+    Ok(out)
+}
+
+/// A sidecar float at a JSON pointer.
+fn sidecar_f64(fx: &FixtureFile, pointer: &str) -> Result<f64> {
+    fx.sidecar
+        .pointer(pointer)
+        .and_then(|v| v.as_f64())
+        .ok_or_else(|| PolicyError::Sidecar {
+            path: fx.path.with_extension("json"),
+            message: format!("{pointer} missing or not a number"),
+        })
+}
+
+/// The attention sizes from a constructor record (`output_channels` may be overridden).
+fn attention_config(
+    fx: &FixtureFile,
+    ctor: &str,
+    output_channels: Option<usize>,
+) -> Result<crate::attention::AttentionConfig> {
+    let g = |k: &str| sidecar_usize(fx, &format!("{ctor}/{k}"));
+    Ok(crate::attention::AttentionConfig {
+        lmax: g("lmax_list/0")?,
+        mmax: g("mmax_list/0")?,
+        sphere_channels: g("sphere_channels")?,
+        hidden_channels: g("hidden_channels").or_else(|_| g("attn_hidden_channels"))?,
+        num_heads: g("num_heads")?,
+        alpha_channels: g("attn_alpha_channels")?,
+        value_channels: g("attn_value_channels")?,
+        output_channels: match output_channels {
+            Some(c) => c,
+            None => g("output_channels")?,
+        },
+    })
+}
+
+fn indices(fx: &FixtureFile, key: &str) -> Result<Vec<usize>> {
+    let (_, v) = fx.i64(key, &[None])?;
+    v.iter()
+        .map(|&i| {
+            usize::try_from(i).map_err(|_| PolicyError::IndexOutOfRange {
+                name: key.to_string(),
+                value: i,
+                len: 0,
+            })
+        })
+        .collect()
+}
+
+/// The fixture's graph (given edge vectors and features) for the plain and the moved run,
+/// plus a check of our radial basis against `in.edge_attr`.
+fn fixture_edges(
+    fx: &FixtureFile,
+    calc: &WignerCalculator,
+    lmax: usize,
+    prefix: &str,
+    out: &mut Vec<Comparison>,
+) -> Result<crate::attention::EdgeSet> {
+    use crate::attention::EdgeSet;
+    use crate::layers::GaussianRbf;
+    let src = indices(fx, "in.edge_src")?;
+    let dst = indices(fx, "in.edge_dst")?;
+    let ne = src.len();
+    let ev = vec3s_f32(
+        fx.f32(&format!("{prefix}in.edge_vec"), &[Some(ne), Some(3)])?
+            .1,
+    );
+    let attr = fx
+        .f32(&format!("{prefix}in.edge_attr"), &[Some(ne), None])?
+        .1;
+    let edges = EdgeSet::from_parts(calc, lmax, src, dst, ev, attr.to_vec())?;
+    let w = fx.weights();
+    let rbf = GaussianRbf::load(
+        &w.scope("param.").sub("distance_expansion"),
+        sidecar_f64(fx, "/distance_expansion/cutoff")?,
+    )?;
+    out.push(compare_f32(
+        &format!("{prefix}in.edge_attr (ours from |edge_vec|)"),
+        &rbf.forward(&edges.dist),
+        attr,
+        TOL,
+    ));
+    if prefix.is_empty() {
+        let pos = vec3s_f32(fx.f32("in.pos", &[None, Some(3)])?.1);
+        let mut ev = Vec::with_capacity(ne);
+        for (&s, &d) in edges.src.iter().zip(&edges.dst) {
+            let (Some(a), Some(b)) = (pos.get(s), pos.get(d)) else {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "in.edge_src/in.edge_dst".into(),
+                    value: s.max(d) as i64,
+                    len: pos.len(),
+                });
+            };
+            ev.extend([a[0] - b[0], a[1] - b[1], a[2] - b[2]]);
+        }
+        out.push(compare_f32(
+            "in.edge_vec (ours from in.pos)",
+            &ev,
+            fx.f32_any("in.edge_vec")?.1,
+            TOL,
+        ));
+        let k = num_coefficients(lmax);
+        out.push(compare_f32(
+            "buf.wigner",
+            &edges.wigners.d,
+            fx.f32("buf.wigner", &[Some(ne), Some(k), Some(k)])?.1,
+            TOL_WIGNER,
+        ));
+    }
+    Ok(edges)
+}
+
+fn check_graph_attention(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::attention::GraphAttention;
+    let mut out = Vec::new();
+    let cfg = attention_config(fx, "/constructor", None)?;
+    let w = fx.weights();
+    let ga = GraphAttention::load(&w.scope("param."), cfg)?;
+    let calc = WignerCalculator::new(cfg.lmax)?;
+    for prefix in ["", "rot."] {
+        let edges = fixture_edges(fx, &calc, cfg.lmax, prefix, &mut out)?;
+        let x = fx.f32_any(&format!("{prefix}in.x"))?.1;
+        let y = ga.forward(x, x, &edges)?;
+        let key = format!("{prefix}out.y");
+        out.push(compare_f32(&key, &y, fx.f32_any(&key)?.1, TOL_WIGNER));
     }
     Ok(out)
 }

@@ -13,6 +13,7 @@
 //! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit),
 //! `safetensors` to read the reference's tensor files, `serde_json` for their sidecars.
 
+pub mod attention;
 pub mod error;
 pub mod fixtures;
 pub mod grids;

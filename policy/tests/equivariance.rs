@@ -143,3 +143,87 @@ fn so2_convolution_in_edge_frames_is_equivariant() {
         );
     }
 }
+
+/// A small random cloud with its 6-NN graph (self edge dropped), edges grouped by destination.
+fn knn_graph(rng: &mut ChaCha8Rng, n: usize) -> (Vec<[f32; 3]>, Vec<usize>, Vec<usize>) {
+    let pos: Vec<[f32; 3]> = (0..n)
+        .map(|_| {
+            [
+                rng.random_range(-0.2f32..0.2),
+                rng.random_range(-0.2f32..0.2),
+                rng.random_range(-0.2f32..0.2),
+            ]
+        })
+        .collect();
+    let nb = policy::points::knn(&pos, &pos, 7).unwrap();
+    let (mut src, mut dst) = (Vec::new(), Vec::new());
+    for (d, row) in nb.iter().enumerate() {
+        for &s in row.iter().filter(|&&s| s != d) {
+            src.push(s);
+            dst.push(d);
+        }
+    }
+    (pos, src, dst)
+}
+
+fn rotate_points(r: &Matrix3<f64>, pos: &[[f32; 3]]) -> Vec<[f32; 3]> {
+    pos.iter()
+        .map(|v| {
+            let u = r * Vector3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]));
+            [u[0] as f32, u[1] as f32, u[2] as f32]
+        })
+        .collect()
+}
+
+/// Relative equivariance error of the fixture's graph attention with an S2 grid of
+/// `lat` × `long` points, over 3 random rotations.
+fn attention_equivariance_error(lat: usize, long: usize) -> f64 {
+    use policy::attention::{AttentionConfig, EdgeSet, GraphAttention};
+    use policy::grids::S2Grid;
+    use policy::layers::GaussianRbf;
+    let w = Weights::from_file(&fixture("graph_attention")).unwrap();
+    let p = w.scope("param.");
+    let cfg = AttentionConfig {
+        lmax: 3,
+        mmax: 2,
+        sphere_channels: 16,
+        hidden_channels: 16,
+        num_heads: 2,
+        alpha_channels: 8,
+        value_channels: 8,
+        output_channels: 16,
+    };
+    let grid = S2Grid::with_resolution(3, 2, lat, long).unwrap();
+    let ga = GraphAttention::load_with_grid(&p, cfg, grid).unwrap();
+    let rbf = GaussianRbf::load(&p.sub("distance_expansion"), 0.396).unwrap();
+    let calc = WignerCalculator::new(3).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(13);
+    let mut worst = 0.0f64;
+    for _ in 0..3 {
+        let (pos, src, dst) = knn_graph(&mut rng, 24);
+        let r = random_rotation(&mut rng);
+        let d = wigner(&r, 3);
+        let x = random_values(&mut rng, 24 * 16 * 16);
+        let e = EdgeSet::new(&calc, 3, &pos, &pos, src.clone(), dst.clone(), &rbf).unwrap();
+        let y = ga.forward(&x, &x, &e).unwrap();
+        let pos_r = rotate_points(&r, &pos);
+        let e_r = EdgeSet::new(&calc, 3, &pos_r, &pos_r, src, dst, &rbf).unwrap();
+        let x_r = rotate_embedding(&x, 16, &d).unwrap();
+        let y_r = ga.forward(&x_r, &x_r, &e_r).unwrap();
+        worst = worst.max(rel_err(&y_r, &rotate_embedding(&y, 16, &d).unwrap()));
+    }
+    worst
+}
+
+#[test]
+fn graph_attention_is_equivariant_with_a_fine_s2_grid() {
+    // The reference's 8 x 5 grid is far from equivariant; a fine grid is close.
+    let coarse = attention_equivariance_error(8, 5);
+    let fine = attention_equivariance_error(48, 48);
+    println!("graph attention equivariance: reference grid {coarse:.2e}, 48x48 grid {fine:.2e}");
+    assert!(
+        coarse > 1e-2,
+        "reference grid unexpectedly equivariant: {coarse}"
+    );
+    assert!(fine < 1e-3, "fine grid: relative equivariance error {fine}");
+}
