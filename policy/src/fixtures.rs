@@ -462,6 +462,7 @@ pub fn check_file(path: &Path) -> FixtureReport {
         "linear_norm_rbf" => check_linear_norm_rbf(&fx),
         "so2_conv" => check_so2_conv(&fx),
         "graph_attention" => check_graph_attention(&fx),
+        "transblock" => check_transblock(&fx),
         _ => {
             return FixtureReport {
                 name,
@@ -1267,6 +1268,45 @@ fn check_graph_attention(fx: &FixtureFile) -> Result<Vec<Comparison>> {
         let edges = fixture_edges(fx, &calc, cfg.lmax, prefix, &mut out)?;
         let x = fx.f32_any(&format!("{prefix}in.x"))?.1;
         let y = ga.forward(x, x, &edges)?;
+        let key = format!("{prefix}out.y");
+        out.push(compare_f32(&key, &y, fx.f32_any(&key)?.1, TOL_WIGNER));
+    }
+    Ok(out)
+}
+
+/// TransBlock sizes from a constructor record.
+fn transblock_config(fx: &FixtureFile, ctor: &str) -> Result<crate::transblock::TransBlockConfig> {
+    let attn = attention_config(
+        fx,
+        ctor,
+        Some(sidecar_usize(fx, &format!("{ctor}/sphere_channels"))?),
+    )?;
+    let film = fx
+        .sidecar
+        .pointer(&format!("{ctor}/film_dim"))
+        .and_then(|v| v.as_u64())
+        .unwrap_or(0)
+        > 0;
+    Ok(crate::transblock::TransBlockConfig {
+        attn,
+        ffn_hidden_channels: sidecar_usize(fx, &format!("{ctor}/ffn_hidden_channels"))?,
+        output_channels: sidecar_usize(fx, &format!("{ctor}/output_channels"))?,
+        film,
+    })
+}
+
+fn check_transblock(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::transblock::TransBlock;
+    let mut out = Vec::new();
+    let cfg = transblock_config(fx, "/constructor")?;
+    let w = fx.weights();
+    let block = TransBlock::load(&w.scope("param."), cfg)?;
+    let calc = WignerCalculator::new(cfg.attn.lmax)?;
+    let cond = fx.f32_any("in.condition")?.1;
+    for prefix in ["", "rot."] {
+        let edges = fixture_edges(fx, &calc, cfg.attn.lmax, prefix, &mut out)?;
+        let x = fx.f32_any(&format!("{prefix}in.x"))?.1;
+        let y = block.forward(x, x, &edges, Some(cond))?;
         let key = format!("{prefix}out.y");
         out.push(compare_f32(&key, &y, fx.f32_any(&key)?.1, TOL_WIGNER));
     }

@@ -22,6 +22,7 @@ pub mod points;
 pub mod rotation_head;
 pub mod so2_conv;
 pub mod so3;
+pub mod transblock;
 pub mod weights;
 
 pub use error::{PolicyError, Result};

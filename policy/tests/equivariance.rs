@@ -227,3 +227,73 @@ fn graph_attention_is_equivariant_with_a_fine_s2_grid() {
     );
     assert!(fine < 1e-3, "fine grid: relative equivariance error {fine}");
 }
+
+/// Relative equivariance error of the fixture's TransBlock (FiLM on) with the given grids.
+fn transblock_equivariance_error(fine: bool) -> f64 {
+    use policy::attention::{AttentionConfig, EdgeSet};
+    use policy::grids::S2Grid;
+    use policy::layers::GaussianRbf;
+    use policy::transblock::{TransBlock, TransBlockConfig};
+    let w = Weights::from_file(&fixture("transblock")).unwrap();
+    let p = w.scope("param.");
+    let cfg = TransBlockConfig {
+        attn: AttentionConfig {
+            lmax: 3,
+            mmax: 2,
+            sphere_channels: 16,
+            hidden_channels: 16,
+            num_heads: 2,
+            alpha_channels: 8,
+            value_channels: 8,
+            output_channels: 16,
+        },
+        ffn_hidden_channels: 16,
+        output_channels: 24,
+        film: true,
+    };
+    let block = if fine {
+        TransBlock::load_with_grids(
+            &p,
+            cfg,
+            S2Grid::with_resolution(3, 2, 48, 48).unwrap(),
+            S2Grid::with_resolution(3, 3, 48, 48).unwrap(),
+        )
+        .unwrap()
+    } else {
+        TransBlock::load(&p, cfg).unwrap()
+    };
+    let rbf = GaussianRbf::load(&p.sub("distance_expansion"), 0.396).unwrap();
+    let calc = WignerCalculator::new(3).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(14);
+    let cond = random_values(&mut rng, 128);
+    let mut worst = 0.0f64;
+    for _ in 0..2 {
+        let (pos, src, dst) = knn_graph(&mut rng, 24);
+        let r = random_rotation(&mut rng);
+        let d = wigner(&r, 3);
+        let x = random_values(&mut rng, 24 * 16 * 16);
+        let e = EdgeSet::new(&calc, 3, &pos, &pos, src.clone(), dst.clone(), &rbf).unwrap();
+        let y = block.forward(&x, &x, &e, Some(&cond)).unwrap();
+        let pos_r = rotate_points(&r, &pos);
+        let e_r = EdgeSet::new(&calc, 3, &pos_r, &pos_r, src, dst, &rbf).unwrap();
+        let x_r = rotate_embedding(&x, 16, &d).unwrap();
+        let y_r = block.forward(&x_r, &x_r, &e_r, Some(&cond)).unwrap();
+        worst = worst.max(rel_err(&y_r, &rotate_embedding(&y, 24, &d).unwrap()));
+    }
+    worst
+}
+
+#[test]
+fn transblock_is_equivariant_with_fine_s2_grids() {
+    let coarse = transblock_equivariance_error(false);
+    let fine = transblock_equivariance_error(true);
+    println!("transblock equivariance: reference grids {coarse:.2e}, 48x48 grids {fine:.2e}");
+    assert!(
+        coarse > 1e-2,
+        "reference grids unexpectedly equivariant: {coarse}"
+    );
+    assert!(
+        fine < 1e-3,
+        "fine grids: relative equivariance error {fine}"
+    );
+}

@@ -21,6 +21,7 @@ const IMPLEMENTED: &[(&str, usize)] = &[
     ("linear_norm_rbf", 11),
     ("so2_conv", 14),
     ("graph_attention", 6),
+    ("transblock", 6),
 ];
 
 #[test]
