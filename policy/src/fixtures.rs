@@ -463,6 +463,7 @@ pub fn check_file(path: &Path) -> FixtureReport {
         "so2_conv" => check_so2_conv(&fx),
         "graph_attention" => check_graph_attention(&fx),
         "transblock" => check_transblock(&fx),
+        "language_encoder" => check_language_encoder(&fx),
         _ => {
             return FixtureReport {
                 name,
@@ -1310,5 +1311,43 @@ fn check_transblock(fx: &FixtureFile) -> Result<Vec<Comparison>> {
         let key = format!("{prefix}out.y");
         out.push(compare_f32(&key, &y, fx.f32_any(&key)?.1, TOL_WIGNER));
     }
+    Ok(out)
+}
+
+fn check_language_encoder(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::language::{positional_encoding, InstructionEncoder};
+    let mut out = Vec::new();
+    let heads = sidecar_usize(fx, "/constructor/heads")?;
+    let dim_head = sidecar_usize(fx, "/constructor/dim_head")?;
+    let w = fx.weights();
+    let enc = InstructionEncoder::load(&w.scope("param."), heads, dim_head)?;
+    let (shape, instr) = fx.f32("in.instruction", &[None, None, Some(enc.token_dim())])?;
+    let (b, t) = (shape[0], shape[1]);
+    out.push(compare_f32(
+        "buf.posemb",
+        &positional_encoding(t + 1, enc.dim),
+        fx.f32("buf.posemb", &[Some(t + 1), Some(enc.dim)])?.1,
+        TOL,
+    ));
+    out.push(compare_f32(
+        "mid.tokens_in",
+        &enc.tokens_in(instr, b)?,
+        fx.f32("mid.tokens_in", &[Some(b), Some(t + 1), Some(enc.dim)])?
+            .1,
+        TOL,
+    ));
+    out.push(compare_f32(
+        "out.tokens",
+        &enc.forward(instr, b)?,
+        fx.f32("out.tokens", &[Some(b), Some(t + 1), Some(enc.dim)])?
+            .1,
+        TOL,
+    ));
+    out.push(compare_f32(
+        "out.condition",
+        &enc.condition(instr, b)?,
+        fx.f32("out.condition", &[Some(b), Some(enc.dim)])?.1,
+        TOL,
+    ));
     Ok(out)
 }

@@ -22,6 +22,7 @@ const IMPLEMENTED: &[(&str, usize)] = &[
     ("so2_conv", 14),
     ("graph_attention", 6),
     ("transblock", 6),
+    ("language_encoder", 4),
 ];
 
 #[test]
