@@ -464,6 +464,7 @@ pub fn check_file(path: &Path) -> FixtureReport {
         "graph_attention" => check_graph_attention(&fx),
         "transblock" => check_transblock(&fx),
         "language_encoder" => check_language_encoder(&fx),
+        "query_heads" => check_query_heads(&fx),
         _ => {
             return FixtureReport {
                 name,
@@ -1349,5 +1350,134 @@ fn check_language_encoder(fx: &FixtureFile) -> Result<Vec<Comparison>> {
         fx.f32("out.condition", &[Some(b), Some(enc.dim)])?.1,
         TOL,
     ));
+    Ok(out)
+}
+
+/// Field-head sizes from the `EquFieldUnet` constructor record.
+fn field_heads_config(fx: &FixtureFile) -> Result<crate::heads::FieldHeadsConfig> {
+    let g = |k: &str| sidecar_usize(fx, &format!("/constructor/EquFieldUnet/{k}"));
+    Ok(crate::heads::FieldHeadsConfig {
+        field_channels: g("field_nn_c")?,
+        attn_hidden_channels: g("attn_hidden_channels/1")?,
+        num_heads: g("num_heads")?,
+        alpha_channels: g("attn_alpha_channels/1")?,
+        value_channels: g("attn_value_channels/1")?,
+        ffn_hidden_channels: g("ffn_hidden_channels/1")?,
+        node_lmax: g("lmax_list/0")?,
+    })
+}
+
+fn check_query_heads(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::heads::FieldHeads;
+    let mut out = Vec::new();
+    let cfg = field_heads_config(fx)?;
+    let w = fx.weights();
+    let heads = FieldHeads::load(&w.scope("param."), cfg, 1)?;
+    let r = mat3(fx.f32("rot.R", &[Some(3), Some(3)])?.1);
+    for prefix in ["", "rot."] {
+        let pos = vec3s_f32(
+            fx.f32(&format!("{prefix}in.node_coord"), &[None, Some(3)])?
+                .1,
+        );
+        let emb = fx.f32_any(&format!("{prefix}in.node_embedding"))?.1;
+        let tq = vec3s_f32(
+            fx.f32(
+                &format!("{prefix}in.trans_queries"),
+                &[Some(1), None, Some(3)],
+            )?
+            .1,
+        );
+        let rq = vec3s_f32(
+            fx.f32(
+                &format!("{prefix}in.rot_query"),
+                &[Some(1), Some(1), Some(3)],
+            )?
+            .1,
+        );
+        let Some(&rq) = rq.first() else {
+            return Err(PolicyError::ShapeMismatch {
+                name: format!("{prefix}in.rot_query"),
+                expected: vec![1, 1, 3],
+                got: vec![0],
+            });
+        };
+        if prefix.is_empty() {
+            let (src, dst) = FieldHeads::trans_edges(&pos, &tq)?;
+            out.push(compare_indices(
+                "mid.trans_edge_src",
+                &src,
+                fx.i64("mid.trans_edge_src", &[None])?.1,
+            ));
+            out.push(compare_indices(
+                "mid.trans_edge_dst",
+                &dst,
+                fx.i64("mid.trans_edge_dst", &[None])?.1,
+            ));
+            let (src, dst) = FieldHeads::rot_edges(&pos, &[rq])?;
+            out.push(compare_indices(
+                "mid.rot_edge_src",
+                &src,
+                fx.i64("mid.rot_edge_src", &[None])?.1,
+            ));
+            out.push(compare_indices(
+                "mid.rot_edge_dst",
+                &dst,
+                fx.i64("mid.rot_edge_dst", &[None])?.1,
+            ));
+        }
+        let key = format!("{prefix}out.trans_logits");
+        out.push(compare_f32(
+            &key,
+            &heads.trans_logits(emb, &pos, &tq)?,
+            fx.f32_any(&key)?.1,
+            TOL_WIGNER,
+        ));
+        let q = heads.rot_query(emb, &pos, rq)?;
+        if prefix.is_empty() {
+            out.push(compare_f32(
+                "mid.rot_query_embedding",
+                &q.embedding,
+                fx.f32_any("mid.rot_query_embedding")?.1,
+                TOL_WIGNER,
+            ));
+            out.push(compare(
+                "mid.so3_coeffs",
+                &q.so3_coeffs,
+                fx.f32_any("mid.so3_coeffs")?.1,
+                TOL_WIGNER,
+            ));
+        }
+        let key = format!("{prefix}out.open_logit");
+        out.push(compare_f32(
+            &key,
+            &[q.open_logit],
+            fx.f32_any(&key)?.1,
+            TOL_WIGNER,
+        ));
+        let key = format!("{prefix}out.rot_logits");
+        out.push(compare(
+            &key,
+            &q.rot_logits,
+            fx.f32_any(&key)?.1,
+            TOL_WIGNER,
+        ));
+        if !prefix.is_empty() {
+            let rotated: Vec<_> = heads
+                .grid()
+                .iter()
+                .map(|g| crate::grids::GridRotation {
+                    angles: g.angles,
+                    matrix: r * g.matrix,
+                })
+                .collect();
+            let key = "rot.out.rot_logits_on_rotated_grid";
+            out.push(compare(
+                key,
+                &heads.logits_on(&q.so3_coeffs, &rotated)?,
+                fx.f32_any(key)?.1,
+                TOL_WIGNER,
+            ));
+        }
+    }
     Ok(out)
 }

@@ -265,3 +265,23 @@ pub fn so3_healpix_grid(level: u32) -> Vec<GridRotation> {
     }
     out
 }
+
+/// Which S2 grids the separable S2 activations use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum S2Resolution {
+    /// The reference's coarse grids (parity mode).
+    #[default]
+    Reference,
+    /// `n` × `n` grids for every (lmax, mmax) (equivariant mode; 48 gives ~1e-7).
+    Square(usize),
+}
+
+impl S2Resolution {
+    /// The grid for (lmax, mmax) at this resolution.
+    pub fn grid(self, lmax: usize, mmax: usize) -> Result<S2Grid> {
+        match self {
+            Self::Reference => S2Grid::reference(lmax, mmax),
+            Self::Square(n) => S2Grid::with_resolution(lmax, mmax, n, n),
+        }
+    }
+}

@@ -17,6 +17,7 @@ pub mod attention;
 pub mod error;
 pub mod fixtures;
 pub mod grids;
+pub mod heads;
 pub mod language;
 pub mod layers;
 pub mod points;

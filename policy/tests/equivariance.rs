@@ -297,3 +297,82 @@ fn transblock_is_equivariant_with_fine_s2_grids() {
         "fine grids: relative equivariance error {fine}"
     );
 }
+
+/// Worst relative errors (translation logits, open logit, rotation logits on the moved grid)
+/// of the fixture's field heads under a random rigid motion.
+fn heads_equivariance_errors(res: policy::grids::S2Resolution) -> [f64; 3] {
+    use policy::grids::GridRotation;
+    use policy::heads::{FieldHeads, FieldHeadsConfig};
+    let path = fixture("query_heads");
+    let w = Weights::from_file(&path).unwrap();
+    let cfg = FieldHeadsConfig {
+        field_channels: 8,
+        attn_hidden_channels: 8,
+        num_heads: 2,
+        alpha_channels: 4,
+        value_channels: 4,
+        ffn_hidden_channels: 16,
+        node_lmax: 3,
+    };
+    let heads = FieldHeads::load_with(&w.scope("param."), cfg, 1, res).unwrap();
+    let fx = policy::fixtures::FixtureFile::load(&path).unwrap();
+    let emb = fx.f32_any("in.node_embedding").unwrap().1.to_vec();
+    let to3 =
+        |v: &[f32]| -> Vec<[f32; 3]> { v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect() };
+    let pos = to3(fx.f32_any("in.node_coord").unwrap().1);
+    let tq = to3(fx.f32_any("in.trans_queries").unwrap().1);
+    let rq = to3(fx.f32_any("in.rot_query").unwrap().1)[0];
+    let mut rng = ChaCha8Rng::seed_from_u64(15);
+    let r = random_rotation(&mut rng);
+    let t = [0.1f32, -0.2, 0.05];
+    let moved = |p: &[[f32; 3]]| -> Vec<[f32; 3]> {
+        rotate_points(&r, p)
+            .into_iter()
+            .map(|v| [v[0] + t[0], v[1] + t[1], v[2] + t[2]])
+            .collect()
+    };
+    let emb_r = rotate_embedding(&emb, 8, &wigner(&r, 3)).unwrap();
+    let tl = heads.trans_logits(&emb, &pos, &tq).unwrap();
+    let tl_r = heads
+        .trans_logits(&emb_r, &moved(&pos), &moved(&tq))
+        .unwrap();
+    let q = heads.rot_query(&emb, &pos, rq).unwrap();
+    let q_r = heads
+        .rot_query(&emb_r, &moved(&pos), moved(&[rq])[0])
+        .unwrap();
+    let rotated: Vec<GridRotation> = heads
+        .grid()
+        .iter()
+        .map(|g| GridRotation {
+            angles: g.angles,
+            matrix: r * g.matrix,
+        })
+        .collect();
+    let rl_r = heads.logits_on(&q_r.so3_coeffs, &rotated).unwrap();
+    let f = |v: &[f64]| v.iter().map(|x| *x as f32).collect::<Vec<_>>();
+    [
+        rel_err(&tl_r, &tl),
+        f64::from((q_r.open_logit - q.open_logit).abs() / q.open_logit.abs()),
+        rel_err(&f(&rl_r), &f(&q.rot_logits)),
+    ]
+}
+
+#[test]
+fn field_heads_are_invariant_and_rotation_logits_move_with_the_scene() {
+    use policy::grids::S2Resolution;
+    let coarse = heads_equivariance_errors(S2Resolution::Reference);
+    let fine = heads_equivariance_errors(S2Resolution::Square(24));
+    println!(
+        "field heads equivariance (trans, open, rot): reference grids {coarse:?}, 24x24 {fine:?}"
+    );
+    assert!(
+        coarse[2] > 1e-2,
+        "reference grids unexpectedly equivariant: {coarse:?}"
+    );
+    for e in fine {
+        assert!(
+            e < 1e-4,
+            "fine grids: relative equivariance errors {fine:?}"
+        );
+    }
+}

@@ -23,6 +23,7 @@ const IMPLEMENTED: &[(&str, usize)] = &[
     ("graph_attention", 6),
     ("transblock", 6),
     ("language_encoder", 4),
+    ("query_heads", 13),
 ];
 
 #[test]
