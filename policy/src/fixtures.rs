@@ -465,6 +465,7 @@ pub fn check_file(path: &Path) -> FixtureReport {
         "transblock" => check_transblock(&fx),
         "language_encoder" => check_language_encoder(&fx),
         "query_heads" => check_query_heads(&fx),
+        "whole_model_small" => check_whole_model(&fx),
         _ => {
             return FixtureReport {
                 name,
@@ -1476,6 +1477,252 @@ fn check_query_heads(fx: &FixtureFile) -> Result<Vec<Comparison>> {
                 &heads.logits_on(&q.so3_coeffs, &rotated)?,
                 fx.f32_any(key)?.1,
                 TOL_WIGNER,
+            ));
+        }
+    }
+    Ok(out)
+}
+
+/// Tolerance of the whole model (fixtures README: 1e-4 on logits, 1e-4·(1+|ref|) on
+/// intermediates).
+pub const TOL_MODEL: f64 = 1e-4;
+
+/// Groups a recorded `[2, E]` (query, source) kNN record into per-query lists.
+fn knn_lists(fx: &FixtureFile, key: &str) -> Result<Vec<Vec<usize>>> {
+    let (shape, v) = fx.i64(key, &[Some(2), None])?;
+    let e = shape[1];
+    let mut out: Vec<Vec<usize>> = Vec::new();
+    for j in 0..e {
+        let (q, s) = (v[j], v[e + j]);
+        let (Ok(q), Ok(s)) = (usize::try_from(q), usize::try_from(s)) else {
+            return Err(PolicyError::IndexOutOfRange {
+                name: key.to_string(),
+                value: q.min(s),
+                len: 0,
+            });
+        };
+        if q >= out.len() {
+            out.resize(q + 1, Vec::new());
+        }
+        out[q].push(s);
+    }
+    Ok(out)
+}
+
+/// The recorded choices of one U-net block of the whole-model fixture.
+fn recorded_indices(
+    fx: &FixtureFile,
+    block: &str,
+    scale: f64,
+) -> Result<crate::model::BlockIndices> {
+    let mut idx = crate::model::BlockIndices::default();
+    if scale < 1.0 {
+        let mut fps = indices(fx, &format!("mid.{block}.fps0"))?;
+        fps.sort_unstable();
+        fps.dedup();
+        idx.fps = Some(fps);
+        idx.pool_knn = Some(knn_lists(fx, &format!("mid.{block}.knn0"))?);
+    } else if scale > 1.0 {
+        idx.up_knn = Some(knn_lists(fx, &format!("mid.{block}.knn0"))?);
+    }
+    idx.graph = Some((
+        indices(fx, &format!("mid.{block}.edge_src"))?,
+        indices(fx, &format!("mid.{block}.edge_dst"))?,
+    ));
+    Ok(idx)
+}
+
+fn check_whole_model(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::model::{EquFieldUnet, GripperState, ModelConfig};
+    let mut out = Vec::new();
+    let ctor = fx
+        .sidecar
+        .pointer("/constructor/EquFieldUnet")
+        .ok_or_else(|| PolicyError::Sidecar {
+            path: fx.path.with_extension("json"),
+            message: "constructor.EquFieldUnet missing".into(),
+        })?;
+    let cfg = ModelConfig::from_constructor(ctor)?;
+    let w = fx.weights();
+    let model = EquFieldUnet::load(&w.scope("param."), cfg.clone())?;
+    let names = model.block_names();
+    let scales: Vec<f64> = cfg
+        .pool_ratio
+        .iter()
+        .copied()
+        .chain(std::iter::once(cfg.pool_ratio[cfg.n_scales() - 1]))
+        .chain(cfg.pool_ratio.iter().rev().map(|r| 1.0 / r))
+        .collect();
+    let r = mat3(fx.f32("rot.R", &[Some(3), Some(3)])?.1);
+    let rgb = vec3s_f32(fx.f32("in.rgb", &[Some(1), None, Some(3)])?.1);
+    let instr = fx.f32("in.instruction", &[Some(1), None, None])?.1;
+    for prefix in ["", "rot."] {
+        let xyz = vec3s_f32(
+            fx.f32(&format!("{prefix}in.xyz"), &[Some(1), None, Some(3)])?
+                .1,
+        );
+        let g = fx
+            .f32(&format!("{prefix}in.curr_gripper"), &[Some(1), Some(8)])?
+            .1;
+        let gripper = GripperState {
+            position: [g[0], g[1], g[2]],
+            quaternion: [g[3], g[4], g[5], g[6]],
+            open: g[7],
+        };
+        let eps = vec3s_f32(
+            fx.f32(&format!("{prefix}in.gripper_pos_eps"), &[None, Some(3)])?
+                .1,
+        );
+        let tq = vec3s_f32(
+            fx.f32(
+                &format!("{prefix}in.trans_queries"),
+                &[Some(1), None, Some(3)],
+            )?
+            .1,
+        );
+        let rq = vec3s_f32(
+            fx.f32(
+                &format!("{prefix}in.rot_query"),
+                &[Some(1), Some(1), Some(3)],
+            )?
+            .1,
+        );
+        let Some(&rq) = rq.first() else {
+            return Err(PolicyError::ShapeMismatch {
+                name: format!("{prefix}in.rot_query"),
+                expected: vec![1, 1, 3],
+                got: vec![0],
+            });
+        };
+        // The plain run follows the recorded choices (the near-coincident gripper points
+        // make some of them fragile); the free run's choices are compared with them.
+        let overrides = if prefix.is_empty() {
+            names
+                .iter()
+                .zip(&scales)
+                .map(|(n, s)| Ok((n.clone(), recorded_indices(fx, n, *s)?)))
+                .collect::<Result<Vec<_>>>()?
+        } else {
+            Vec::new()
+        };
+        let enc = model.encode(&xyz, &rgb, &gripper, &eps, instr, &overrides)?;
+        if prefix.is_empty() {
+            let free = model.encode(&xyz, &rgb, &gripper, &eps, instr, &[])?;
+            let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+            out.push(compare_f32(
+                "mid.xyz_effective",
+                &flat(&enc.xyz),
+                fx.f32_any("mid.xyz_effective")?.1,
+                0.0,
+            ));
+            out.push(compare_f32(
+                "mid.condition",
+                &enc.condition,
+                fx.f32_any("mid.condition")?.1,
+                TOL,
+            ));
+            for (t, (name, rec)) in free.blocks.iter().zip(&overrides) {
+                let mismatch = |a: &Option<Vec<Vec<usize>>>, b: &Option<Vec<Vec<usize>>>| {
+                    let a: Vec<usize> = a.iter().flatten().flatten().copied().collect();
+                    let b: Vec<i64> = b.iter().flatten().flatten().map(|&v| v as i64).collect();
+                    (a, b)
+                };
+                let (a, b) = mismatch(&t.indices.pool_knn, &rec.pool_knn);
+                let (c, d) = mismatch(&t.indices.up_knn, &rec.up_knn);
+                let fa: Vec<usize> = t.indices.fps.iter().flatten().copied().collect();
+                let fb: Vec<i64> = rec.fps.iter().flatten().map(|&v| v as i64).collect();
+                let (ga, gb) = match (&t.indices.graph, &rec.graph) {
+                    (Some((s1, d1)), Some((s2, d2))) => (
+                        s1.iter().chain(d1).copied().collect::<Vec<_>>(),
+                        s2.iter().chain(d2).map(|&v| v as i64).collect::<Vec<_>>(),
+                    ),
+                    _ => (Vec::new(), vec![-1]),
+                };
+                let all_a: Vec<usize> = fa.into_iter().chain(a).chain(c).chain(ga).collect();
+                let all_b: Vec<i64> = fb.into_iter().chain(b).chain(d).chain(gb).collect();
+                let cmp = compare_indices(
+                    &format!("free run {name} choices (fps, knn, edges)"),
+                    &all_a,
+                    &all_b,
+                );
+                out.push(cmp);
+            }
+            for (t, next) in enc.blocks.iter().zip(enc.blocks.iter().skip(1)) {
+                if let Some(after) = &t.after_skip {
+                    let key = format!("mid.{}.in_embedding", next.name);
+                    out.push(compare_f32(&key, after, fx.f32_any(&key)?.1, TOL_MODEL));
+                }
+            }
+            for t in &enc.blocks {
+                let key = format!("mid.{}.out_embedding", t.name);
+                out.push(compare_f32(
+                    &key,
+                    &t.embedding,
+                    fx.f32_any(&key)?.1,
+                    TOL_MODEL,
+                ));
+                let key = format!("mid.{}.out_coord", t.name);
+                out.push(compare_f32(&key, &flat(&t.coord), fx.f32_any(&key)?.1, 0.0));
+            }
+        }
+        let key = format!("{prefix}out.unet_embedding");
+        out.push(compare_f32(
+            &key,
+            &enc.embedding,
+            fx.f32_any(&key)?.1,
+            TOL_MODEL,
+        ));
+        let q = model.query(&enc, &tq, rq)?;
+        let key = format!("{prefix}out.trans_logits");
+        out.push(compare_f32(
+            &key,
+            &q.trans_logits,
+            fx.f32_any(&key)?.1,
+            TOL_MODEL,
+        ));
+        let key = format!("{prefix}out.open_logit");
+        out.push(compare_f32(
+            &key,
+            &[q.rot.open_logit],
+            fx.f32_any(&key)?.1,
+            TOL_MODEL,
+        ));
+        let key = format!("{prefix}out.rot_logits");
+        out.push(compare(
+            &key,
+            &q.rot.rot_logits,
+            fx.f32_any(&key)?.1,
+            TOL_MODEL,
+        ));
+        if prefix.is_empty() {
+            out.push(compare_f32(
+                "mid.rot_query_embedding",
+                &q.rot.embedding,
+                fx.f32_any("mid.rot_query_embedding")?.1,
+                TOL_MODEL,
+            ));
+            out.push(compare(
+                "mid.so3_coeffs",
+                &q.rot.so3_coeffs,
+                fx.f32_any("mid.so3_coeffs")?.1,
+                TOL_MODEL,
+            ));
+        } else {
+            let rotated: Vec<_> = model
+                .heads()
+                .grid()
+                .iter()
+                .map(|g| crate::grids::GridRotation {
+                    angles: g.angles,
+                    matrix: r * g.matrix,
+                })
+                .collect();
+            let key = "rot.out.rot_logits_on_rotated_grid";
+            out.push(compare(
+                key,
+                &model.heads().logits_on(&q.rot.so3_coeffs, &rotated)?,
+                fx.f32_any(key)?.1,
+                TOL_MODEL,
             ));
         }
     }

@@ -20,6 +20,7 @@ pub mod grids;
 pub mod heads;
 pub mod language;
 pub mod layers;
+pub mod model;
 pub mod points;
 pub mod rotation_head;
 pub mod so2_conv;
