@@ -115,3 +115,82 @@ fn moving_the_scene_moves_the_predicted_pose() {
         "{equi:?}"
     );
 }
+
+fn fixture_path() -> std::path::PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/fixtures/whole_model_small.safetensors")
+}
+
+fn small_config(fx: &FixtureFile) -> ModelConfig {
+    ModelConfig::from_constructor(fx.sidecar.pointer("/constructor/EquFieldUnet").unwrap()).unwrap()
+}
+
+#[test]
+fn bad_observations_are_refused_with_the_reason() {
+    use policy::PolicyError;
+    let fx = FixtureFile::load(&fixture_path()).unwrap();
+    let w = fx.weights();
+    let model = EquFieldUnet::load(&w.scope("param."), small_config(&fx)).unwrap();
+    let instr = fx.f32_any("in.instruction").unwrap().1;
+    let gripper = GripperState {
+        position: [0.5, 0.0, 0.2],
+        quaternion: [0.0, 0.0, 0.0, 1.0],
+        open: 1.0,
+    };
+    let eps = vec![[0.0f32; 3]; 10];
+    let mut xyz = to3(fx.f32_any("in.xyz").unwrap().1);
+    let rgb = to3(fx.f32_any("in.rgb").unwrap().1);
+    // Too few points for the gripper points plus a cloud.
+    let e = model
+        .encode(&xyz[..10], &rgb[..10], &gripper, &eps, instr, &[])
+        .unwrap_err();
+    assert!(
+        matches!(e, PolicyError::TooFewPoints { got: 10, .. }),
+        "{e}"
+    );
+    // A NaN point is named by index.
+    xyz[3][1] = f32::NAN;
+    let e = model
+        .encode(&xyz, &rgb, &gripper, &eps, instr, &[])
+        .unwrap_err();
+    assert!(
+        matches!(e, PolicyError::NonFinitePoint { index: 3, .. }),
+        "{e}"
+    );
+    // A wrong-sized instruction is a shape error, not a panic.
+    xyz[3][1] = 0.0;
+    let e = model
+        .encode(&xyz, &rgb, &gripper, &eps, &instr[..100], &[])
+        .unwrap_err();
+    assert!(matches!(e, PolicyError::ShapeMismatch { .. }), "{e}");
+}
+
+#[test]
+fn missing_or_misshapen_parameters_are_named() {
+    use policy::fixtures::{read_safetensors, StoredTensor, TensorData};
+    use policy::weights::Weights;
+    use policy::PolicyError;
+    let fx = FixtureFile::load(&fixture_path()).unwrap();
+    let cfg = small_config(&fx);
+    let key = "param.up_blocks.1.block.transblock.ga.so2_conv_2.fc_m0.weight";
+    let mut tensors = read_safetensors(&fixture_path()).unwrap();
+    tensors.remove(key).unwrap();
+    let w = Weights::from_tensors("edited", tensors.clone());
+    let e = EquFieldUnet::load(&w.scope("param."), cfg.clone()).unwrap_err();
+    assert!(
+        matches!(&e, PolicyError::MissingTensor { name, .. } if name == key),
+        "{e}"
+    );
+    tensors.insert(
+        key.to_string(),
+        StoredTensor {
+            shape: vec![3, 5],
+            data: TensorData::F32(vec![0.0; 15]),
+        },
+    );
+    let w = Weights::from_tensors("edited", tensors);
+    let e = EquFieldUnet::load(&w.scope("param."), cfg).unwrap_err();
+    assert!(
+        matches!(&e, PolicyError::ShapeMismatch { name, got, .. } if name == key && got == &vec![3, 5]),
+        "{e}"
+    );
+}
