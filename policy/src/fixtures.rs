@@ -26,6 +26,7 @@ use crate::so3::{
     angles_to_xyz, edge_rot_mat, matrix_to_angles, num_coefficients, spherical_harmonics,
     xyz_to_angles, WignerCalculator,
 };
+use crate::weights::Weights;
 
 /// Tolerance for values that do not involve Wigner matrices.
 pub const TOL: f64 = 1e-5;
@@ -160,6 +161,24 @@ impl FixtureFile {
                 got: "I64".into(),
             }),
         }
+    }
+
+    /// A float32 tensor of any shape.
+    pub fn f32_any(&self, key: &str) -> Result<(&[usize], &[f32])> {
+        let t = self.get(key)?;
+        match &t.data {
+            TensorData::F32(v) => Ok((&t.shape, v)),
+            TensorData::I64(_) => Err(PolicyError::WrongDtype {
+                name: key.to_string(),
+                expected: "F32",
+                got: "I64".into(),
+            }),
+        }
+    }
+
+    /// The fixture's tensors as a parameter store (keys unchanged, e.g. `param.x.weight`).
+    pub fn weights(&self) -> Weights {
+        Weights::from_tensors(&self.path.display().to_string(), self.tensors.clone())
     }
 
     /// An int64 tensor, checked against an expected shape.
@@ -440,6 +459,13 @@ pub fn check_file(path: &Path) -> FixtureReport {
         "s2_grid" => check_s2_grid(&fx),
         "rotation_head" => check_rotation_head(&fx),
         "pool_upsample" => check_pool_upsample(&fx),
+        "linear_norm_rbf" => check_linear_norm_rbf(&fx),
+        "so2_conv" => check_so2_conv(&fx),
+        "graph_attention" => check_graph_attention(&fx),
+        "transblock" => check_transblock(&fx),
+        "language_encoder" => check_language_encoder(&fx),
+        "query_heads" => check_query_heads(&fx),
+        "whole_model_small" => check_whole_model(&fx),
         _ => {
             return FixtureReport {
                 name,
@@ -915,6 +941,790 @@ fn check_pool_upsample(fx: &FixtureFile) -> Result<Vec<Comparison>> {
             .1,
             TOL,
         ));
+    }
+    Ok(out)
+}
+
+fn check_linear_norm_rbf(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::layers::{
+        smooth_leaky_relu, FilmLinear, GaussianRbf, RadialMlp, RmsNormSh, So3Linear,
+    };
+    let mut out = Vec::new();
+    let w = fx.weights();
+    let p = w.scope("param.");
+    let so3_linear = So3Linear::load(&p.sub("so3_linear"))?;
+    let rms = RmsNormSh::load_any(&p.sub("rms_norm"))?;
+    let film_cin = fx.f32("in.film_linear.x", &[None, None, None])?.0[2];
+    let film_cout = fx.f32("out.film_linear.y", &[None, None, None])?.0[2];
+    let film = FilmLinear::load(&p.sub("film_linear"), 3, film_cin, film_cout)?;
+    let cutoff = |name: &str| -> Result<f64> {
+        fx.sidecar
+            .pointer(&format!("/submodules/{name}/args/cutoff"))
+            .and_then(|v| v.as_f64())
+            .ok_or_else(|| PolicyError::Sidecar {
+                path: fx.path.with_extension("json"),
+                message: format!("submodules.{name}.args.cutoff missing"),
+            })
+    };
+    let rbf = GaussianRbf::load(&p.sub("rbf"), cutoff("rbf")?)?;
+    let rbf_field = GaussianRbf::load(&p.sub("rbf_field"), cutoff("rbf_field")?)?;
+    let radial = RadialMlp::load(&p.sub("radial_mlp"))?;
+
+    // The degree-balance buffer of the norm.
+    let bdw: Vec<f64> = (0..num_coefficients(rms.lmax))
+        .map(|i| rms.balance_weight(i))
+        .collect();
+    out.push(compare(
+        "buf.rms_norm.balance_degree_weight",
+        &bdw,
+        fx.f32_any("buf.rms_norm.balance_degree_weight")?.1,
+        TOL,
+    ));
+    for prefix in ["", "rot."] {
+        let x = fx.f32_any(&format!("{prefix}in.so3_linear.x"))?.1;
+        out.push(compare_f32(
+            &format!("{prefix}out.so3_linear.y"),
+            &so3_linear.forward(x)?,
+            fx.f32_any(&format!("{prefix}out.so3_linear.y"))?.1,
+            TOL,
+        ));
+        let x = fx.f32_any(&format!("{prefix}in.rms_norm.x"))?.1;
+        out.push(compare_f32(
+            &format!("{prefix}out.rms_norm.y"),
+            &rms.forward(x)?,
+            fx.f32_any(&format!("{prefix}out.rms_norm.y"))?.1,
+            TOL,
+        ));
+        let x = fx.f32_any(&format!("{prefix}in.film_linear.x"))?.1;
+        let cond = fx.f32_any("in.film_linear.condition")?.1;
+        out.push(compare_f32(
+            &format!("{prefix}out.film_linear.y"),
+            &film.forward(x, cond)?,
+            fx.f32_any(&format!("{prefix}out.film_linear.y"))?.1,
+            TOL,
+        ));
+    }
+    let d = fx.f32_any("in.rbf.dist")?.1;
+    let y = rbf.forward(d);
+    out.push(compare_f32(
+        "out.rbf.y",
+        &y,
+        fx.f32_any("out.rbf.y")?.1,
+        TOL,
+    ));
+    out.push(compare_f32(
+        "out.radial_mlp.y",
+        &radial.forward(fx.f32_any("out.rbf.y")?.1)?,
+        fx.f32_any("out.radial_mlp.y")?.1,
+        TOL,
+    ));
+    let d = fx.f32_any("in.rbf_field.dist")?.1;
+    out.push(compare_f32(
+        "out.rbf_field.y",
+        &rbf_field.forward(d),
+        fx.f32_any("out.rbf_field.y")?.1,
+        TOL,
+    ));
+    let x = fx.f32_any("in.smooth_leaky_relu.x")?.1;
+    let y: Vec<f32> = x.iter().map(|v| smooth_leaky_relu(*v, 0.2)).collect();
+    out.push(compare_f32(
+        "out.smooth_leaky_relu.y",
+        &y,
+        fx.f32_any("out.smooth_leaky_relu.y")?.1,
+        TOL,
+    ));
+    Ok(out)
+}
+
+/// A sidecar integer at a JSON pointer.
+fn sidecar_usize(fx: &FixtureFile, pointer: &str) -> Result<usize> {
+    fx.sidecar
+        .pointer(pointer)
+        .and_then(|v| v.as_u64())
+        .map(|v| v as usize)
+        .ok_or_else(|| PolicyError::Sidecar {
+            path: fx.path.with_extension("json"),
+            message: format!("{pointer} missing or not an integer"),
+        })
+}
+
+fn check_so2_conv(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::layers::separable_s2_activation;
+    use crate::so2_conv::{CoefficientMapping, EdgeWigners, So2Conv};
+    let mut out = Vec::new();
+    let c1 = "/constructor/so2_conv_1";
+    let lmax = sidecar_usize(fx, &format!("{c1}/lmax_list/0"))?;
+    let mmax = sidecar_usize(fx, &format!("{c1}/mmax_list/0"))?;
+    let cin = sidecar_usize(fx, &format!("{c1}/sphere_channels"))?;
+    let hidden = sidecar_usize(fx, &format!("{c1}/m_output_channels"))?;
+    let extra = sidecar_usize(fx, &format!("{c1}/extra_m0_output_channels"))?;
+    let cout2 = sidecar_usize(fx, "/constructor/so2_conv_2/m_output_channels")?;
+    let map = CoefficientMapping::new(lmax, mmax)?;
+    let w = fx.weights();
+    let p = w.scope("param.");
+    let conv1 = So2Conv::load(&p.sub("so2_conv_1"), &map, cin, hidden, extra, true)?;
+    let conv2 = So2Conv::load(&p.sub("so2_conv_2"), &map, hidden, cout2, 0, false)?;
+    let grid = S2Grid::reference(lmax, mmax)?;
+    let calc = WignerCalculator::new(lmax)?;
+    let nr = map.len();
+    let k = num_coefficients(lmax);
+
+    // The mapping tables.
+    let mm = map.m_major();
+    let mut to_m = vec![0.0f64; nr * nr];
+    for (row, &col) in mm.iter().enumerate() {
+        to_m[row * nr + col] = 1.0;
+    }
+    out.push(compare(
+        "buf.mapping.to_m",
+        &to_m,
+        fx.f32("buf.mapping.to_m", &[Some(nr), Some(nr)])?.1,
+        0.0,
+    ));
+    out.push(compare_indices(
+        "buf.mapping.reduced_coef_idx",
+        &map.reduced,
+        fx.i64("buf.mapping.reduced_coef_idx", &[Some(nr)])?.1,
+    ));
+    // Rescaled inside the diagonal blocks of degree > mmax (elsewhere D is zero anyway).
+    let mut rescale = vec![1.0f64; k * nr];
+    for i in 0..k {
+        for (r, &j) in map.reduced.iter().enumerate() {
+            if crate::layers::degree_of(i) == crate::layers::degree_of(j) {
+                rescale[i * nr + r] = f64::from(map.rotate_inv_rescale(i));
+            }
+        }
+    }
+    out.push(compare(
+        "buf.mapping.rotate_inv_rescale",
+        &rescale,
+        fx.f32("buf.mapping.rotate_inv_rescale", &[Some(k), Some(nr)])?
+            .1,
+        TOL,
+    ));
+
+    let x_edge = fx.f32_any("in.x_edge")?.1;
+    for prefix in ["", "rot."] {
+        let ev = vec3s_f32(fx.f32(&format!("{prefix}in.edge_vec"), &[None, Some(3)])?.1);
+        let ne = ev.len();
+        let wig = EdgeWigners::new(&calc, lmax, &ev)?;
+        if prefix.is_empty() {
+            out.push(compare_f32(
+                "out.wigner",
+                &wig.d,
+                fx.f32("out.wigner", &[Some(ne), Some(k), Some(k)])?.1,
+                TOL_WIGNER,
+            ));
+        }
+        let x = fx
+            .f32(&format!("{prefix}in.x"), &[Some(ne), Some(k), Some(cin)])?
+            .1;
+        let x_rot = wig.rotate(&map, x, cin)?;
+        let (y1, x0_extra) = conv1.forward(&x_rot, Some(x_edge))?;
+        let gating: Vec<f32> = x0_extra
+            .chunks_exact(extra)
+            .flat_map(|r| r[extra - hidden..].iter().copied())
+            .collect();
+        let act = separable_s2_activation(&grid, &gating, &y1, hidden)?;
+        let (y2, _) = conv2.forward(&act, None)?;
+        let y = wig.rotate_back(&map, &y2, cout2)?;
+        let back1 = wig.rotate_back(&map, &y1, hidden)?;
+        if prefix.is_empty() {
+            for (key, v) in [
+                ("out.x_rot", &x_rot),
+                ("out.conv1", &y1),
+                ("out.s2act", &act),
+                ("out.conv2", &y2),
+            ] {
+                out.push(compare_f32(key, v, fx.f32_any(key)?.1, TOL_WIGNER));
+            }
+        }
+        for (key, v) in [
+            ("out.x0_extra", &x0_extra),
+            ("out.conv1_back", &back1),
+            ("out.y", &y),
+        ] {
+            let key = format!("{prefix}{key}");
+            out.push(compare_f32(&key, v, fx.f32_any(&key)?.1, TOL_WIGNER));
+        }
+    }
+    Ok(out)
+}
+
+/// A sidecar float at a JSON pointer.
+fn sidecar_f64(fx: &FixtureFile, pointer: &str) -> Result<f64> {
+    fx.sidecar
+        .pointer(pointer)
+        .and_then(|v| v.as_f64())
+        .ok_or_else(|| PolicyError::Sidecar {
+            path: fx.path.with_extension("json"),
+            message: format!("{pointer} missing or not a number"),
+        })
+}
+
+/// The attention sizes from a constructor record (`output_channels` may be overridden).
+fn attention_config(
+    fx: &FixtureFile,
+    ctor: &str,
+    output_channels: Option<usize>,
+) -> Result<crate::attention::AttentionConfig> {
+    let g = |k: &str| sidecar_usize(fx, &format!("{ctor}/{k}"));
+    Ok(crate::attention::AttentionConfig {
+        lmax: g("lmax_list/0")?,
+        mmax: g("mmax_list/0")?,
+        sphere_channels: g("sphere_channels")?,
+        hidden_channels: g("hidden_channels").or_else(|_| g("attn_hidden_channels"))?,
+        num_heads: g("num_heads")?,
+        alpha_channels: g("attn_alpha_channels")?,
+        value_channels: g("attn_value_channels")?,
+        output_channels: match output_channels {
+            Some(c) => c,
+            None => g("output_channels")?,
+        },
+    })
+}
+
+fn indices(fx: &FixtureFile, key: &str) -> Result<Vec<usize>> {
+    let (_, v) = fx.i64(key, &[None])?;
+    v.iter()
+        .map(|&i| {
+            usize::try_from(i).map_err(|_| PolicyError::IndexOutOfRange {
+                name: key.to_string(),
+                value: i,
+                len: 0,
+            })
+        })
+        .collect()
+}
+
+/// The fixture's graph (given edge vectors and features) for the plain and the moved run,
+/// plus a check of our radial basis against `in.edge_attr`.
+fn fixture_edges(
+    fx: &FixtureFile,
+    calc: &WignerCalculator,
+    lmax: usize,
+    prefix: &str,
+    out: &mut Vec<Comparison>,
+) -> Result<crate::attention::EdgeSet> {
+    use crate::attention::EdgeSet;
+    use crate::layers::GaussianRbf;
+    let src = indices(fx, "in.edge_src")?;
+    let dst = indices(fx, "in.edge_dst")?;
+    let ne = src.len();
+    let ev = vec3s_f32(
+        fx.f32(&format!("{prefix}in.edge_vec"), &[Some(ne), Some(3)])?
+            .1,
+    );
+    let attr = fx
+        .f32(&format!("{prefix}in.edge_attr"), &[Some(ne), None])?
+        .1;
+    let edges = EdgeSet::from_parts(calc, lmax, src, dst, ev, attr.to_vec())?;
+    let w = fx.weights();
+    let rbf = GaussianRbf::load(
+        &w.scope("param.").sub("distance_expansion"),
+        sidecar_f64(fx, "/distance_expansion/cutoff")?,
+    )?;
+    out.push(compare_f32(
+        &format!("{prefix}in.edge_attr (ours from |edge_vec|)"),
+        &rbf.forward(&edges.dist),
+        attr,
+        TOL,
+    ));
+    if prefix.is_empty() {
+        let pos = vec3s_f32(fx.f32("in.pos", &[None, Some(3)])?.1);
+        let mut ev = Vec::with_capacity(ne);
+        for (&s, &d) in edges.src.iter().zip(&edges.dst) {
+            let (Some(a), Some(b)) = (pos.get(s), pos.get(d)) else {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "in.edge_src/in.edge_dst".into(),
+                    value: s.max(d) as i64,
+                    len: pos.len(),
+                });
+            };
+            ev.extend([a[0] - b[0], a[1] - b[1], a[2] - b[2]]);
+        }
+        out.push(compare_f32(
+            "in.edge_vec (ours from in.pos)",
+            &ev,
+            fx.f32_any("in.edge_vec")?.1,
+            TOL,
+        ));
+        let k = num_coefficients(lmax);
+        out.push(compare_f32(
+            "buf.wigner",
+            &edges.wigners.d,
+            fx.f32("buf.wigner", &[Some(ne), Some(k), Some(k)])?.1,
+            TOL_WIGNER,
+        ));
+    }
+    Ok(edges)
+}
+
+fn check_graph_attention(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::attention::GraphAttention;
+    let mut out = Vec::new();
+    let cfg = attention_config(fx, "/constructor", None)?;
+    let w = fx.weights();
+    let ga = GraphAttention::load(&w.scope("param."), cfg)?;
+    let calc = WignerCalculator::new(cfg.lmax)?;
+    for prefix in ["", "rot."] {
+        let edges = fixture_edges(fx, &calc, cfg.lmax, prefix, &mut out)?;
+        let x = fx.f32_any(&format!("{prefix}in.x"))?.1;
+        let y = ga.forward(x, x, &edges)?;
+        let key = format!("{prefix}out.y");
+        out.push(compare_f32(&key, &y, fx.f32_any(&key)?.1, TOL_WIGNER));
+    }
+    Ok(out)
+}
+
+/// TransBlock sizes from a constructor record.
+fn transblock_config(fx: &FixtureFile, ctor: &str) -> Result<crate::transblock::TransBlockConfig> {
+    let attn = attention_config(
+        fx,
+        ctor,
+        Some(sidecar_usize(fx, &format!("{ctor}/sphere_channels"))?),
+    )?;
+    let film = fx
+        .sidecar
+        .pointer(&format!("{ctor}/film_dim"))
+        .and_then(|v| v.as_u64())
+        .unwrap_or(0)
+        > 0;
+    Ok(crate::transblock::TransBlockConfig {
+        attn,
+        ffn_hidden_channels: sidecar_usize(fx, &format!("{ctor}/ffn_hidden_channels"))?,
+        output_channels: sidecar_usize(fx, &format!("{ctor}/output_channels"))?,
+        film,
+    })
+}
+
+fn check_transblock(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::transblock::TransBlock;
+    let mut out = Vec::new();
+    let cfg = transblock_config(fx, "/constructor")?;
+    let w = fx.weights();
+    let block = TransBlock::load(&w.scope("param."), cfg)?;
+    let calc = WignerCalculator::new(cfg.attn.lmax)?;
+    let cond = fx.f32_any("in.condition")?.1;
+    for prefix in ["", "rot."] {
+        let edges = fixture_edges(fx, &calc, cfg.attn.lmax, prefix, &mut out)?;
+        let x = fx.f32_any(&format!("{prefix}in.x"))?.1;
+        let y = block.forward(x, x, &edges, Some(cond))?;
+        let key = format!("{prefix}out.y");
+        out.push(compare_f32(&key, &y, fx.f32_any(&key)?.1, TOL_WIGNER));
+    }
+    Ok(out)
+}
+
+fn check_language_encoder(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::language::{positional_encoding, InstructionEncoder};
+    let mut out = Vec::new();
+    let heads = sidecar_usize(fx, "/constructor/heads")?;
+    let dim_head = sidecar_usize(fx, "/constructor/dim_head")?;
+    let w = fx.weights();
+    let enc = InstructionEncoder::load(&w.scope("param."), heads, dim_head)?;
+    let (shape, instr) = fx.f32("in.instruction", &[None, None, Some(enc.token_dim())])?;
+    let (b, t) = (shape[0], shape[1]);
+    out.push(compare_f32(
+        "buf.posemb",
+        &positional_encoding(t + 1, enc.dim),
+        fx.f32("buf.posemb", &[Some(t + 1), Some(enc.dim)])?.1,
+        TOL,
+    ));
+    out.push(compare_f32(
+        "mid.tokens_in",
+        &enc.tokens_in(instr, b)?,
+        fx.f32("mid.tokens_in", &[Some(b), Some(t + 1), Some(enc.dim)])?
+            .1,
+        TOL,
+    ));
+    out.push(compare_f32(
+        "out.tokens",
+        &enc.forward(instr, b)?,
+        fx.f32("out.tokens", &[Some(b), Some(t + 1), Some(enc.dim)])?
+            .1,
+        TOL,
+    ));
+    out.push(compare_f32(
+        "out.condition",
+        &enc.condition(instr, b)?,
+        fx.f32("out.condition", &[Some(b), Some(enc.dim)])?.1,
+        TOL,
+    ));
+    Ok(out)
+}
+
+/// Field-head sizes from the `EquFieldUnet` constructor record.
+fn field_heads_config(fx: &FixtureFile) -> Result<crate::heads::FieldHeadsConfig> {
+    let g = |k: &str| sidecar_usize(fx, &format!("/constructor/EquFieldUnet/{k}"));
+    Ok(crate::heads::FieldHeadsConfig {
+        field_channels: g("field_nn_c")?,
+        attn_hidden_channels: g("attn_hidden_channels/1")?,
+        num_heads: g("num_heads")?,
+        alpha_channels: g("attn_alpha_channels/1")?,
+        value_channels: g("attn_value_channels/1")?,
+        ffn_hidden_channels: g("ffn_hidden_channels/1")?,
+        node_lmax: g("lmax_list/0")?,
+    })
+}
+
+fn check_query_heads(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::heads::FieldHeads;
+    let mut out = Vec::new();
+    let cfg = field_heads_config(fx)?;
+    let w = fx.weights();
+    let heads = FieldHeads::load(&w.scope("param."), cfg, 1)?;
+    let r = mat3(fx.f32("rot.R", &[Some(3), Some(3)])?.1);
+    for prefix in ["", "rot."] {
+        let pos = vec3s_f32(
+            fx.f32(&format!("{prefix}in.node_coord"), &[None, Some(3)])?
+                .1,
+        );
+        let emb = fx.f32_any(&format!("{prefix}in.node_embedding"))?.1;
+        let tq = vec3s_f32(
+            fx.f32(
+                &format!("{prefix}in.trans_queries"),
+                &[Some(1), None, Some(3)],
+            )?
+            .1,
+        );
+        let rq = vec3s_f32(
+            fx.f32(
+                &format!("{prefix}in.rot_query"),
+                &[Some(1), Some(1), Some(3)],
+            )?
+            .1,
+        );
+        let Some(&rq) = rq.first() else {
+            return Err(PolicyError::ShapeMismatch {
+                name: format!("{prefix}in.rot_query"),
+                expected: vec![1, 1, 3],
+                got: vec![0],
+            });
+        };
+        if prefix.is_empty() {
+            let (src, dst) = FieldHeads::trans_edges(&pos, &tq)?;
+            out.push(compare_indices(
+                "mid.trans_edge_src",
+                &src,
+                fx.i64("mid.trans_edge_src", &[None])?.1,
+            ));
+            out.push(compare_indices(
+                "mid.trans_edge_dst",
+                &dst,
+                fx.i64("mid.trans_edge_dst", &[None])?.1,
+            ));
+            let (src, dst) = FieldHeads::rot_edges(&pos, &[rq])?;
+            out.push(compare_indices(
+                "mid.rot_edge_src",
+                &src,
+                fx.i64("mid.rot_edge_src", &[None])?.1,
+            ));
+            out.push(compare_indices(
+                "mid.rot_edge_dst",
+                &dst,
+                fx.i64("mid.rot_edge_dst", &[None])?.1,
+            ));
+        }
+        let key = format!("{prefix}out.trans_logits");
+        out.push(compare_f32(
+            &key,
+            &heads.trans_logits(emb, &pos, &tq)?,
+            fx.f32_any(&key)?.1,
+            TOL_WIGNER,
+        ));
+        let q = heads.rot_query(emb, &pos, rq)?;
+        if prefix.is_empty() {
+            out.push(compare_f32(
+                "mid.rot_query_embedding",
+                &q.embedding,
+                fx.f32_any("mid.rot_query_embedding")?.1,
+                TOL_WIGNER,
+            ));
+            out.push(compare(
+                "mid.so3_coeffs",
+                &q.so3_coeffs,
+                fx.f32_any("mid.so3_coeffs")?.1,
+                TOL_WIGNER,
+            ));
+        }
+        let key = format!("{prefix}out.open_logit");
+        out.push(compare_f32(
+            &key,
+            &[q.open_logit],
+            fx.f32_any(&key)?.1,
+            TOL_WIGNER,
+        ));
+        let key = format!("{prefix}out.rot_logits");
+        out.push(compare(
+            &key,
+            &q.rot_logits,
+            fx.f32_any(&key)?.1,
+            TOL_WIGNER,
+        ));
+        if !prefix.is_empty() {
+            let rotated: Vec<_> = heads
+                .grid()
+                .iter()
+                .map(|g| crate::grids::GridRotation {
+                    angles: g.angles,
+                    matrix: r * g.matrix,
+                })
+                .collect();
+            let key = "rot.out.rot_logits_on_rotated_grid";
+            out.push(compare(
+                key,
+                &heads.logits_on(&q.so3_coeffs, &rotated)?,
+                fx.f32_any(key)?.1,
+                TOL_WIGNER,
+            ));
+        }
+    }
+    Ok(out)
+}
+
+/// Tolerance of the whole model (fixtures README: 1e-4 on logits, 1e-4·(1+|ref|) on
+/// intermediates).
+pub const TOL_MODEL: f64 = 1e-4;
+
+/// Groups a recorded `[2, E]` (query, source) kNN record into per-query lists.
+fn knn_lists(fx: &FixtureFile, key: &str) -> Result<Vec<Vec<usize>>> {
+    let (shape, v) = fx.i64(key, &[Some(2), None])?;
+    let e = shape[1];
+    let mut out: Vec<Vec<usize>> = Vec::new();
+    for j in 0..e {
+        let (q, s) = (v[j], v[e + j]);
+        let (Ok(q), Ok(s)) = (usize::try_from(q), usize::try_from(s)) else {
+            return Err(PolicyError::IndexOutOfRange {
+                name: key.to_string(),
+                value: q.min(s),
+                len: 0,
+            });
+        };
+        if q >= out.len() {
+            out.resize(q + 1, Vec::new());
+        }
+        out[q].push(s);
+    }
+    Ok(out)
+}
+
+/// The recorded choices of one U-net block of the whole-model fixture.
+fn recorded_indices(
+    fx: &FixtureFile,
+    block: &str,
+    scale: f64,
+) -> Result<crate::model::BlockIndices> {
+    let mut idx = crate::model::BlockIndices::default();
+    if scale < 1.0 {
+        let mut fps = indices(fx, &format!("mid.{block}.fps0"))?;
+        fps.sort_unstable();
+        fps.dedup();
+        idx.fps = Some(fps);
+        idx.pool_knn = Some(knn_lists(fx, &format!("mid.{block}.knn0"))?);
+    } else if scale > 1.0 {
+        idx.up_knn = Some(knn_lists(fx, &format!("mid.{block}.knn0"))?);
+    }
+    idx.graph = Some((
+        indices(fx, &format!("mid.{block}.edge_src"))?,
+        indices(fx, &format!("mid.{block}.edge_dst"))?,
+    ));
+    Ok(idx)
+}
+
+fn check_whole_model(fx: &FixtureFile) -> Result<Vec<Comparison>> {
+    use crate::model::{EquFieldUnet, GripperState, ModelConfig};
+    let mut out = Vec::new();
+    let ctor = fx
+        .sidecar
+        .pointer("/constructor/EquFieldUnet")
+        .ok_or_else(|| PolicyError::Sidecar {
+            path: fx.path.with_extension("json"),
+            message: "constructor.EquFieldUnet missing".into(),
+        })?;
+    let cfg = ModelConfig::from_constructor(ctor)?;
+    let w = fx.weights();
+    let model = EquFieldUnet::load(&w.scope("param."), cfg.clone())?;
+    let names = model.block_names();
+    let scales: Vec<f64> = cfg
+        .pool_ratio
+        .iter()
+        .copied()
+        .chain(std::iter::once(cfg.pool_ratio[cfg.n_scales() - 1]))
+        .chain(cfg.pool_ratio.iter().rev().map(|r| 1.0 / r))
+        .collect();
+    let r = mat3(fx.f32("rot.R", &[Some(3), Some(3)])?.1);
+    let rgb = vec3s_f32(fx.f32("in.rgb", &[Some(1), None, Some(3)])?.1);
+    let instr = fx.f32("in.instruction", &[Some(1), None, None])?.1;
+    for prefix in ["", "rot."] {
+        let xyz = vec3s_f32(
+            fx.f32(&format!("{prefix}in.xyz"), &[Some(1), None, Some(3)])?
+                .1,
+        );
+        let g = fx
+            .f32(&format!("{prefix}in.curr_gripper"), &[Some(1), Some(8)])?
+            .1;
+        let gripper = GripperState {
+            position: [g[0], g[1], g[2]],
+            quaternion: [g[3], g[4], g[5], g[6]],
+            open: g[7],
+        };
+        let eps = vec3s_f32(
+            fx.f32(&format!("{prefix}in.gripper_pos_eps"), &[None, Some(3)])?
+                .1,
+        );
+        let tq = vec3s_f32(
+            fx.f32(
+                &format!("{prefix}in.trans_queries"),
+                &[Some(1), None, Some(3)],
+            )?
+            .1,
+        );
+        let rq = vec3s_f32(
+            fx.f32(
+                &format!("{prefix}in.rot_query"),
+                &[Some(1), Some(1), Some(3)],
+            )?
+            .1,
+        );
+        let Some(&rq) = rq.first() else {
+            return Err(PolicyError::ShapeMismatch {
+                name: format!("{prefix}in.rot_query"),
+                expected: vec![1, 1, 3],
+                got: vec![0],
+            });
+        };
+        // The plain run follows the recorded choices (the near-coincident gripper points
+        // make some of them fragile); the free run's choices are compared with them.
+        let overrides = if prefix.is_empty() {
+            names
+                .iter()
+                .zip(&scales)
+                .map(|(n, s)| Ok((n.clone(), recorded_indices(fx, n, *s)?)))
+                .collect::<Result<Vec<_>>>()?
+        } else {
+            Vec::new()
+        };
+        let enc = model.encode(&xyz, &rgb, &gripper, &eps, instr, &overrides)?;
+        if prefix.is_empty() {
+            let free = model.encode(&xyz, &rgb, &gripper, &eps, instr, &[])?;
+            let flat = |v: &[[f32; 3]]| v.iter().flatten().copied().collect::<Vec<f32>>();
+            out.push(compare_f32(
+                "mid.xyz_effective",
+                &flat(&enc.xyz),
+                fx.f32_any("mid.xyz_effective")?.1,
+                0.0,
+            ));
+            out.push(compare_f32(
+                "mid.condition",
+                &enc.condition,
+                fx.f32_any("mid.condition")?.1,
+                TOL,
+            ));
+            for (t, (name, rec)) in free.blocks.iter().zip(&overrides) {
+                let mismatch = |a: &Option<Vec<Vec<usize>>>, b: &Option<Vec<Vec<usize>>>| {
+                    let a: Vec<usize> = a.iter().flatten().flatten().copied().collect();
+                    let b: Vec<i64> = b.iter().flatten().flatten().map(|&v| v as i64).collect();
+                    (a, b)
+                };
+                let (a, b) = mismatch(&t.indices.pool_knn, &rec.pool_knn);
+                let (c, d) = mismatch(&t.indices.up_knn, &rec.up_knn);
+                let fa: Vec<usize> = t.indices.fps.iter().flatten().copied().collect();
+                let fb: Vec<i64> = rec.fps.iter().flatten().map(|&v| v as i64).collect();
+                let (ga, gb) = match (&t.indices.graph, &rec.graph) {
+                    (Some((s1, d1)), Some((s2, d2))) => (
+                        s1.iter().chain(d1).copied().collect::<Vec<_>>(),
+                        s2.iter().chain(d2).map(|&v| v as i64).collect::<Vec<_>>(),
+                    ),
+                    _ => (Vec::new(), vec![-1]),
+                };
+                let all_a: Vec<usize> = fa.into_iter().chain(a).chain(c).chain(ga).collect();
+                let all_b: Vec<i64> = fb.into_iter().chain(b).chain(d).chain(gb).collect();
+                let cmp = compare_indices(
+                    &format!("free run {name} choices (fps, knn, edges)"),
+                    &all_a,
+                    &all_b,
+                );
+                out.push(cmp);
+            }
+            for (t, next) in enc.blocks.iter().zip(enc.blocks.iter().skip(1)) {
+                if let Some(after) = &t.after_skip {
+                    let key = format!("mid.{}.in_embedding", next.name);
+                    out.push(compare_f32(&key, after, fx.f32_any(&key)?.1, TOL_MODEL));
+                }
+            }
+            for t in &enc.blocks {
+                let key = format!("mid.{}.out_embedding", t.name);
+                out.push(compare_f32(
+                    &key,
+                    &t.embedding,
+                    fx.f32_any(&key)?.1,
+                    TOL_MODEL,
+                ));
+                let key = format!("mid.{}.out_coord", t.name);
+                out.push(compare_f32(&key, &flat(&t.coord), fx.f32_any(&key)?.1, 0.0));
+            }
+        }
+        let key = format!("{prefix}out.unet_embedding");
+        out.push(compare_f32(
+            &key,
+            &enc.embedding,
+            fx.f32_any(&key)?.1,
+            TOL_MODEL,
+        ));
+        let q = model.query(&enc, &tq, rq)?;
+        let key = format!("{prefix}out.trans_logits");
+        out.push(compare_f32(
+            &key,
+            &q.trans_logits,
+            fx.f32_any(&key)?.1,
+            TOL_MODEL,
+        ));
+        let key = format!("{prefix}out.open_logit");
+        out.push(compare_f32(
+            &key,
+            &[q.rot.open_logit],
+            fx.f32_any(&key)?.1,
+            TOL_MODEL,
+        ));
+        let key = format!("{prefix}out.rot_logits");
+        out.push(compare(
+            &key,
+            &q.rot.rot_logits,
+            fx.f32_any(&key)?.1,
+            TOL_MODEL,
+        ));
+        if prefix.is_empty() {
+            out.push(compare_f32(
+                "mid.rot_query_embedding",
+                &q.rot.embedding,
+                fx.f32_any("mid.rot_query_embedding")?.1,
+                TOL_MODEL,
+            ));
+            out.push(compare(
+                "mid.so3_coeffs",
+                &q.rot.so3_coeffs,
+                fx.f32_any("mid.so3_coeffs")?.1,
+                TOL_MODEL,
+            ));
+        } else {
+            let rotated: Vec<_> = model
+                .heads()
+                .grid()
+                .iter()
+                .map(|g| crate::grids::GridRotation {
+                    angles: g.angles,
+                    matrix: r * g.matrix,
+                })
+                .collect();
+            let key = "rot.out.rot_logits_on_rotated_grid";
+            out.push(compare(
+                key,
+                &model.heads().logits_on(&q.rot.so3_coeffs, &rotated)?,
+                fx.f32_any(key)?.1,
+                TOL_MODEL,
+            ));
+        }
     }
     Ok(out)
 }

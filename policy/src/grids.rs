@@ -158,14 +158,19 @@ impl S2Grid {
         let grid = self.to_grid_values(x, n, c)?;
         let np = self.num_points();
         let mut out = vec![0.0f64; n * nr * c];
+        let mut act = vec![0.0f64; c];
         for z in 0..n {
             for p in 0..np {
                 let g = &grid[(z * np + p) * c..(z * np + p + 1) * c];
+                // SiLU once per grid value, then spread over the coefficients.
+                for (a, gc) in act.iter_mut().zip(g) {
+                    *a = silu(f64::from(*gc));
+                }
                 for i in 0..nr {
                     let w = self.from_grid[p * nr + i];
                     let o = &mut out[(z * nr + i) * c..(z * nr + i + 1) * c];
-                    for (oc, gc) in o.iter_mut().zip(g) {
-                        *oc += w * silu(f64::from(*gc));
+                    for (oc, a) in o.iter_mut().zip(&act) {
+                        *oc += w * a;
                     }
                 }
             }
@@ -264,4 +269,24 @@ pub fn so3_healpix_grid(level: u32) -> Vec<GridRotation> {
         }
     }
     out
+}
+
+/// Which S2 grids the separable S2 activations use.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum S2Resolution {
+    /// The reference's coarse grids (parity mode).
+    #[default]
+    Reference,
+    /// `n` × `n` grids for every (lmax, mmax) (equivariant mode; 48 gives ~1e-7).
+    Square(usize),
+}
+
+impl S2Resolution {
+    /// The grid for (lmax, mmax) at this resolution.
+    pub fn grid(self, lmax: usize, mmax: usize) -> Result<S2Grid> {
+        match self {
+            Self::Reference => S2Grid::reference(lmax, mmax),
+            Self::Square(n) => S2Grid::with_resolution(lmax, mmax, n, n),
+        }
+    }
 }

@@ -8,16 +8,34 @@
 //! - [`grids`]: S2 grids of the separable S2 activation, HEALPix S2 and SO(3) grids;
 //! - [`points`]: farthest point sampling, kNN, coefficient max-pool, 3-NN up-sampling;
 //! - [`rotation_head`]: the S2 -> SO(3) lift and rotation logits on a grid;
+//! - [`weights`]: the parameter store (reference state-dict names, typed missing/misshapen
+//!   errors naming the parameter);
+//! - [`layers`]: dense and per-degree linear maps, LayerNorm, `rms_norm_sh`, Gaussian radial
+//!   basis, radial MLP, FiLM linear, separable S2 activation, scalar activations;
+//! - [`so2_conv`]: edge-frame rotation of features and the SO(2) convolution;
+//! - [`attention`]: edge sets and the equivariant graph attention;
+//! - [`transblock`]: the TransBlock with its (FiLM) feed-forward network;
+//! - [`language`]: the instruction encoder (FiLM condition);
+//! - [`heads`]: translation, gripper-open and rotation field heads;
+//! - [`model`]: the whole `EquFieldUnet` (U-net plus heads), parity or equivariant mode;
 //! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`).
 //!
 //! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit),
 //! `safetensors` to read the reference's tensor files, `serde_json` for their sidecars.
 
+pub mod attention;
 pub mod error;
 pub mod fixtures;
 pub mod grids;
+pub mod heads;
+pub mod language;
+pub mod layers;
+pub mod model;
 pub mod points;
 pub mod rotation_head;
+pub mod so2_conv;
 pub mod so3;
+pub mod transblock;
+pub mod weights;
 
 pub use error::{PolicyError, Result};

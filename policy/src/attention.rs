@@ -1,0 +1,341 @@
+//! Equivariant graph attention (`SO2EquivariantGraphAttention`) and the edge sets it runs on.
+//!
+//! Spec: fixtures README ("Edges", "Attention") and the `graph_attention` sidecar. Messages
+//! concat(x_src[src], x_dst[dst]) are rotated into each edge's frame, go through an SO(2)
+//! convolution (radial weights, extra m = 0 outputs: attention logits then gating scalars),
+//! the separable S2 activation and a second SO(2) convolution; each head's values are
+//! weighted by a softmax over the edges sharing a destination, rotated back, summed at the
+//! destination and projected by an `SO3_LinearV2`.
+
+use crate::error::{PolicyError, Result};
+use crate::grids::S2Grid;
+use crate::layers::{
+    check_len, rows_of, separable_s2_activation, smooth_leaky_relu, GaussianRbf, LayerNorm,
+    So3Linear,
+};
+use crate::so2_conv::{CoefficientMapping, EdgeWigners, So2Conv};
+use crate::so3::{num_coefficients, WignerCalculator};
+use crate::weights::Scope;
+
+/// A set of directed edges with their frames and invariant features.
+#[derive(Debug, Clone)]
+pub struct EdgeSet {
+    /// Source node of each edge (index into the source features).
+    pub src: Vec<usize>,
+    /// Destination node of each edge (index into the destination features).
+    pub dst: Vec<usize>,
+    /// Edge vectors pos_src[src] − pos_dst[dst].
+    pub vec: Vec<[f32; 3]>,
+    /// Edge lengths.
+    pub dist: Vec<f32>,
+    /// Wigner matrices of the edge frames.
+    pub wigners: EdgeWigners,
+    /// Invariant edge features (radial basis of the length), `[E, num_basis]`.
+    pub attr: Vec<f32>,
+}
+
+impl EdgeSet {
+    /// Builds the edges `src[e] → dst[e]` between two point sets, with the radial basis
+    /// `rbf` of their lengths and frames up to degree `lmax`.
+    pub fn new(
+        calc: &WignerCalculator,
+        lmax: usize,
+        pos_src: &[[f32; 3]],
+        pos_dst: &[[f32; 3]],
+        src: Vec<usize>,
+        dst: Vec<usize>,
+        rbf: &GaussianRbf,
+    ) -> Result<Self> {
+        if src.len() != dst.len() {
+            return Err(PolicyError::ShapeMismatch {
+                name: "edge_dst".into(),
+                expected: vec![src.len()],
+                got: vec![dst.len()],
+            });
+        }
+        let mut vec = Vec::with_capacity(src.len());
+        for (&s, &d) in src.iter().zip(&dst) {
+            let (Some(ps), Some(pd)) = (pos_src.get(s), pos_dst.get(d)) else {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "edge_src/edge_dst".into(),
+                    value: s.max(d) as i64,
+                    len: pos_src.len().min(pos_dst.len()),
+                });
+            };
+            vec.push([ps[0] - pd[0], ps[1] - pd[1], ps[2] - pd[2]]);
+        }
+        let dist: Vec<f32> = vec
+            .iter()
+            .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
+            .collect();
+        let attr = rbf.forward(&dist);
+        let wigners = EdgeWigners::new(calc, lmax, &vec)?;
+        Ok(Self {
+            src,
+            dst,
+            vec,
+            dist,
+            wigners,
+            attr,
+        })
+    }
+
+    /// Builds an edge set from given edge vectors and features (e.g. a fixture's).
+    pub fn from_parts(
+        calc: &WignerCalculator,
+        lmax: usize,
+        src: Vec<usize>,
+        dst: Vec<usize>,
+        vec: Vec<[f32; 3]>,
+        attr: Vec<f32>,
+    ) -> Result<Self> {
+        let e = src.len();
+        check_len("edge_dst", dst.len(), &[e])?;
+        check_len("edge_vec", vec.len(), &[e])?;
+        let dist = vec
+            .iter()
+            .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
+            .collect();
+        let wigners = EdgeWigners::new(calc, lmax, &vec)?;
+        Ok(Self {
+            src,
+            dst,
+            vec,
+            dist,
+            wigners,
+            attr,
+        })
+    }
+
+    /// Number of edges.
+    pub fn len(&self) -> usize {
+        self.src.len()
+    }
+
+    /// Whether there are no edges.
+    pub fn is_empty(&self) -> bool {
+        self.src.is_empty()
+    }
+}
+
+/// Sizes of a graph attention layer (the reference's constructor arguments).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct AttentionConfig {
+    /// Maximum degree.
+    pub lmax: usize,
+    /// Maximum order kept in the edge frame.
+    pub mmax: usize,
+    /// Channels of the source and destination features.
+    pub sphere_channels: usize,
+    /// Channels between the two SO(2) convolutions.
+    pub hidden_channels: usize,
+    /// Attention heads.
+    pub num_heads: usize,
+    /// Logit channels per head.
+    pub alpha_channels: usize,
+    /// Value channels per head.
+    pub value_channels: usize,
+    /// Output channels.
+    pub output_channels: usize,
+}
+
+/// `SO2EquivariantGraphAttention` (separable S2 activation, attention re-normalisation, no
+/// shared radial weights, eval mode).
+#[derive(Debug, Clone)]
+pub struct GraphAttention {
+    /// Sizes.
+    pub cfg: AttentionConfig,
+    map: CoefficientMapping,
+    conv1: So2Conv,
+    conv2: So2Conv,
+    alpha_norm: LayerNorm,
+    alpha_dot: Vec<f32>,
+    grid: S2Grid,
+    proj: So3Linear,
+}
+
+impl GraphAttention {
+    /// Loads `so2_conv_1`, `so2_conv_2`, `alpha_norm`, `alpha_dot` and `proj` from `s`, with
+    /// the reference's S2 grid for (lmax, mmax).
+    pub fn load(s: &Scope<'_>, cfg: AttentionConfig) -> Result<Self> {
+        let grid = S2Grid::reference(cfg.lmax, cfg.mmax)?;
+        Self::load_with_grid(s, cfg, grid)
+    }
+
+    /// As [`GraphAttention::load`] with a given S2 grid (finer grids: closer to equivariant).
+    pub fn load_with_grid(s: &Scope<'_>, cfg: AttentionConfig, grid: S2Grid) -> Result<Self> {
+        let map = CoefficientMapping::new(cfg.lmax, cfg.mmax)?;
+        let n_alpha = cfg.num_heads * cfg.alpha_channels;
+        let conv1 = So2Conv::load(
+            &s.sub("so2_conv_1"),
+            &map,
+            2 * cfg.sphere_channels,
+            cfg.hidden_channels,
+            n_alpha + cfg.hidden_channels,
+            true,
+        )?;
+        let conv2 = So2Conv::load(
+            &s.sub("so2_conv_2"),
+            &map,
+            cfg.hidden_channels,
+            cfg.num_heads * cfg.value_channels,
+            0,
+            false,
+        )?;
+        let alpha_norm = LayerNorm::load(&s.sub("alpha_norm"), cfg.alpha_channels)?;
+        let alpha_dot = s.f32("alpha_dot", &[cfg.num_heads, cfg.alpha_channels])?;
+        let proj = So3Linear::load(&s.sub("proj"))?;
+        if proj.lmax != cfg.lmax
+            || proj.cin != cfg.num_heads * cfg.value_channels
+            || proj.cout != cfg.output_channels
+        {
+            return Err(PolicyError::ShapeMismatch {
+                name: s.key("proj.weight"),
+                expected: vec![
+                    cfg.lmax + 1,
+                    cfg.output_channels,
+                    cfg.num_heads * cfg.value_channels,
+                ],
+                got: vec![proj.lmax + 1, proj.cout, proj.cin],
+            });
+        }
+        if grid.lmax != cfg.lmax || grid.reduced != map.reduced {
+            return Err(PolicyError::UnsupportedDegree {
+                lmax: grid.lmax,
+                mmax: grid.mmax,
+                max_supported: cfg.lmax,
+            });
+        }
+        Ok(Self {
+            cfg,
+            map,
+            conv1,
+            conv2,
+            alpha_norm,
+            alpha_dot,
+            grid,
+            proj,
+        })
+    }
+
+    /// Attends from `x_src` `[Ns, K, C]` to `x_dst` `[Nd, K, C]` over `edges`; returns
+    /// `[Nd, K, output_channels]`.
+    pub fn forward(&self, x_src: &[f32], x_dst: &[f32], edges: &EdgeSet) -> Result<Vec<f32>> {
+        let cfg = &self.cfg;
+        let k = num_coefficients(cfg.lmax);
+        let c = cfg.sphere_channels;
+        let ns = rows_of("attention source features", x_src.len(), k * c)?;
+        let nd = rows_of("attention destination features", x_dst.len(), k * c)?;
+        let ne = edges.len();
+        if edges.wigners.lmax != cfg.lmax {
+            return Err(PolicyError::UnsupportedDegree {
+                lmax: edges.wigners.lmax,
+                mmax: cfg.mmax,
+                max_supported: cfg.lmax,
+            });
+        }
+        // Messages concat(x_src[src], x_dst[dst]) along channels.
+        let mut msg = vec![0.0f32; ne * k * 2 * c];
+        for e in 0..ne {
+            let (s, d) = (edges.src[e], edges.dst[e]);
+            if s >= ns || d >= nd {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "edge_src/edge_dst".into(),
+                    value: if s >= ns { s as i64 } else { d as i64 },
+                    len: if s >= ns { ns } else { nd },
+                });
+            }
+            for i in 0..k {
+                let m = &mut msg[(e * k + i) * 2 * c..(e * k + i + 1) * 2 * c];
+                m[..c].copy_from_slice(&x_src[(s * k + i) * c..(s * k + i + 1) * c]);
+                m[c..].copy_from_slice(&x_dst[(d * k + i) * c..(d * k + i + 1) * c]);
+            }
+        }
+        let x_rot = edges.wigners.rotate(&self.map, &msg, 2 * c)?;
+        drop(msg);
+        let (h, extra) = self.conv1.forward(&x_rot, Some(&edges.attr))?;
+        let n_alpha = cfg.num_heads * cfg.alpha_channels;
+        let n_extra = n_alpha + cfg.hidden_channels;
+        let mut alpha_in = Vec::with_capacity(ne * n_alpha);
+        let mut gating = Vec::with_capacity(ne * cfg.hidden_channels);
+        for row in extra.chunks_exact(n_extra) {
+            alpha_in.extend_from_slice(&row[..n_alpha]);
+            gating.extend_from_slice(&row[n_alpha..]);
+        }
+        let h = separable_s2_activation(&self.grid, &gating, &h, cfg.hidden_channels)?;
+        let (mut v, _) = self.conv2.forward(&h, None)?;
+
+        // Attention logits and the softmax over each destination's edges.
+        self.alpha_norm.apply(&mut alpha_in);
+        let heads = cfg.num_heads;
+        let mut logit = vec![0.0f32; ne * heads];
+        for e in 0..ne {
+            for hd in 0..heads {
+                let a = &alpha_in[(e * heads + hd) * cfg.alpha_channels
+                    ..(e * heads + hd + 1) * cfg.alpha_channels];
+                let w = &self.alpha_dot[hd * cfg.alpha_channels..(hd + 1) * cfg.alpha_channels];
+                logit[e * heads + hd] = a
+                    .iter()
+                    .zip(w)
+                    .map(|(x, y)| smooth_leaky_relu(*x, 0.2) * y)
+                    .sum();
+            }
+        }
+        let alpha = grouped_softmax(&logit, &edges.dst, nd, heads);
+
+        // Weight each head's values, rotate back, sum at the destinations.
+        let nr = self.map.len();
+        let vc = cfg.value_channels;
+        for e in 0..ne {
+            for r in 0..nr {
+                for hd in 0..heads {
+                    let a = alpha[e * heads + hd];
+                    let base = (e * nr + r) * heads * vc + hd * vc;
+                    for x in &mut v[base..base + vc] {
+                        *x *= a;
+                    }
+                }
+            }
+        }
+        let back = edges.wigners.rotate_back(&self.map, &v, heads * vc)?;
+        let row = k * heads * vc;
+        let mut agg = vec![0.0f32; nd * row];
+        for e in 0..ne {
+            let d = edges.dst[e];
+            for (a, b) in agg[d * row..(d + 1) * row]
+                .iter_mut()
+                .zip(&back[e * row..(e + 1) * row])
+            {
+                *a += b;
+            }
+        }
+        self.proj.forward(&agg)
+    }
+}
+
+/// Softmax of `logit` `[E, heads]` over the edges sharing a destination (max subtracted,
+/// 1e-16 added to the denominator, as PyG).
+pub fn grouped_softmax(logit: &[f32], dst: &[usize], nd: usize, heads: usize) -> Vec<f32> {
+    let mut max = vec![f32::NEG_INFINITY; nd * heads];
+    for (e, &d) in dst.iter().enumerate() {
+        for h in 0..heads {
+            let m = &mut max[d * heads + h];
+            *m = m.max(logit[e * heads + h]);
+        }
+    }
+    let mut out = vec![0.0f32; logit.len()];
+    let mut sum = vec![0.0f32; nd * heads];
+    for (e, &d) in dst.iter().enumerate() {
+        for h in 0..heads {
+            let v = (logit[e * heads + h] - max[d * heads + h]).exp();
+            out[e * heads + h] = v;
+            sum[d * heads + h] += v;
+        }
+    }
+    for (e, &d) in dst.iter().enumerate() {
+        for h in 0..heads {
+            out[e * heads + h] /= sum[d * heads + h] + 1e-16;
+        }
+    }
+    out
+}

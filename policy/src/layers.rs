@@ -1,0 +1,641 @@
+//! Basic layers: dense linear, LayerNorm, the equivariant per-degree linear (`SO3_LinearV2`),
+//! the equivariant RMS norm (`rms_norm_sh`), the Gaussian radial basis, the radial MLP, the
+//! FiLM-conditioned equivariant linear (`SO3_FiLM_Linear`) and the scalar activations.
+//!
+//! Spec: fixtures README ("rms_norm_sh", "RBF", "FiLM") and the `linear_norm_rbf` sidecar.
+//! Embeddings are row-major `[nodes, (lmax+1)², channels]` `f32` slices; dot products
+//! accumulate in `f64`.
+
+use crate::error::{PolicyError, Result};
+use crate::so3::num_coefficients;
+use crate::weights::Scope;
+
+/// Checks that `len` equals the product of `shape`, naming the tensor otherwise.
+pub fn check_len(name: &str, len: usize, shape: &[usize]) -> Result<()> {
+    if len != shape.iter().product::<usize>() {
+        return Err(PolicyError::ShapeMismatch {
+            name: name.to_string(),
+            expected: shape.to_vec(),
+            got: vec![len],
+        });
+    }
+    Ok(())
+}
+
+/// The degree l of full-basis coefficient index `i` (i = l² + m + l).
+pub fn degree_of(i: usize) -> usize {
+    let mut l = 0;
+    while (l + 1) * (l + 1) <= i {
+        l += 1;
+    }
+    l
+}
+
+/// The degree l with (l+1)² = `k`, or an error naming `what`.
+pub fn lmax_of(what: &str, k: usize) -> Result<usize> {
+    let l = degree_of(k.saturating_sub(1));
+    if num_coefficients(l) != k {
+        return Err(PolicyError::ShapeMismatch {
+            name: what.to_string(),
+            expected: vec![num_coefficients(l)],
+            got: vec![k],
+        });
+    }
+    Ok(l)
+}
+
+/// SiLU x·σ(x).
+pub fn silu(x: f32) -> f32 {
+    x / (1.0 + (-x).exp())
+}
+
+/// Logistic sigmoid.
+pub fn sigmoid(x: f32) -> f32 {
+    1.0 / (1.0 + (-x).exp())
+}
+
+/// Softplus log(1 + eˣ) (linear above 20, as PyTorch).
+pub fn softplus(x: f32) -> f32 {
+    if x > 20.0 {
+        x
+    } else {
+        x.exp().ln_1p()
+    }
+}
+
+/// Mish x·tanh(softplus(x)).
+pub fn mish(x: f32) -> f32 {
+    x * softplus(x).tanh()
+}
+
+/// The reference's smooth leaky ReLU with slope `alpha`: ((1+α)/2)x + ((1−α)/2)x(2σ(x) − 1).
+pub fn smooth_leaky_relu(x: f32, alpha: f32) -> f32 {
+    0.5 * (1.0 + alpha) * x + 0.5 * (1.0 - alpha) * x * (2.0 * sigmoid(x) - 1.0)
+}
+
+/// Exact (erf) GELU.
+pub fn gelu(x: f32) -> f32 {
+    let xd = f64::from(x);
+    (0.5 * xd * (1.0 + erf(xd / std::f64::consts::SQRT_2))) as f32
+}
+
+/// The error function (Abramowitz–Stegun 7.1.26 is too coarse; this uses a series / continued
+/// fraction with ~1e-15 accuracy).
+pub fn erf(x: f64) -> f64 {
+    let ax = x.abs();
+    let v = if ax < 2.5 {
+        // Taylor series: erf x = 2/√π Σ (−1)ⁿ x^(2n+1) / (n! (2n+1)).
+        let mut sum = 0.0;
+        let mut term = ax;
+        let x2 = ax * ax;
+        let mut n = 0.0;
+        loop {
+            let t = term / (2.0 * n + 1.0);
+            sum += t;
+            if t.abs() < 1e-17 * sum.abs() {
+                break;
+            }
+            n += 1.0;
+            term *= -x2 / n;
+        }
+        sum * 2.0 / std::f64::consts::PI.sqrt()
+    } else {
+        // Continued fraction for erfc, evaluated bottom-up.
+        let mut f = 0.0;
+        for k in (1..60).rev() {
+            f = (k as f64 / 2.0) / (ax + f);
+        }
+        1.0 - (-ax * ax).exp() / std::f64::consts::PI.sqrt() / (ax + f)
+    };
+    if x < 0.0 {
+        -v
+    } else {
+        v
+    }
+}
+
+/// Σ_i a[i] b[i], accumulated in f64 over 4 interleaved partial sums (vectorisable).
+fn dot(a: &[f32], b: &[f32]) -> f32 {
+    let mut acc = [0.0f64; 4];
+    let ca = a.chunks_exact(4);
+    let cb = b.chunks_exact(4);
+    let (ra, rb) = (ca.remainder(), cb.remainder());
+    for (x, y) in ca.zip(cb) {
+        for k in 0..4 {
+            acc[k] += f64::from(x[k]) * f64::from(y[k]);
+        }
+    }
+    let mut s = (acc[0] + acc[1]) + (acc[2] + acc[3]);
+    for (x, y) in ra.iter().zip(rb) {
+        s += f64::from(*x) * f64::from(*y);
+    }
+    s as f32
+}
+
+/// A dense layer `y = W x + b` (PyTorch `nn.Linear`, weight `[out, in]`).
+#[derive(Debug, Clone)]
+pub struct Linear {
+    /// Input features.
+    pub inp: usize,
+    /// Output features.
+    pub out: usize,
+    w: Vec<f32>,
+    b: Option<Vec<f32>>,
+}
+
+impl Linear {
+    /// Loads `weight` (and `bias` if `bias`) from `s`, taking the sizes from the weight.
+    pub fn load(s: &Scope<'_>, bias: bool) -> Result<Self> {
+        let shape = s.shape("weight", 2)?;
+        Self::load_sized(s, shape[0], shape[1], bias)
+    }
+
+    /// Loads `weight` `[out, inp]` (and `bias` `[out]`) from `s`, checking the sizes.
+    pub fn load_sized(s: &Scope<'_>, out: usize, inp: usize, bias: bool) -> Result<Self> {
+        let w = s.f32("weight", &[out, inp])?;
+        let b = if bias {
+            Some(s.f32("bias", &[out])?)
+        } else {
+            None
+        };
+        Ok(Self { inp, out, w, b })
+    }
+
+    /// Builds a layer from raw values (weight `[out, inp]`).
+    pub fn from_parts(out: usize, inp: usize, w: Vec<f32>, b: Option<Vec<f32>>) -> Result<Self> {
+        check_len("linear weight", w.len(), &[out, inp])?;
+        if let Some(b) = &b {
+            check_len("linear bias", b.len(), &[out])?;
+        }
+        Ok(Self { inp, out, w, b })
+    }
+
+    /// Applies the layer to one row.
+    pub fn forward_row(&self, x: &[f32], y: &mut [f32]) {
+        for (o, yo) in y.iter_mut().enumerate().take(self.out) {
+            let mut v = dot(&self.w[o * self.inp..(o + 1) * self.inp], x);
+            if let Some(b) = &self.b {
+                v += b[o];
+            }
+            *yo = v;
+        }
+    }
+
+    /// Applies the layer to every row of `x` (`[rows, inp]` → `[rows, out]`).
+    pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
+        if self.inp == 0 || x.len() % self.inp != 0 {
+            return Err(PolicyError::ShapeMismatch {
+                name: "linear input".into(),
+                expected: vec![0, self.inp],
+                got: vec![x.len()],
+            });
+        }
+        let rows = x.len() / self.inp;
+        let mut y = vec![0.0; rows * self.out];
+        for r in 0..rows {
+            self.forward_row(
+                &x[r * self.inp..(r + 1) * self.inp],
+                &mut y[r * self.out..(r + 1) * self.out],
+            );
+        }
+        Ok(y)
+    }
+}
+
+/// LayerNorm over the last axis (eps 1e-5, affine).
+#[derive(Debug, Clone)]
+pub struct LayerNorm {
+    /// Normalised width.
+    pub dim: usize,
+    w: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl LayerNorm {
+    /// Loads `weight` and `bias` `[dim]`.
+    pub fn load(s: &Scope<'_>, dim: usize) -> Result<Self> {
+        Ok(Self {
+            dim,
+            w: s.f32("weight", &[dim])?,
+            b: s.f32("bias", &[dim])?,
+        })
+    }
+
+    /// Normalises each row of `x` in place.
+    pub fn apply(&self, x: &mut [f32]) {
+        for row in x.chunks_exact_mut(self.dim) {
+            let n = self.dim as f64;
+            let mean = row.iter().map(|v| f64::from(*v)).sum::<f64>() / n;
+            let var = row
+                .iter()
+                .map(|v| (f64::from(*v) - mean).powi(2))
+                .sum::<f64>()
+                / n;
+            let inv = 1.0 / (var + 1e-5).sqrt();
+            for (i, v) in row.iter_mut().enumerate() {
+                *v = ((f64::from(*v) - mean) * inv) as f32 * self.w[i] + self.b[i];
+            }
+        }
+    }
+}
+
+/// `SO3_LinearV2`: a channel-mixing matrix per degree, bias on the l = 0 row only.
+#[derive(Debug, Clone)]
+pub struct So3Linear {
+    /// Maximum degree.
+    pub lmax: usize,
+    /// Input channels.
+    pub cin: usize,
+    /// Output channels.
+    pub cout: usize,
+    /// `[(lmax+1), cout, cin]`.
+    w: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl So3Linear {
+    /// Loads `weight` `[(lmax+1), cout, cin]` and `bias` `[cout]`, sizes from the weight.
+    pub fn load(s: &Scope<'_>) -> Result<Self> {
+        let shape = s.shape("weight", 3)?;
+        let (lmax, cout, cin) = (shape[0].saturating_sub(1), shape[1], shape[2]);
+        Ok(Self {
+            lmax,
+            cin,
+            cout,
+            w: s.f32("weight", &shape)?,
+            b: s.f32("bias", &[cout])?,
+        })
+    }
+
+    /// Applies the layer to `x` `[n, (lmax+1)², cin]`.
+    pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
+        let k = num_coefficients(self.lmax);
+        let n = rows_of("SO3 linear input", x.len(), k * self.cin)?;
+        let mut y = vec![0.0; n * k * self.cout];
+        for node in 0..n {
+            for i in 0..k {
+                let l = degree_of(i);
+                let xr = &x[(node * k + i) * self.cin..(node * k + i + 1) * self.cin];
+                let yr = &mut y[(node * k + i) * self.cout..(node * k + i + 1) * self.cout];
+                for (o, yo) in yr.iter_mut().enumerate() {
+                    let w =
+                        &self.w[(l * self.cout + o) * self.cin..(l * self.cout + o + 1) * self.cin];
+                    *yo = dot(w, xr) + if i == 0 { self.b[o] } else { 0.0 };
+                }
+            }
+        }
+        Ok(y)
+    }
+}
+
+/// The number of rows of a flat buffer of `len` values with `row` values per row.
+pub fn rows_of(what: &str, len: usize, row: usize) -> Result<usize> {
+    if row == 0 || len % row != 0 {
+        return Err(PolicyError::ShapeMismatch {
+            name: what.to_string(),
+            expected: vec![0, row],
+            got: vec![len],
+        });
+    }
+    Ok(len / row)
+}
+
+/// `rms_norm_sh`: centre l = 0 over channels, divide by the degree-balanced RMS, scale per
+/// (degree, channel), add a bias on l = 0.
+#[derive(Debug, Clone)]
+pub struct RmsNormSh {
+    /// Maximum degree.
+    pub lmax: usize,
+    /// Channels.
+    pub c: usize,
+    w: Vec<f32>,
+    b: Vec<f32>,
+}
+
+impl RmsNormSh {
+    /// Loads `affine_weight` `[(lmax+1), c]` and `affine_bias` `[c]`.
+    pub fn load(s: &Scope<'_>, lmax: usize, c: usize) -> Result<Self> {
+        Ok(Self {
+            lmax,
+            c,
+            w: s.f32("affine_weight", &[lmax + 1, c])?,
+            b: s.f32("affine_bias", &[c])?,
+        })
+    }
+
+    /// Loads with the sizes taken from `affine_weight`.
+    pub fn load_any(s: &Scope<'_>) -> Result<Self> {
+        let shape = s.shape("affine_weight", 2)?;
+        Self::load(s, shape[0].saturating_sub(1), shape[1])
+    }
+
+    /// The degree-balance weight of coefficient `i`: 1/((2l+1)(lmax+1)).
+    pub fn balance_weight(&self, i: usize) -> f64 {
+        let l = degree_of(i);
+        1.0 / (((2 * l + 1) * (self.lmax + 1)) as f64)
+    }
+
+    /// Normalises `x` `[n, (lmax+1)², c]`.
+    pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
+        let k = num_coefficients(self.lmax);
+        let c = self.c;
+        let n = rows_of("RMS norm input", x.len(), k * c)?;
+        let mut y = x.to_vec();
+        for node in y.chunks_exact_mut(k * c) {
+            let mean = node[..c].iter().map(|v| f64::from(*v)).sum::<f64>() / c as f64;
+            for v in &mut node[..c] {
+                *v = (f64::from(*v) - mean) as f32;
+            }
+            let mut norm = 0.0f64;
+            for i in 0..k {
+                let bw = self.balance_weight(i);
+                norm += bw
+                    * node[i * c..(i + 1) * c]
+                        .iter()
+                        .map(|v| f64::from(*v).powi(2))
+                        .sum::<f64>();
+            }
+            norm /= c as f64;
+            let scale = (norm + 1e-5).powf(-0.5);
+            for i in 0..k {
+                let l = degree_of(i);
+                for ch in 0..c {
+                    let v = &mut node[i * c + ch];
+                    *v = (f64::from(*v) * scale) as f32 * self.w[l * c + ch];
+                    if i == 0 {
+                        *v += self.b[ch];
+                    }
+                }
+            }
+        }
+        debug_assert_eq!(y.len(), n * k * c);
+        Ok(y)
+    }
+}
+
+/// The reference's Gaussian radial basis with a soft inner cut-off
+/// (`GaussianRadialBasisLayerFiniteCutoff`). Evaluated in f32 in the reference's operation
+/// order: the narrow field-head Gaussians (1024 of them) amplify rounding differences.
+#[derive(Debug, Clone)]
+pub struct GaussianRbf {
+    /// Number of basis functions.
+    pub num_basis: usize,
+    offset: f32,
+    span: f32,
+    mean: Vec<f32>,
+    std: Vec<f32>,
+    weight: Vec<f32>,
+    normalizer: f32,
+}
+
+impl GaussianRbf {
+    /// Loads `mean`, `std_logit` and `weight_logit` `[1, num_basis]`; offset = 0.01 · cutoff.
+    pub fn load(s: &Scope<'_>, cutoff: f64) -> Result<Self> {
+        let shape = s.shape("mean", 2)?;
+        let k = shape[1];
+        let mean = s.f32("mean", &[1, k])?;
+        let std = s
+            .f32("std_logit", &[1, k])?
+            .into_iter()
+            .map(|v| softplus(v) + 1e-5)
+            .collect();
+        let weight = s
+            .f32("weight_logit", &[1, k])?
+            .into_iter()
+            .map(|v| sigmoid(v) * 4.0)
+            .collect();
+        let offset = 0.01 * cutoff;
+        Ok(Self {
+            num_basis: k,
+            offset: offset as f32,
+            span: (cutoff - offset) as f32,
+            mean,
+            std,
+            weight,
+            normalizer: (k as f64).sqrt() as f32,
+        })
+    }
+
+    /// The basis values of one distance, written to `out[..num_basis]`.
+    pub fn eval_into(&self, d: f32, out: &mut [f32]) {
+        let u = (d - self.offset) / self.span;
+        // Smooth switch: 0 for u <= 0, 1 for u >= 0.2 (1 - step(s), s = (1 - u - 0.8)/0.2).
+        let env = if u > 0.5 {
+            1.0
+        } else {
+            let s = ((1.0 - u) - 0.8) / 0.2;
+            let step = if s <= 0.0 {
+                0.0
+            } else if s >= 1.0 {
+                1.0
+            } else {
+                4.0 * s.powi(3) - 3.0 * s.powi(4)
+            };
+            1.0 - step
+        };
+        for (k, o) in out.iter_mut().enumerate().take(self.num_basis) {
+            let z = (u - self.mean[k]) / self.std[k];
+            *o = self.weight[k] * (-0.5 * (z * z)).exp() * env * self.normalizer;
+        }
+    }
+
+    /// The basis values of every distance, `[n, num_basis]`.
+    pub fn forward(&self, d: &[f32]) -> Vec<f32> {
+        let mut y = vec![0.0; d.len() * self.num_basis];
+        for (i, &di) in d.iter().enumerate() {
+            self.eval_into(di, &mut y[i * self.num_basis..(i + 1) * self.num_basis]);
+        }
+        y
+    }
+}
+
+/// `RadialFunction`: Linear → LayerNorm → SiLU repeated, then a final Linear.
+#[derive(Debug, Clone)]
+pub struct RadialMlp {
+    hidden: Vec<(Linear, LayerNorm)>,
+    last: Linear,
+}
+
+impl RadialMlp {
+    /// Loads `net.{3i}` (Linear) and `net.{3i+1}` (LayerNorm) for each hidden layer and the
+    /// final Linear; the depth is read from the keys present.
+    pub fn load(s: &Scope<'_>) -> Result<Self> {
+        let net = s.sub("net");
+        let mut hidden = Vec::new();
+        let mut i = 0;
+        loop {
+            let lin = Linear::load(&net.sub(&i.to_string()), true)?;
+            if net.contains(&format!("{}.weight", i + 1)) {
+                let ln = LayerNorm::load(&net.sub(&(i + 1).to_string()), lin.out)?;
+                if let Some((prev, _)) = hidden.last() {
+                    let prev: &Linear = prev;
+                    if prev.out != lin.inp {
+                        return Err(PolicyError::ShapeMismatch {
+                            name: net.key(&format!("{i}.weight")),
+                            expected: vec![lin.out, prev.out],
+                            got: vec![lin.out, lin.inp],
+                        });
+                    }
+                }
+                hidden.push((lin, ln));
+                i += 3;
+            } else {
+                return Ok(Self { hidden, last: lin });
+            }
+        }
+    }
+
+    /// Input width.
+    pub fn inp(&self) -> usize {
+        self.hidden.first().map_or(self.last.inp, |(l, _)| l.inp)
+    }
+
+    /// Output width.
+    pub fn out(&self) -> usize {
+        self.last.out
+    }
+
+    /// Applies the MLP to every row of `x`.
+    pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
+        let mut h = x.to_vec();
+        for (lin, ln) in &self.hidden {
+            h = lin.forward(&h)?;
+            ln.apply(&mut h);
+            for v in &mut h {
+                *v = silu(*v);
+            }
+        }
+        self.last.forward(&h)
+    }
+}
+
+/// `SO3_FiLM_Linear`: an [`So3Linear`] whose weights and bias are generated per batch from a
+/// condition vector (p = Linear(Mish(condition))).
+#[derive(Debug, Clone)]
+pub struct FilmLinear {
+    /// Maximum degree.
+    pub lmax: usize,
+    /// Input channels.
+    pub cin: usize,
+    /// Output channels.
+    pub cout: usize,
+    encoder: Linear,
+}
+
+/// The per-batch weights generated by [`FilmLinear::weights`].
+#[derive(Debug, Clone)]
+pub struct FilmWeights {
+    /// `[(lmax+1), cout, cin]`, already divided by √(lmax·cin).
+    pub w: Vec<f32>,
+    /// `[cout]`, already divided by 10.
+    pub b: Vec<f32>,
+}
+
+impl FilmLinear {
+    /// Loads `cond_encoder.1` (the Linear after Mish) for the given sizes.
+    pub fn load(s: &Scope<'_>, lmax: usize, cin: usize, cout: usize) -> Result<Self> {
+        let shape = s.sub("cond_encoder").sub("1").shape("weight", 2)?;
+        let out = (lmax + 1) * cout * cin + cout;
+        let encoder = Linear::load_sized(&s.sub("cond_encoder").sub("1"), out, shape[1], true)?;
+        Ok(Self {
+            lmax,
+            cin,
+            cout,
+            encoder,
+        })
+    }
+
+    /// Width of the condition vector.
+    pub fn condition_dim(&self) -> usize {
+        self.encoder.inp
+    }
+
+    /// The weights for one condition vector.
+    pub fn weights(&self, condition: &[f32]) -> Result<FilmWeights> {
+        check_len("FiLM condition", condition.len(), &[self.encoder.inp])?;
+        let m: Vec<f32> = condition.iter().map(|v| mish(*v)).collect();
+        let p = self.encoder.forward(&m)?;
+        let nw = (self.lmax + 1) * self.cout * self.cin;
+        let scale = 1.0 / ((self.lmax.max(1) * self.cin) as f32).sqrt();
+        Ok(FilmWeights {
+            w: p[..nw].iter().map(|v| v * scale).collect(),
+            b: p[nw..].iter().map(|v| v / 10.0).collect(),
+        })
+    }
+
+    /// Applies the layer to `x` `[B·N, (lmax+1)², cin]` (nodes grouped by batch, equal
+    /// counts) with `condition` `[B, condition_dim]`.
+    pub fn forward(&self, x: &[f32], condition: &[f32]) -> Result<Vec<f32>> {
+        let k = num_coefficients(self.lmax);
+        let nodes = rows_of("FiLM input", x.len(), k * self.cin)?;
+        let b = rows_of("FiLM condition", condition.len(), self.encoder.inp)?;
+        if b == 0 || nodes % b != 0 {
+            return Err(PolicyError::ShapeMismatch {
+                name: "FiLM input (nodes must split evenly over the batch)".into(),
+                expected: vec![b, 0],
+                got: vec![nodes],
+            });
+        }
+        let per = nodes / b;
+        let mut y = vec![0.0; nodes * k * self.cout];
+        for batch in 0..b {
+            let fw =
+                self.weights(&condition[batch * self.encoder.inp..(batch + 1) * self.encoder.inp])?;
+            for node in batch * per..(batch + 1) * per {
+                for i in 0..k {
+                    let l = degree_of(i);
+                    let xr = &x[(node * k + i) * self.cin..(node * k + i + 1) * self.cin];
+                    let yr = &mut y[(node * k + i) * self.cout..(node * k + i + 1) * self.cout];
+                    for (o, yo) in yr.iter_mut().enumerate() {
+                        let w = &fw.w
+                            [(l * self.cout + o) * self.cin..(l * self.cout + o + 1) * self.cin];
+                        *yo = dot(w, xr) + if i == 0 { fw.b[o] } else { 0.0 };
+                    }
+                }
+            }
+        }
+        Ok(y)
+    }
+}
+
+/// Multiplies every node's coefficients by a block-diagonal Wigner matrix `d`
+/// `[(lmax+1)², (lmax+1)²]`: `y[n, i, c] = Σ_j d[i, j] x[n, j, c]` (rotates the features).
+pub fn rotate_embedding(x: &[f32], c: usize, d: &nalgebra::DMatrix<f64>) -> Result<Vec<f32>> {
+    let k = d.nrows();
+    let n = rows_of("embedding to rotate", x.len(), k * c)?;
+    let mut y = vec![0.0f32; x.len()];
+    for node in 0..n {
+        let xn = &x[node * k * c..(node + 1) * k * c];
+        let yn = &mut y[node * k * c..(node + 1) * k * c];
+        for i in 0..k {
+            let l = degree_of(i);
+            for j in l * l..(l + 1) * (l + 1) {
+                let dij = d[(i, j)];
+                for ch in 0..c {
+                    yn[i * c + ch] += (dij * f64::from(xn[j * c + ch])) as f32;
+                }
+            }
+        }
+    }
+    Ok(y)
+}
+
+/// The separable S2 activation: l > 0 rows through `grid` (to grid, SiLU, back); the l = 0
+/// row replaced by SiLU(`gating`). `x` is `[n, grid.reduced.len(), c]`, `gating` `[n, c]`.
+pub fn separable_s2_activation(
+    grid: &crate::grids::S2Grid,
+    gating: &[f32],
+    x: &[f32],
+    c: usize,
+) -> Result<Vec<f32>> {
+    let nr = grid.reduced.len();
+    let n = rows_of("S2 activation input", x.len(), nr * c)?;
+    check_len("S2 activation gating", gating.len(), &[n, c])?;
+    let mut y = grid.activate(x, n, c)?;
+    for node in 0..n {
+        for ch in 0..c {
+            y[node * nr * c + ch] = silu(gating[node * c + ch]);
+        }
+    }
+    Ok(y)
+}

@@ -1,0 +1,659 @@
+//! The whole `EquFieldUnet`: instruction condition, point features with the gripper
+//! proprioception, the iFiLM EquiformerV2 U-net, and the field heads.
+//!
+//! Spec: `equact.md` ("Point cloud in", "U-net", "Heads") and the `whole_model_small` sidecar
+//! (`conventions.inputs`, `conventions.unet_schedule`). Down block n pools (FPS + 16-NN
+//! coefficient max-pool) when its ratio is below 1, the middle block pools the last down
+//! output, up blocks interpolate (3-NN inverse-distance) onto the skip coordinates and add the
+//! skip features after their TransBlock; the last up block outputs `field_nn_c` channels and
+//! `norm_1` closes the U-net. Every discrete choice (FPS, kNN lists, graph edges) can be
+//! injected, so a parity run can follow recorded choices among near-coincident points.
+
+use crate::attention::{AttentionConfig, EdgeSet};
+use crate::error::{PolicyError, Result};
+use crate::grids::S2Resolution;
+use crate::heads::{FieldHeads, FieldHeadsConfig, RotationQuery};
+use crate::language::InstructionEncoder;
+use crate::layers::{rows_of, GaussianRbf, Linear, RmsNormSh};
+use crate::points::{
+    check_finite, coefficient_max_pool, farthest_point_sampling, knn, upsample, upsample_weights,
+    UpsampleDistance,
+};
+use crate::so3::{num_coefficients, WignerCalculator};
+use crate::transblock::{TransBlock, TransBlockConfig};
+use crate::weights::Scope;
+
+/// Neighbours of each pooled centre in the max-pool.
+pub const POOL_NEIGHBOURS: usize = 16;
+/// Neighbours of each fine point in the up-sampling.
+pub const UPSAMPLE_NEIGHBOURS: usize = 3;
+
+/// The reference's `EquFieldUnet` constructor arguments this implementation uses.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelConfig {
+    /// kNN graph size per scale (self included).
+    pub max_neighbors: Vec<usize>,
+    /// Graph radius per scale (the radial basis cut-off is 0.99 × this).
+    pub max_radius: Vec<f64>,
+    /// Pool ratio per scale (1 = no pooling).
+    pub pool_ratio: Vec<f64>,
+    /// Channels per level (one more entry than scales).
+    pub sphere_channels: Vec<usize>,
+    /// Attention hidden channels per scale.
+    pub attn_hidden_channels: Vec<usize>,
+    /// Attention heads.
+    pub num_heads: usize,
+    /// Attention logit channels per head, per scale.
+    pub attn_alpha_channels: Vec<usize>,
+    /// Attention value channels per head, per scale.
+    pub attn_value_channels: Vec<usize>,
+    /// Feed-forward hidden channels per scale.
+    pub ffn_hidden_channels: Vec<usize>,
+    /// Maximum degree of the U-net.
+    pub lmax: usize,
+    /// Maximum order in the U-net's edge frames.
+    pub mmax: usize,
+    /// Channels of the field heads.
+    pub field_nn_c: usize,
+    /// Number of cloud points replaced by the gripper.
+    pub n_gripper_pos: usize,
+    /// Heads of the instruction Transformer.
+    pub lang_heads: usize,
+    /// Width of one instruction-Transformer head.
+    pub lang_dim_head: usize,
+    /// HEALPix level of the rotation grid.
+    pub rotation_grid_level: u32,
+    /// S2 activation grids (reference = parity mode).
+    pub s2_resolution: S2Resolution,
+    /// Distance of the up-sampling weights (L1 = parity mode).
+    pub upsample_distance: UpsampleDistance,
+}
+
+impl ModelConfig {
+    /// The reference's default (physical-robot) configuration, parity mode.
+    pub fn reference() -> Self {
+        Self {
+            max_neighbors: vec![16; 4],
+            max_radius: vec![0.2, 0.4, 0.8, 1.6],
+            pool_ratio: vec![1.0, 0.25, 0.25, 0.25],
+            sphere_channels: vec![32, 32, 64, 128, 256],
+            attn_hidden_channels: vec![16, 16, 32, 64],
+            num_heads: 4,
+            attn_alpha_channels: vec![8, 8, 16, 32],
+            attn_value_channels: vec![4, 4, 8, 16],
+            ffn_hidden_channels: vec![64, 64, 128, 256],
+            lmax: 3,
+            mmax: 2,
+            field_nn_c: 64,
+            n_gripper_pos: 10,
+            lang_heads: 6,
+            lang_dim_head: 64,
+            rotation_grid_level: 1,
+            s2_resolution: S2Resolution::Reference,
+            upsample_distance: UpsampleDistance::L1,
+        }
+    }
+
+    /// Reads the `EquFieldUnet` constructor record of a fixture sidecar (parity mode).
+    pub fn from_constructor(v: &serde_json::Value) -> Result<Self> {
+        let bad = |k: &str| PolicyError::Sidecar {
+            path: "constructor.EquFieldUnet".into(),
+            message: format!("{k} missing or malformed"),
+        };
+        let list_u = |k: &str| -> Result<Vec<usize>> {
+            v.get(k)
+                .and_then(|x| x.as_array())
+                .and_then(|a| {
+                    a.iter()
+                        .map(|x| x.as_u64().map(|u| u as usize))
+                        .collect::<Option<Vec<_>>>()
+                })
+                .ok_or_else(|| bad(k))
+        };
+        let list_f = |k: &str| -> Result<Vec<f64>> {
+            v.get(k)
+                .and_then(|x| x.as_array())
+                .and_then(|a| a.iter().map(|x| x.as_f64()).collect::<Option<Vec<_>>>())
+                .ok_or_else(|| bad(k))
+        };
+        let one = |k: &str| -> Result<usize> {
+            v.get(k)
+                .and_then(|x| x.as_u64())
+                .map(|u| u as usize)
+                .ok_or_else(|| bad(k))
+        };
+        let first =
+            |k: &str| -> Result<usize> { list_u(k)?.first().copied().ok_or_else(|| bad(k)) };
+        let cfg = Self {
+            max_neighbors: list_u("max_neighbors")?,
+            max_radius: list_f("max_radius")?,
+            pool_ratio: list_f("pool_ratio")?,
+            sphere_channels: list_u("sphere_channels")?,
+            attn_hidden_channels: list_u("attn_hidden_channels")?,
+            num_heads: one("num_heads")?,
+            attn_alpha_channels: list_u("attn_alpha_channels")?,
+            attn_value_channels: list_u("attn_value_channels")?,
+            ffn_hidden_channels: list_u("ffn_hidden_channels")?,
+            lmax: first("lmax_list")?,
+            mmax: first("mmax_list")?,
+            field_nn_c: one("field_nn_c")?,
+            n_gripper_pos: one("n_gripper_pos")?,
+            ..Self::reference()
+        };
+        cfg.validate()?;
+        Ok(cfg)
+    }
+
+    /// Number of U-net scales.
+    pub fn n_scales(&self) -> usize {
+        self.max_radius.len()
+    }
+
+    /// Checks that the per-scale lists agree in length.
+    pub fn validate(&self) -> Result<()> {
+        let n = self.n_scales();
+        let lists = [
+            ("max_neighbors", self.max_neighbors.len(), n),
+            ("pool_ratio", self.pool_ratio.len(), n),
+            ("sphere_channels", self.sphere_channels.len(), n + 1),
+            ("attn_hidden_channels", self.attn_hidden_channels.len(), n),
+            ("attn_alpha_channels", self.attn_alpha_channels.len(), n),
+            ("attn_value_channels", self.attn_value_channels.len(), n),
+            ("ffn_hidden_channels", self.ffn_hidden_channels.len(), n),
+        ];
+        for (name, got, expected) in lists {
+            if got != expected || n < 2 {
+                return Err(PolicyError::ShapeMismatch {
+                    name: format!("model config {name}"),
+                    expected: vec![expected],
+                    got: vec![got],
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Discrete choices of one U-net block; `None` means "compute".
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct BlockIndices {
+    /// FPS picks (sorted) into the block's input nodes.
+    pub fps: Option<Vec<usize>>,
+    /// Per pooled centre, its neighbours among the input nodes.
+    pub pool_knn: Option<Vec<Vec<usize>>>,
+    /// Per fine point, its up-sampling neighbours among the coarse nodes.
+    pub up_knn: Option<Vec<Vec<usize>>>,
+    /// Graph edges (src, dst), grouped by destination.
+    pub graph: Option<(Vec<usize>, Vec<usize>)>,
+}
+
+/// What one block did: the choices it used and its output.
+#[derive(Debug, Clone)]
+pub struct BlockTrace {
+    /// Block name (`down0`, ..., `middle`, `up0`, ...).
+    pub name: String,
+    /// The choices made (all `Some` where the block made them).
+    pub indices: BlockIndices,
+    /// Output node positions.
+    pub coord: Vec<[f32; 3]>,
+    /// Output features `[n, (lmax+1)², c]` of the block's TransBlock.
+    pub embedding: Vec<f32>,
+    /// For up blocks with a skip: the features after the skip was added.
+    pub after_skip: Option<Vec<f32>>,
+}
+
+/// The encoded scene: U-net output on the cloud points.
+#[derive(Debug, Clone)]
+pub struct Encoded {
+    /// The FiLM condition `[dim]`.
+    pub condition: Vec<f32>,
+    /// The effective point positions (gripper points written in).
+    pub xyz: Vec<[f32; 3]>,
+    /// Output features `[n, (lmax+1)², field_nn_c]` after `norm_1`.
+    pub embedding: Vec<f32>,
+    /// Output node positions.
+    pub coord: Vec<[f32; 3]>,
+    /// Per block: choices and outputs.
+    pub blocks: Vec<BlockTrace>,
+}
+
+/// The robot state the network reads: position, quaternion (x, y, z, w), open state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GripperState {
+    /// Position (m).
+    pub position: [f32; 3],
+    /// Orientation quaternion (x, y, z, w).
+    pub quaternion: [f32; 4],
+    /// Open state (1 open, 0 closed).
+    pub open: f32,
+}
+
+impl GripperState {
+    /// The rotation matrix of the quaternion (PyTorch3D's formula, in f32).
+    pub fn matrix(&self) -> [[f32; 3]; 3] {
+        let [i, j, k, r] = self.quaternion;
+        let two_s = 2.0 / (r * r + i * i + j * j + k * k);
+        [
+            [
+                1.0 - two_s * (j * j + k * k),
+                two_s * (i * j - k * r),
+                two_s * (i * k + j * r),
+            ],
+            [
+                two_s * (i * j + k * r),
+                1.0 - two_s * (i * i + k * k),
+                two_s * (j * k - i * r),
+            ],
+            [
+                two_s * (i * k - j * r),
+                two_s * (j * k + i * r),
+                1.0 - two_s * (i * i + j * j),
+            ],
+        ]
+    }
+}
+
+#[derive(Debug, Clone)]
+struct UnetBlock {
+    name: String,
+    scale: f64,
+    k: usize,
+    rbf: GaussianRbf,
+    block: TransBlock,
+}
+
+/// The `EquFieldUnet` network.
+#[derive(Debug, Clone)]
+pub struct EquFieldUnet {
+    /// Configuration.
+    pub cfg: ModelConfig,
+    lang: InstructionEncoder,
+    type0: Linear,
+    down: Vec<UnetBlock>,
+    middle: UnetBlock,
+    up: Vec<UnetBlock>,
+    norm_1: RmsNormSh,
+    heads: FieldHeads,
+    calc: WignerCalculator,
+}
+
+/// Translation, open and rotation outputs of the heads.
+#[derive(Debug, Clone)]
+pub struct FieldOutputs {
+    /// Translation logits at the queries.
+    pub trans_logits: Vec<f32>,
+    /// Rotation query (open logit, rotation logits).
+    pub rot: RotationQuery,
+}
+
+impl EquFieldUnet {
+    /// Loads every module from `s` (keys as the reference's `state_dict()`).
+    pub fn load(s: &Scope<'_>, cfg: ModelConfig) -> Result<Self> {
+        cfg.validate()?;
+        let n = cfg.n_scales();
+        let lang = InstructionEncoder::load(s, cfg.lang_heads, cfg.lang_dim_head)?;
+        let type0 = Linear::load_sized(&s.sub("type0_linear"), cfg.sphere_channels[0], 3, true)?;
+        let block = |scope: Scope<'_>, name: String, i: usize, cin: usize, cout: usize, scale| {
+            let attn = AttentionConfig {
+                lmax: cfg.lmax,
+                mmax: cfg.mmax,
+                sphere_channels: cin,
+                hidden_channels: cfg.attn_hidden_channels[i],
+                num_heads: cfg.num_heads,
+                alpha_channels: cfg.attn_alpha_channels[i],
+                value_channels: cfg.attn_value_channels[i],
+                output_channels: cin,
+            };
+            let tb = TransBlock::load_with_grids(
+                &scope.sub("transblock"),
+                TransBlockConfig {
+                    attn,
+                    ffn_hidden_channels: cfg.ffn_hidden_channels[i],
+                    output_channels: cout,
+                    film: true,
+                },
+                cfg.s2_resolution.grid(cfg.lmax, cfg.mmax)?,
+                cfg.s2_resolution.grid(cfg.lmax, cfg.lmax)?,
+            )?;
+            Ok::<_, PolicyError>(UnetBlock {
+                name,
+                scale,
+                k: cfg.max_neighbors[i],
+                rbf: GaussianRbf::load(&scope.sub("distance_expansion"), cfg.max_radius[i] * 0.99)?,
+                block: tb,
+            })
+        };
+        let sc = &cfg.sphere_channels;
+        let mut down = Vec::with_capacity(n);
+        for i in 0..n {
+            down.push(block(
+                s.sub("down_blocks").sub(&i.to_string()).sub("block"),
+                format!("down{i}"),
+                i,
+                sc[i],
+                sc[i + 1],
+                cfg.pool_ratio[i],
+            )?);
+        }
+        let middle = block(
+            s.sub("middle_block").sub("block"),
+            "middle".into(),
+            n - 1,
+            sc[n],
+            sc[n],
+            cfg.pool_ratio[n - 1],
+        )?;
+        let mut up = Vec::with_capacity(n);
+        for (j, i) in (0..n).rev().enumerate() {
+            let cout = if i == 0 { cfg.field_nn_c } else { sc[i] };
+            up.push(block(
+                s.sub("up_blocks").sub(&j.to_string()).sub("block"),
+                format!("up{j}"),
+                i,
+                sc[i + 1],
+                cout,
+                1.0 / cfg.pool_ratio[i],
+            )?);
+        }
+        let norm_1 = RmsNormSh::load(&s.sub("norm_1"), cfg.lmax, cfg.field_nn_c)?;
+        let heads = FieldHeads::load_with(
+            s,
+            FieldHeadsConfig {
+                field_channels: cfg.field_nn_c,
+                attn_hidden_channels: cfg.attn_hidden_channels[1],
+                num_heads: cfg.num_heads,
+                alpha_channels: cfg.attn_alpha_channels[1],
+                value_channels: cfg.attn_value_channels[1],
+                ffn_hidden_channels: cfg.ffn_hidden_channels[1],
+                node_lmax: cfg.lmax,
+            },
+            cfg.rotation_grid_level,
+            cfg.s2_resolution,
+        )?;
+        Ok(Self {
+            calc: WignerCalculator::new(cfg.lmax)?,
+            cfg,
+            lang,
+            type0,
+            down,
+            middle,
+            up,
+            norm_1,
+            heads,
+        })
+    }
+
+    /// The field heads (rotation grid, logits on other rotations).
+    pub fn heads(&self) -> &FieldHeads {
+        &self.heads
+    }
+
+    /// The instruction encoder.
+    pub fn language(&self) -> &InstructionEncoder {
+        &self.lang
+    }
+
+    /// Names of the U-net blocks in execution order.
+    pub fn block_names(&self) -> Vec<String> {
+        self.down
+            .iter()
+            .chain(std::iter::once(&self.middle))
+            .chain(&self.up)
+            .map(|b| b.name.clone())
+            .collect()
+    }
+
+    /// Encodes one observation: `xyz`, `rgb` (in [0, 1]) of equal length, the gripper state,
+    /// the jitter of the gripper points (`n_gripper_pos` offsets, ~1e-5), and the instruction
+    /// tokens `[T, token_dim]`. `overrides` (by block name) replaces computed choices.
+    pub fn encode(
+        &self,
+        xyz: &[[f32; 3]],
+        rgb: &[[f32; 3]],
+        gripper: &GripperState,
+        gripper_eps: &[[f32; 3]],
+        instruction: &[f32],
+        overrides: &[(String, BlockIndices)],
+    ) -> Result<Encoded> {
+        let cfg = &self.cfg;
+        let n = xyz.len();
+        let ng = cfg.n_gripper_pos;
+        if n <= ng {
+            return Err(PolicyError::TooFewPoints {
+                what: "encode (cloud points plus the gripper points)",
+                needed: ng + 1,
+                got: n,
+            });
+        }
+        check_finite("point cloud", xyz)?;
+        if rgb.len() != n || gripper_eps.len() != ng {
+            return Err(PolicyError::ShapeMismatch {
+                name: "rgb / gripper_eps".into(),
+                expected: vec![n, ng],
+                got: vec![rgb.len(), gripper_eps.len()],
+            });
+        }
+        let condition = self.lang.condition(instruction, 1)?;
+        let mut pts = xyz.to_vec();
+        let mut feat: Vec<f32> = Vec::with_capacity(n * 3);
+        for (i, c) in rgb.iter().enumerate() {
+            let c = if i >= n - ng {
+                [(gripper.open - 0.5) * 10.0; 3]
+            } else {
+                *c
+            };
+            feat.extend(c.iter().map(|v| v - 0.5));
+        }
+        for (p, e) in pts[n - ng..].iter_mut().zip(gripper_eps) {
+            *p = [
+                gripper.position[0] + e[0],
+                gripper.position[1] + e[1],
+                gripper.position[2] + e[2],
+            ];
+        }
+        check_finite("point cloud with gripper points", &pts)?;
+        let k = num_coefficients(cfg.lmax);
+        let c0 = cfg.sphere_channels[0];
+        if c0 < 3 || k < 4 {
+            return Err(PolicyError::ShapeMismatch {
+                name: "sphere_channels[0] (the gripper axes need 3 type-1 channels)".into(),
+                expected: vec![3],
+                got: vec![c0],
+            });
+        }
+        let t0 = self.type0.forward(&feat)?;
+        let mut x = vec![0.0f32; n * k * c0];
+        for node in 0..n {
+            x[node * k * c0..node * k * c0 + c0].copy_from_slice(&t0[node * c0..(node + 1) * c0]);
+        }
+        let g = gripper.matrix();
+        for node in n - ng..n {
+            for (a, row) in g.iter().enumerate() {
+                for (ch, v) in row.iter().enumerate() {
+                    x[(node * k + 1 + a) * c0 + ch] = 10.0 * v;
+                }
+            }
+        }
+        let find = |name: &str| {
+            overrides
+                .iter()
+                .find(|(b, _)| b == name)
+                .map(|(_, i)| i.clone())
+                .unwrap_or_default()
+        };
+        let mut blocks = Vec::new();
+        let mut coord = pts.clone();
+        let mut skips: Vec<(Vec<[f32; 3]>, Vec<f32>)> = Vec::new();
+        for b in &self.down {
+            let (c2, x2) =
+                self.block_forward(b, &coord, &x, None, &condition, find(&b.name), &mut blocks)?;
+            coord = c2;
+            x = x2;
+            skips.push((coord.clone(), x.clone()));
+        }
+        skips.pop();
+        let (c2, x2) = self.block_forward(
+            &self.middle,
+            &coord,
+            &x,
+            None,
+            &condition,
+            find(&self.middle.name),
+            &mut blocks,
+        )?;
+        coord = c2;
+        x = x2;
+        for b in &self.up {
+            let skip = if b.scale > 1.0 { skips.pop() } else { None };
+            let (c2, mut x2) = self.block_forward(
+                b,
+                &coord,
+                &x,
+                skip.as_ref().map(|s| s.0.as_slice()),
+                &condition,
+                find(&b.name),
+                &mut blocks,
+            )?;
+            if let Some((_, sx)) = &skip {
+                if sx.len() != x2.len() {
+                    return Err(PolicyError::ShapeMismatch {
+                        name: format!("{} skip features", b.name),
+                        expected: vec![x2.len()],
+                        got: vec![sx.len()],
+                    });
+                }
+                for (a, s) in x2.iter_mut().zip(sx) {
+                    *a += s;
+                }
+                if let Some(t) = blocks.last_mut() {
+                    t.after_skip = Some(x2.clone());
+                }
+            }
+            coord = c2;
+            x = x2;
+        }
+        let embedding = self.norm_1.forward(&x)?;
+        Ok(Encoded {
+            condition,
+            xyz: pts,
+            embedding,
+            coord,
+            blocks,
+        })
+    }
+
+    #[allow(clippy::too_many_arguments)]
+    fn block_forward(
+        &self,
+        b: &UnetBlock,
+        coord: &[[f32; 3]],
+        x: &[f32],
+        up_coord: Option<&[[f32; 3]]>,
+        condition: &[f32],
+        mut idx: BlockIndices,
+        trace: &mut Vec<BlockTrace>,
+    ) -> Result<(Vec<[f32; 3]>, Vec<f32>)> {
+        let lmax = self.cfg.lmax;
+        let k = num_coefficients(lmax);
+        let n = coord.len();
+        let c = rows_of(&format!("{} input features", b.name), x.len(), n.max(1) * k)?;
+        let (coord, x) = if b.scale < 1.0 {
+            let m = ((b.scale * n as f64).ceil() as usize).max(1);
+            let fps = match idx.fps.take() {
+                Some(f) => f,
+                None => farthest_point_sampling(coord, m)?,
+            };
+            let centres: Vec<[f32; 3]> = fps
+                .iter()
+                .map(|&i| {
+                    coord.get(i).copied().ok_or(PolicyError::IndexOutOfRange {
+                        name: format!("{} fps", b.name),
+                        value: i as i64,
+                        len: n,
+                    })
+                })
+                .collect::<Result<_>>()?;
+            let nb = match idx.pool_knn.take() {
+                Some(v) => v,
+                None => knn(coord, &centres, POOL_NEIGHBOURS)?,
+            };
+            let pooled = coefficient_max_pool(x, n, lmax, c, &nb)?;
+            idx.fps = Some(fps);
+            idx.pool_knn = Some(nb);
+            (centres, pooled)
+        } else if b.scale > 1.0 {
+            let Some(up) = up_coord else {
+                return Err(PolicyError::TooFewPoints {
+                    what: "up-sampling block without skip coordinates",
+                    needed: 1,
+                    got: 0,
+                });
+            };
+            let nb = match idx.up_knn.take() {
+                Some(v) => v,
+                None => knn(coord, up, UPSAMPLE_NEIGHBOURS)?,
+            };
+            let w = upsample_weights(up, coord, &nb, self.cfg.upsample_distance)?;
+            let y = upsample(x, n, k * c, &nb, &w)?;
+            idx.up_knn = Some(nb);
+            (up.to_vec(), y)
+        } else {
+            (coord.to_vec(), x.to_vec())
+        };
+        let (src, dst) = match idx.graph.take() {
+            Some(g) => g,
+            None => knn_graph(&coord, b.k)?,
+        };
+        let edges = EdgeSet::new(
+            &self.calc,
+            lmax,
+            &coord,
+            &coord,
+            src.clone(),
+            dst.clone(),
+            &b.rbf,
+        )?;
+        let y = b.block.forward(&x, &x, &edges, Some(condition))?;
+        idx.graph = Some((src, dst));
+        trace.push(BlockTrace {
+            name: b.name.clone(),
+            indices: idx,
+            coord: coord.clone(),
+            embedding: y.clone(),
+            after_skip: None,
+        });
+        Ok((coord, y))
+    }
+
+    /// Runs the heads on an encoded scene: translation logits at `trans_queries`, open and
+    /// rotation logits at `rot_query`.
+    pub fn query(
+        &self,
+        enc: &Encoded,
+        trans_queries: &[[f32; 3]],
+        rot_query: [f32; 3],
+    ) -> Result<FieldOutputs> {
+        Ok(FieldOutputs {
+            trans_logits: self
+                .heads
+                .trans_logits(&enc.embedding, &enc.coord, trans_queries)?,
+            rot: self
+                .heads
+                .rot_query(&enc.embedding, &enc.coord, rot_query)?,
+        })
+    }
+}
+
+/// The U-net's kNN graph: for each node its `k` nearest nodes (itself included) by
+/// increasing distance, the self edge dropped; (src, dst) grouped by destination.
+pub fn knn_graph(coord: &[[f32; 3]], k: usize) -> Result<(Vec<usize>, Vec<usize>)> {
+    let nb = knn(coord, coord, k)?;
+    let (mut src, mut dst) = (Vec::new(), Vec::new());
+    for (d, row) in nb.iter().enumerate() {
+        for &s in row.iter().filter(|&&s| s != d) {
+            src.push(s);
+            dst.push(d);
+        }
+    }
+    Ok((src, dst))
+}

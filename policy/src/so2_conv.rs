@@ -1,0 +1,341 @@
+//! The edge-frame message path: rotation of features into each edge's frame (keeping
+//! |m| <= m_max), the SO(2) convolution, and the rotation back.
+//!
+//! Spec: fixtures README ("Reduced (m-truncated) order", "Edge frame") and the `so2_conv`
+//! sidecar. Inside the frame the coefficients are in reduced l-major order; the SO(2)
+//! convolution works on (l, ±m) pairs: out(+m) = R a − I b, out(−m) = R b + I a, with R and I
+//! the two halves of one bias-free Linear, and the m = 0 block a Linear with bias whose first
+//! outputs are extra invariant scalars.
+
+use crate::error::{PolicyError, Result};
+use crate::grids::reduced_coefficients;
+use crate::layers::{check_len, degree_of, rows_of, Linear, RadialMlp};
+use crate::so3::{edge_rot_mat, num_coefficients, WignerCalculator};
+use crate::weights::Scope;
+
+/// The reduced coefficient set for (lmax, mmax) and its (l, m) bookkeeping.
+#[derive(Debug, Clone)]
+pub struct CoefficientMapping {
+    /// Maximum degree.
+    pub lmax: usize,
+    /// Maximum order kept.
+    pub mmax: usize,
+    /// Full-basis index (l² + m + l) of each reduced coefficient, l-major.
+    pub reduced: Vec<usize>,
+}
+
+impl CoefficientMapping {
+    /// The mapping for (lmax, mmax), mmax <= lmax.
+    pub fn new(lmax: usize, mmax: usize) -> Result<Self> {
+        if mmax > lmax {
+            return Err(PolicyError::UnsupportedDegree {
+                lmax,
+                mmax,
+                max_supported: crate::so3::MAX_DEGREE,
+            });
+        }
+        Ok(Self {
+            lmax,
+            mmax,
+            reduced: reduced_coefficients(lmax, mmax),
+        })
+    }
+
+    /// Number of reduced coefficients.
+    pub fn len(&self) -> usize {
+        self.reduced.len()
+    }
+
+    /// Whether the set is empty (never, for valid degrees).
+    pub fn is_empty(&self) -> bool {
+        self.reduced.is_empty()
+    }
+
+    /// Position in the reduced order of coefficient (l, m), |m| <= min(l, mmax).
+    pub fn position(&self, l: usize, m: i64) -> usize {
+        // Rows before degree l: Σ_{l' < l} (2 min(l', mmax) + 1).
+        let before: usize = (0..l).map(|lp| 2 * lp.min(self.mmax) + 1).sum();
+        let half = l.min(self.mmax) as i64;
+        before + (m + half) as usize
+    }
+
+    /// The m-major order used inside the SO(2) convolution, as reduced positions: m = 0
+    /// (l ascending), then +1, −1, +2, −2, ...
+    pub fn m_major(&self) -> Vec<usize> {
+        let mut out = Vec::with_capacity(self.len());
+        for l in 0..=self.lmax {
+            out.push(self.position(l, 0));
+        }
+        for m in 1..=self.mmax as i64 {
+            for sign in [1, -1] {
+                for l in m as usize..=self.lmax {
+                    out.push(self.position(l, sign * m));
+                }
+            }
+        }
+        out
+    }
+
+    /// The multiplier of full-basis row `i` when rotating back: √((2l+1)/(2 mmax+1)) for
+    /// l > mmax, else 1.
+    pub fn rotate_inv_rescale(&self, i: usize) -> f32 {
+        let l = degree_of(i);
+        if l > self.mmax {
+            (((2 * l + 1) as f64) / ((2 * self.mmax + 1) as f64)).sqrt() as f32
+        } else {
+            1.0
+        }
+    }
+}
+
+/// Per-edge Wigner matrices D(edge frame), `[E, (lmax+1)², (lmax+1)²]` row-major.
+#[derive(Debug, Clone)]
+pub struct EdgeWigners {
+    /// Maximum degree.
+    pub lmax: usize,
+    /// Number of edges.
+    pub edges: usize,
+    /// The matrices.
+    pub d: Vec<f32>,
+}
+
+impl EdgeWigners {
+    /// D of the reference's edge frame (`init_edge_rot_mat2`) of each edge vector.
+    pub fn new(calc: &WignerCalculator, lmax: usize, edge_vec: &[[f32; 3]]) -> Result<Self> {
+        let k = num_coefficients(lmax);
+        let mut d = Vec::with_capacity(edge_vec.len() * k * k);
+        for v in edge_vec {
+            let r = edge_rot_mat([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])])?;
+            let w = calc.wigner(lmax, &r)?;
+            for i in 0..k {
+                for j in 0..k {
+                    d.push(w[(i, j)] as f32);
+                }
+            }
+        }
+        Ok(Self {
+            lmax,
+            edges: edge_vec.len(),
+            d,
+        })
+    }
+
+    /// Rotates `x` `[E, (lmax+1)², c]` into the edge frames, keeping the reduced rows:
+    /// `[E, n_reduced, c]`.
+    pub fn rotate(&self, map: &CoefficientMapping, x: &[f32], c: usize) -> Result<Vec<f32>> {
+        let k = num_coefficients(self.lmax);
+        check_len("features to rotate", x.len(), &[self.edges, k, c])?;
+        let nr = map.len();
+        let mut y = vec![0.0f32; self.edges * nr * c];
+        for e in 0..self.edges {
+            let d = &self.d[e * k * k..(e + 1) * k * k];
+            let xe = &x[e * k * c..(e + 1) * k * c];
+            let ye = &mut y[e * nr * c..(e + 1) * nr * c];
+            for (r, &i) in map.reduced.iter().enumerate() {
+                let l = degree_of(i);
+                let yr = &mut ye[r * c..(r + 1) * c];
+                for j in l * l..(l + 1) * (l + 1) {
+                    let dij = d[i * k + j];
+                    for (yc, xc) in yr.iter_mut().zip(&xe[j * c..(j + 1) * c]) {
+                        *yc += dij * xc;
+                    }
+                }
+            }
+        }
+        Ok(y)
+    }
+
+    /// Rotates `y` `[E, n_reduced, c]` back to the global frame with Dᵀ and the reference's
+    /// rescaling of degrees above mmax: `[E, (lmax+1)², c]`.
+    pub fn rotate_back(&self, map: &CoefficientMapping, y: &[f32], c: usize) -> Result<Vec<f32>> {
+        let k = num_coefficients(self.lmax);
+        let nr = map.len();
+        check_len("features to rotate back", y.len(), &[self.edges, nr, c])?;
+        let mut x = vec![0.0f32; self.edges * k * c];
+        for e in 0..self.edges {
+            let d = &self.d[e * k * k..(e + 1) * k * k];
+            let ye = &y[e * nr * c..(e + 1) * nr * c];
+            let xe = &mut x[e * k * c..(e + 1) * k * c];
+            for (r, &i) in map.reduced.iter().enumerate() {
+                let l = degree_of(i);
+                let yr = &ye[r * c..(r + 1) * c];
+                for j in l * l..(l + 1) * (l + 1) {
+                    let w = d[i * k + j] * map.rotate_inv_rescale(j);
+                    for (xc, yc) in xe[j * c..(j + 1) * c].iter_mut().zip(yr) {
+                        *xc += w * yc;
+                    }
+                }
+            }
+        }
+        Ok(x)
+    }
+}
+
+/// `SO2_Convolution`: per-|m| linear maps in the edge frame, optionally scaled by a radial MLP
+/// of invariant edge features, with extra invariant m = 0 outputs.
+#[derive(Debug, Clone)]
+pub struct So2Conv {
+    map: CoefficientMapping,
+    /// Input channels.
+    pub cin: usize,
+    /// Output channels.
+    pub cout: usize,
+    /// Extra m = 0 outputs (0 for none).
+    pub extra: usize,
+    fc_m0: Linear,
+    fc_m: Vec<Linear>,
+    rad: Option<RadialMlp>,
+}
+
+impl So2Conv {
+    /// Loads `fc_m0`, `so2_m_conv.{m-1}.fc` and, if `radial`, `rad_func`.
+    pub fn load(
+        s: &Scope<'_>,
+        map: &CoefficientMapping,
+        cin: usize,
+        cout: usize,
+        extra: usize,
+        radial: bool,
+    ) -> Result<Self> {
+        let l1 = map.lmax + 1;
+        let fc_m0 = Linear::load_sized(&s.sub("fc_m0"), extra + l1 * cout, l1 * cin, true)?;
+        let mut fc_m = Vec::new();
+        let mut rad_width = l1 * cin;
+        for m in 1..=map.mmax {
+            let nl = map.lmax + 1 - m;
+            fc_m.push(Linear::load_sized(
+                &s.sub("so2_m_conv").sub(&(m - 1).to_string()).sub("fc"),
+                2 * nl * cout,
+                nl * cin,
+                false,
+            )?);
+            rad_width += nl * cin;
+        }
+        let rad = if radial {
+            let r = RadialMlp::load(&s.sub("rad_func"))?;
+            if r.out() != rad_width {
+                return Err(PolicyError::ShapeMismatch {
+                    name: s.key("rad_func (output width)"),
+                    expected: vec![rad_width],
+                    got: vec![r.out()],
+                });
+            }
+            Some(r)
+        } else {
+            None
+        };
+        Ok(Self {
+            map: map.clone(),
+            cin,
+            cout,
+            extra,
+            fc_m0,
+            fc_m,
+            rad,
+        })
+    }
+
+    /// Input width of the radial MLP (0 without one).
+    pub fn edge_features(&self) -> usize {
+        self.rad.as_ref().map_or(0, RadialMlp::inp)
+    }
+
+    /// Applies the convolution to `x` `[E, n_reduced, cin]` (reduced l-major order) with the
+    /// invariant edge features `x_edge` `[E, edge_features]` (ignored without a radial MLP).
+    /// Returns `[E, n_reduced, cout]` and the extra outputs `[E, extra]`.
+    pub fn forward(&self, x: &[f32], x_edge: Option<&[f32]>) -> Result<(Vec<f32>, Vec<f32>)> {
+        let nr = self.map.len();
+        let (cin, cout) = (self.cin, self.cout);
+        let edges = rows_of("SO(2) convolution input", x.len(), nr * cin)?;
+        let rad = match (&self.rad, x_edge) {
+            (Some(r), Some(xe)) => {
+                check_len(
+                    "SO(2) convolution edge features",
+                    xe.len(),
+                    &[edges, r.inp()],
+                )?;
+                Some(r.forward(xe)?)
+            }
+            (Some(r), None) => {
+                return Err(PolicyError::ShapeMismatch {
+                    name: "SO(2) convolution edge features (required by its radial MLP)".into(),
+                    expected: vec![edges, r.inp()],
+                    got: vec![0],
+                })
+            }
+            (None, _) => None,
+        };
+        let rad_w = self.rad.as_ref().map_or(0, RadialMlp::out);
+        let lmax = self.map.lmax;
+        let mut y = vec![0.0f32; edges * nr * cout];
+        let mut extra = vec![0.0f32; edges * self.extra];
+        let mut v = Vec::new();
+        let mut o = Vec::new();
+        let mut va = Vec::new();
+        let mut vb = Vec::new();
+        let mut oa = Vec::new();
+        let mut ob = Vec::new();
+        for e in 0..edges {
+            let xe = &x[e * nr * cin..(e + 1) * nr * cin];
+            let re = rad.as_ref().map(|r| &r[e * rad_w..(e + 1) * rad_w]);
+            let ye = &mut y[e * nr * cout..(e + 1) * nr * cout];
+            // m = 0.
+            v.clear();
+            for l in 0..=lmax {
+                let p = self.map.position(l, 0);
+                v.extend_from_slice(&xe[p * cin..(p + 1) * cin]);
+            }
+            if let Some(re) = re {
+                for (vi, ri) in v.iter_mut().zip(re) {
+                    *vi *= ri;
+                }
+            }
+            o.resize(self.fc_m0.out, 0.0);
+            self.fc_m0.forward_row(&v, &mut o);
+            extra[e * self.extra..(e + 1) * self.extra].copy_from_slice(&o[..self.extra]);
+            for l in 0..=lmax {
+                let p = self.map.position(l, 0);
+                ye[p * cout..(p + 1) * cout]
+                    .copy_from_slice(&o[self.extra + l * cout..self.extra + (l + 1) * cout]);
+            }
+            // m > 0.
+            let mut roff = (lmax + 1) * cin;
+            for (mi, fc) in self.fc_m.iter().enumerate() {
+                let m = mi + 1;
+                let nl = lmax + 1 - m;
+                va.clear();
+                vb.clear();
+                for l in m..=lmax {
+                    let pa = self.map.position(l, m as i64);
+                    let pb = self.map.position(l, -(m as i64));
+                    va.extend_from_slice(&xe[pa * cin..(pa + 1) * cin]);
+                    vb.extend_from_slice(&xe[pb * cin..(pb + 1) * cin]);
+                }
+                if let Some(re) = re {
+                    let rw = &re[roff..roff + nl * cin];
+                    for ((a, b), r) in va.iter_mut().zip(vb.iter_mut()).zip(rw) {
+                        *a *= r;
+                        *b *= r;
+                    }
+                }
+                roff += nl * cin;
+                oa.resize(fc.out, 0.0);
+                ob.resize(fc.out, 0.0);
+                fc.forward_row(&va, &mut oa);
+                fc.forward_row(&vb, &mut ob);
+                let half = nl * cout;
+                for (li, l) in (m..=lmax).enumerate() {
+                    let pa = self.map.position(l, m as i64);
+                    let pb = self.map.position(l, -(m as i64));
+                    for ch in 0..cout {
+                        let q = li * cout + ch;
+                        // out(+m) = R a - I b, out(-m) = R b + I a.
+                        ye[pa * cout + ch] = oa[q] - ob[half + q];
+                        ye[pb * cout + ch] = ob[q] + oa[half + q];
+                    }
+                }
+            }
+        }
+        Ok((y, extra))
+    }
+}

@@ -1,0 +1,141 @@
+//! Named parameter store: loads the reference's state-dict layout from safetensors and hands
+//! out tensors by name, checking presence and shape.
+//!
+//! Parameter names are the keys of the reference module's `state_dict()` (e.g.
+//! `ga.so2_conv_1.fc_m0.weight`); a [`Scope`] prefixes them, so a layer is built from the
+//! scope of its module and the same code serves a fixture (`param.` prefix), a converted
+//! checkpoint (no prefix) or a sub-module of the whole model.
+
+use std::collections::HashMap;
+use std::path::Path;
+
+use crate::error::{PolicyError, Result};
+use crate::fixtures::{read_safetensors, StoredTensor, TensorData};
+
+/// All tensors of one weights file, by full key.
+#[derive(Debug, Clone)]
+pub struct Weights {
+    source: String,
+    tensors: HashMap<String, StoredTensor>,
+}
+
+/// A view of a [`Weights`] store under a key prefix (a module path).
+#[derive(Debug, Clone)]
+pub struct Scope<'a> {
+    weights: &'a Weights,
+    prefix: String,
+}
+
+impl Weights {
+    /// Reads every tensor of a safetensors file.
+    pub fn from_file(path: &Path) -> Result<Self> {
+        Ok(Self {
+            source: path.display().to_string(),
+            tensors: read_safetensors(path)?,
+        })
+    }
+
+    /// Wraps tensors already in memory; `source` names them in error messages.
+    pub fn from_tensors(source: &str, tensors: HashMap<String, StoredTensor>) -> Self {
+        Self {
+            source: source.to_string(),
+            tensors,
+        }
+    }
+
+    /// Where the tensors came from (for error messages).
+    pub fn source(&self) -> &str {
+        &self.source
+    }
+
+    /// Whether a full key is present.
+    pub fn contains(&self, key: &str) -> bool {
+        self.tensors.contains_key(key)
+    }
+
+    /// The root scope, with keys under `prefix` (e.g. `"param."`, or `""`).
+    pub fn scope(&self, prefix: &str) -> Scope<'_> {
+        Scope {
+            weights: self,
+            prefix: prefix.to_string(),
+        }
+    }
+
+    fn raw(&self, key: &str) -> Result<&StoredTensor> {
+        self.tensors
+            .get(key)
+            .ok_or_else(|| PolicyError::MissingTensor {
+                name: key.to_string(),
+                file: self.source.clone(),
+            })
+    }
+
+    /// A float32 tensor with exactly the given shape.
+    pub fn f32(&self, key: &str, shape: &[usize]) -> Result<Vec<f32>> {
+        let (got, v) = self.f32_any(key)?;
+        if got != shape {
+            return Err(PolicyError::ShapeMismatch {
+                name: key.to_string(),
+                expected: shape.to_vec(),
+                got,
+            });
+        }
+        Ok(v)
+    }
+
+    /// A float32 tensor of any shape, with its shape.
+    pub fn f32_any(&self, key: &str) -> Result<(Vec<usize>, Vec<f32>)> {
+        let t = self.raw(key)?;
+        match &t.data {
+            TensorData::F32(v) => Ok((t.shape.clone(), v.clone())),
+            TensorData::I64(_) => Err(PolicyError::WrongDtype {
+                name: key.to_string(),
+                expected: "F32",
+                got: "I64".into(),
+            }),
+        }
+    }
+
+    /// The shape of a tensor, checked to have `rank` axes.
+    pub fn shape(&self, key: &str, rank: usize) -> Result<Vec<usize>> {
+        let t = self.raw(key)?;
+        if t.shape.len() != rank {
+            return Err(PolicyError::ShapeMismatch {
+                name: key.to_string(),
+                expected: vec![0; rank],
+                got: t.shape.clone(),
+            });
+        }
+        Ok(t.shape.clone())
+    }
+}
+
+impl<'a> Scope<'a> {
+    /// The scope of a sub-module (`self.prefix + name + "."`).
+    pub fn sub(&self, name: &str) -> Scope<'a> {
+        Scope {
+            weights: self.weights,
+            prefix: format!("{}{}.", self.prefix, name),
+        }
+    }
+
+    /// The full key of a parameter in this scope.
+    pub fn key(&self, name: &str) -> String {
+        format!("{}{}", self.prefix, name)
+    }
+
+    /// Whether the parameter exists in this scope.
+    pub fn contains(&self, name: &str) -> bool {
+        self.weights.contains(&self.key(name))
+    }
+
+    /// A float32 parameter with exactly the given shape.
+    pub fn f32(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>> {
+        self.weights.f32(&self.key(name), shape)
+    }
+
+    /// The shape of a parameter, checked to have `rank` axes.
+    pub fn shape(&self, name: &str, rank: usize) -> Result<Vec<usize>> {
+        self.weights.shape(&self.key(name), rank)
+    }
+}
