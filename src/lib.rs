@@ -7,6 +7,7 @@
 
 pub mod episode;
 pub mod plot;
+pub mod preflight;
 pub mod recording;
 pub mod sim_cell;
 pub mod task;

@@ -1,7 +1,7 @@
 //! Equivariant graph attention (`SO2EquivariantGraphAttention`) and the edge sets it runs on.
 //!
 //! Spec: fixtures README ("Edges", "Attention") and the `graph_attention` sidecar. Messages
-//! concat(x_src[src], x_dst[dst]) are rotated into each edge's frame, go through an SO(2)
+//! `concat(x_src[src], x_dst[dst])` are rotated into each edge's frame, go through an SO(2)
 //! convolution (radial weights, extra m = 0 outputs: attention logits then gating scalars),
 //! the separable S2 activation and a second SO(2) convolution; each head's values are
 //! weighted by a softmax over the edges sharing a destination, rotated back, summed at the
@@ -24,7 +24,7 @@ pub struct EdgeSet {
     pub src: Vec<usize>,
     /// Destination node of each edge (index into the destination features).
     pub dst: Vec<usize>,
-    /// Edge vectors pos_src[src] − pos_dst[dst].
+    /// Edge vectors `pos_src[src] − pos_dst[dst]`.
     pub vec: Vec<[f32; 3]>,
     /// Edge lengths.
     pub dist: Vec<f32>,
@@ -234,7 +234,7 @@ impl GraphAttention {
                 max_supported: cfg.lmax,
             });
         }
-        // Messages concat(x_src[src], x_dst[dst]) along channels.
+        // Messages `concat(x_src[src], x_dst[dst])` along channels.
         let mut msg = vec![0.0f32; ne * k * 2 * c];
         for e in 0..ne {
             let (s, d) = (edges.src[e], edges.dst[e]);

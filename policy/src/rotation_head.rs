@@ -4,7 +4,8 @@
 //! Spec: `equact.md`, "Heads" (rotation); fixtures README, "Rotation head". With per-query S2
 //! features x[f, i] (f < f_in, i < 25) and the filter ψ = (w on the 48 level-1 HEALPix
 //! pixels, projected on Y) / √48:
-//! M_l[u,v] = (1/√f_in) Σ_f x[f, l²+u] ψ[f, l²+v] and Q(g) = Σ_l √(2l+1) Σ_{u,v} M_l[u,v] D^l(g)[u,v].
+//! `M_l[u,v] = (1/√f_in) Σ_f x[f, l²+u] ψ[f, l²+v]` and
+//! `Q(g) = Σ_l √(2l+1) Σ_{u,v} M_l[u,v] D^l(g)[u,v]`.
 //! If the scene rotates by R, then Q'(R g) = Q(g).
 
 use nalgebra::Matrix3;

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod bench_ur;
+pub mod check;
 pub mod config;
 pub mod gripper;
 pub mod inspect;

@@ -55,8 +55,9 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if cfg.robot.backend == RobotBackend::Ur {
         anyhow::bail!(
             "running on a real UR controller is not wired into `equact run` yet: the drivers \
-             (firmware_iface::ur::UrArm, RobotiqGripper) work, but the real-camera backend and the \
-             dry-run checks are missing; use the simulated cell (no --config) for now"
+             (firmware_iface::ur::UrArm, RobotiqGripper) work and `equact check --config FILE` \
+             checks the cell without moving it, but there is no RealSense capture backend yet; \
+             use the simulated cell (no --config) for now"
         );
     }
     if args.policy == PolicyChoice::Learned {

@@ -74,6 +74,9 @@ pub struct RecordedKeyframe {
     pub open: bool,
 }
 
+/// A recorded fused cloud: log time (ns), points, optional colours.
+pub type RecordedCloud = (u64, Vec<Point3<f32>>, Option<Vec<Colour>>);
+
 /// What `equact plot` draws, read from a recording.
 #[derive(Clone, Debug, Default)]
 pub struct EpisodeData {
@@ -83,8 +86,8 @@ pub struct EpisodeData {
     pub joints: Vec<(u64, Joints)>,
     /// Recorded TCP positions with their log times (ns).
     pub tcp: Vec<(u64, Point3<f64>)>,
-    /// Fused clouds (log time, points, optional colours), one per step.
-    pub clouds: Vec<(u64, Vec<Point3<f32>>, Option<Vec<Colour>>)>,
+    /// Fused clouds, one per step.
+    pub clouds: Vec<RecordedCloud>,
     /// Keyframes in order.
     pub keyframes: Vec<RecordedKeyframe>,
 }
@@ -288,13 +291,26 @@ pub fn tracking_error(motion: &PlannedMotion, measured: &[(u64, Joints)]) -> Vec
             })
             .collect()
     };
-    let steps = (2.0 / motion.period) as usize;
     let mean = |e: &[(f64, f64)]| e.iter().map(|x| x.1).sum::<f64>() / e.len().max(1) as f64;
-    (0..=steps)
-        .map(|k| errors_at(k as f64 * motion.period))
-        .filter(|e| e.len() * 2 >= motion.samples.len())
-        .min_by(|a, b| mean(a).total_cmp(&mean(b)))
-        .unwrap_or_default()
+    let best_of = |delays: &mut dyn Iterator<Item = f64>| {
+        delays
+            .map(|d| (d, errors_at(d)))
+            .filter(|(_, e)| e.len() * 2 >= motion.samples.len())
+            .min_by(|a, b| mean(&a.1).total_cmp(&mean(&b.1)))
+    };
+    // Coarse: whole periods up to 2 s; fine: 1/16 period around the best coarse delay (the
+    // measurements' phase is arbitrary).
+    let steps = (2.0 / motion.period) as usize;
+    let Some((coarse, _)) = best_of(&mut (0..=steps).map(|k| k as f64 * motion.period)) else {
+        return Vec::new();
+    };
+    best_of(
+        &mut (-16..=16)
+            .map(|k| coarse + f64::from(k) * motion.period / 16.0)
+            .filter(|d| *d >= 0.0),
+    )
+    .map(|(_, e)| e)
+    .unwrap_or_default()
 }
 
 fn range_of(values: impl Iterator<Item = f64>) -> (f64, f64) {
@@ -376,9 +392,9 @@ pub fn motion_figure(motion: &PlannedMotion, measured: &[(u64, Joints)]) -> Canv
         };
         draw_axes(&mut c, &panel, name);
         if let Some(l) = limit {
-            for jt in 0..JOINT_COUNT {
+            for lj in l {
                 for sign in [1.0, -1.0] {
-                    let (_, y) = panel.map(0.0, sign * l[jt]);
+                    let (_, y) = panel.map(0.0, sign * lj);
                     if y > panel.top && y < panel.top + panel.height {
                         c.dashed_hline(panel.left, panel.left + panel.width, y, RED);
                     }

@@ -12,6 +12,7 @@ stream reader until the data runs out, and only complete chunks count.
 import argparse
 import json
 import os
+import struct
 import sys
 
 import jsonschema
@@ -83,7 +84,7 @@ def main():
                     elif isinstance(record, Message):
                         ch = channels[record.channel_id]
                         handle(ch, schemas[ch.schema_id], record.data, record.log_time)
-            except (McapError, EOFError, ValueError, KeyError) as e:
+            except (McapError, EOFError, ValueError, KeyError, struct.error) as e:
                 errors.append(f"stream ended: {type(e).__name__}")
     median_period_s = {}
     for key, ts in times.items():

@@ -10,6 +10,7 @@ use equact::recording::{self, EpisodeRecorder, LogLevel};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion};
 
 fn sample_recording(path: &std::path::Path) -> BTreeMap<&'static str, u64> {
+    let cfg = cell_types::config::CellConfig::simulated().unwrap();
     let mut meta = BTreeMap::new();
     meta.insert("seed".into(), "3".into());
     let mut rec = EpisodeRecorder::create(path, &meta).unwrap();
@@ -71,6 +72,12 @@ fn sample_recording(path: &std::path::Path) -> BTreeMap<&'static str, u64> {
             })
             .collect();
         let traj = Trajectory::new(0.008, samples).unwrap();
+        rec.write(
+            "/trajectory/joints",
+            t,
+            &recording::joint_trajectory_message(step, &traj, &cfg.limits),
+        )
+        .unwrap();
         rec.write(
             "/trajectory/planned",
             t,

@@ -103,7 +103,7 @@ impl StateLog {
     /// Moves the entries into `out` (keeping this buffer's capacity); returns and resets the
     /// dropped count.
     pub(crate) fn drain_into(&mut self, out: &mut Vec<(Duration, ArmState)>) -> u64 {
-        out.extend(self.entries.drain(..));
+        out.append(&mut self.entries);
         std::mem::take(&mut self.dropped)
     }
 }

@@ -1,0 +1,350 @@
+//! `equact check`: the dry-run check of a cell before anything moves. It connects to the
+//! UR controller and the gripper the configuration names, reads their state without
+//! commanding motion, checks the calibration file and the workspace, and says per check
+//! what is wrong and what to do. Every check runs even when an earlier one fails, so one
+//! pass lists everything to fix.
+
+use std::net::{IpAddr, SocketAddr, ToSocketAddrs};
+use std::path::Path;
+use std::sync::Arc;
+
+use cell_types::config::{CellConfig, GripperTransport, RobotModel};
+use cell_types::{Clock, Transform};
+use firmware_iface::arm::{Arm, ArmError, JointLimits};
+use firmware_iface::dashboard::{RobotMode, SafetyMode};
+use firmware_iface::gripper::can::{CanId, CanMapping};
+use firmware_iface::gripper::RobotiqGripper;
+use firmware_iface::ur::{UrArm, UrConfig, UrPorts};
+use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
+
+/// The result of one check.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Check {
+    /// Short name (`controller`, `gripper`, ...).
+    pub name: &'static str,
+    /// Whether it passed (a warning passes).
+    pub passed: bool,
+    /// A passed check with something the operator should know.
+    pub warning: bool,
+    /// What was found.
+    pub detail: String,
+    /// What to do when it failed (empty when it passed).
+    pub fix: String,
+}
+
+impl Check {
+    fn pass(name: &'static str, detail: impl Into<String>) -> Self {
+        Self {
+            name,
+            passed: true,
+            warning: false,
+            detail: detail.into(),
+            fix: String::new(),
+        }
+    }
+
+    fn warn(name: &'static str, detail: impl Into<String>, fix: impl Into<String>) -> Self {
+        Self {
+            name,
+            passed: true,
+            warning: true,
+            detail: detail.into(),
+            fix: fix.into(),
+        }
+    }
+
+    fn fail(name: &'static str, detail: impl Into<String>, fix: impl Into<String>) -> Self {
+        Self {
+            name,
+            passed: false,
+            warning: false,
+            detail: detail.into(),
+            fix: fix.into(),
+        }
+    }
+}
+
+/// The controller address of the configuration (a name is resolved once).
+pub fn controller_ip(cfg: &CellConfig) -> Result<IpAddr, String> {
+    if let Ok(ip) = cfg.robot.host.parse::<IpAddr>() {
+        return Ok(ip);
+    }
+    (cfg.robot.host.as_str(), cfg.robot.rtde_port)
+        .to_socket_addrs()
+        .ok()
+        .and_then(|mut a| a.next())
+        .map(|a| a.ip())
+        .ok_or_else(|| format!("robot.host `{}` does not resolve", cfg.robot.host))
+}
+
+/// Driver settings from the configuration: address, ports, limits, tracking bound and stop
+/// deceleration; everything else keeps the driver's real-robot defaults.
+pub fn ur_config(cfg: &CellConfig) -> Result<UrConfig, String> {
+    Ok(UrConfig {
+        host: controller_ip(cfg)?,
+        ports: UrPorts {
+            rtde: cfg.robot.rtde_port,
+            dashboard: cfg.robot.dashboard_port,
+            secondary: cfg.robot.secondary_port,
+        },
+        tracking_bound: cfg.limits.tracking_error_bound,
+        stop_decel: cfg.limits.stop_deceleration,
+        limits: JointLimits {
+            min: cfg.limits.joint_min,
+            max: cfg.limits.joint_max,
+            max_speed: cfg.limits.max_velocity,
+        },
+        ..UrConfig::default()
+    })
+}
+
+/// Runs every check; `config_dir` resolves a relative calibration file.
+pub fn run_checks(cfg: &CellConfig, config_dir: &Path, clock: Arc<dyn Clock>) -> Vec<Check> {
+    let mut checks = check_controller(cfg, clock.clone());
+    checks.push(check_gripper(cfg, clock));
+    checks.push(check_calibration(cfg, config_dir));
+    checks.push(check_workspace(cfg));
+    checks.push(Check::fail(
+        "cameras",
+        format!(
+            "{} D455 camera(s) configured, but this build has no RealSense capture backend",
+            cfg.cameras.len()
+        ),
+        "real cameras are not wired in yet; run in the simulated cell (no --config) or \
+         record clouds with the RealSense tools and use `equact plan`",
+    ));
+    checks
+}
+
+fn check_controller(cfg: &CellConfig, clock: Arc<dyn Clock>) -> Vec<Check> {
+    let ur = match ur_config(cfg) {
+        Ok(c) => c,
+        Err(e) => return vec![Check::fail("controller", e, "fix robot.host in the config")],
+    };
+    let addr = SocketAddr::new(ur.host, ur.ports.rtde);
+    let arm = match UrArm::connect(ur, clock) {
+        Ok(a) => a,
+        Err(e) => {
+            let fix = match &e {
+                ArmError::PoweredOff => {
+                    "power the arm on and release the brakes on the teach pendant".to_string()
+                }
+                _ => format!(
+                    "check the cable and address ({addr}), that the controller is in remote \
+                     control, and that no other program holds the RTDE inputs"
+                ),
+            };
+            return vec![Check::fail("controller", e.to_string(), fix)];
+        }
+    };
+    let mut out = Vec::new();
+    let rate = 1.0 / arm.period();
+    let v = arm.controller();
+    let series = match cfg.robot.model {
+        RobotModel::Ur5 => 3,
+        RobotModel::Ur5e => 5,
+    };
+    let detail = format!(
+        "controller {}.{}.{}, RTDE {:?} at {rate:.0} Hz",
+        v.major,
+        v.minor,
+        v.bugfix,
+        arm.protocol()
+    );
+    if v.major != series || (rate - cfg.robot.controller_rate_hz).abs() > 1.0 {
+        out.push(Check::fail(
+            "controller",
+            format!(
+                "{detail}; the config says {:?} at {} Hz",
+                cfg.robot.model, cfg.robot.controller_rate_hz
+            ),
+            "set robot.model and robot.controller_rate_hz to the controller you have",
+        ));
+    } else {
+        out.push(Check::pass("controller", detail));
+    }
+    match arm.state() {
+        Ok(s) => {
+            if s.robot_mode == RobotMode::Running && s.safety_mode == SafetyMode::Normal {
+                out.push(Check::pass("safety", "RUNNING, NORMAL"));
+            } else {
+                out.push(Check::fail(
+                    "safety",
+                    format!("robot {:?}, safety {:?}", s.robot_mode, s.safety_mode),
+                    "clear the stop on the teach pendant (a protective stop unlocks after 5 s), \
+                     power on and release the brakes",
+                ));
+            }
+            let q = s.joints.position;
+            let outside: Vec<String> = (0..6)
+                .filter(|&j| q[j] < cfg.limits.joint_min[j] || q[j] > cfg.limits.joint_max[j])
+                .map(|j| format!("joint {} at {:.3} rad", j + 1, q[j]))
+                .collect();
+            if outside.is_empty() {
+                out.push(Check::pass(
+                    "joints",
+                    format!("within the configured limits: {q:.3?}"),
+                ));
+            } else {
+                out.push(Check::fail(
+                    "joints",
+                    format!("outside the configured limits: {}", outside.join(", ")),
+                    "jog the arm back inside limits.joint_min/max with the teach pendant",
+                ));
+            }
+        }
+        Err(e) => out.push(Check::fail(
+            "safety",
+            e.to_string(),
+            "the RTDE link dropped; check the network",
+        )),
+    }
+    out
+}
+
+fn check_gripper(cfg: &CellConfig, clock: Arc<dyn Clock>) -> Check {
+    let g = &cfg.gripper;
+    let mapping = || -> Result<CanMapping, String> {
+        let id = |raw: u32| {
+            if raw <= 0x7FF {
+                CanId::standard(raw as u16)
+            } else {
+                CanId::extended(raw)
+            }
+            .map_err(|e| e.to_string())
+        };
+        Ok(CanMapping {
+            command_id: id(g.can_command_id)?,
+            status_id: id(g.can_status_id)?,
+        })
+    };
+    let status = match g.transport {
+        GripperTransport::Sim => {
+            return Check::pass("gripper", "simulated (hil_sim emulator)");
+        }
+        GripperTransport::Urcap => RobotiqGripper::urcap((g.host.as_str(), g.port), clock)
+            .and_then(|mut d| d.status_image().map(|s| d.to_state(&s))),
+        GripperTransport::ModbusRtu => RobotiqGripper::modbus_rtu(&g.device, clock)
+            .and_then(|mut d| d.status_image().map(|s| d.to_state(&s))),
+        GripperTransport::CanSlcan => match mapping() {
+            Ok(m) => RobotiqGripper::slcan(&g.device, m, clock)
+                .and_then(|mut d| d.status_image().map(|s| d.to_state(&s))),
+            Err(e) => return Check::fail("gripper", e, "fix gripper.can_*_id"),
+        },
+        GripperTransport::Socketcan => {
+            return Check::fail(
+                "gripper",
+                "SocketCAN is only built with the `socketcan` feature of firmware_iface",
+                "use can_slcan with a serial adapter, or build with --features socketcan",
+            );
+        }
+    };
+    match status {
+        Ok(s) if s.fault.is_some() => Check::fail(
+            "gripper",
+            format!("reachable, but it reports fault {:?}", s.fault),
+            "clear the fault (reset and activate the gripper) before running",
+        ),
+        Ok(s) => Check::pass(
+            "gripper",
+            format!(
+                "{:?}: activated {}, opening {:.1} mm",
+                g.transport,
+                s.activated,
+                s.width_m * 1e3
+            ),
+        ),
+        Err(e) => Check::fail(
+            "gripper",
+            e.to_string(),
+            format!(
+                "check gripper.transport ({:?}) and its address or device",
+                g.transport
+            ),
+        ),
+    }
+}
+
+fn check_calibration(cfg: &CellConfig, config_dir: &Path) -> Check {
+    if cfg.calibration.file.is_empty() {
+        return Check::fail(
+            "calibration",
+            "no calibration.file in the config",
+            "calibrate the cameras (`equact calibrate`) and name the file in [calibration]",
+        );
+    }
+    let path = config_dir.join(&cfg.calibration.file);
+    let text = match std::fs::read_to_string(&path) {
+        Ok(t) => t,
+        Err(e) => {
+            return Check::fail(
+                "calibration",
+                format!("{}: {e}", path.display()),
+                "calibrate the cameras (`equact calibrate`) or fix calibration.file",
+            )
+        }
+    };
+    let missing: Vec<&str> = cfg
+        .cameras
+        .iter()
+        .map(|c| c.name.as_str())
+        .filter(|name| !text.contains(&format!("\"{name}\"")))
+        .collect();
+    if missing.is_empty() {
+        Check::pass(
+            "calibration",
+            format!("{} names every configured camera", path.display()),
+        )
+    } else {
+        Check::fail(
+            "calibration",
+            format!(
+                "{} has no pose for camera(s) {}",
+                path.display(),
+                missing.join(", ")
+            ),
+            "recalibrate with every camera connected",
+        )
+    }
+}
+
+/// The corners of the workspace box with the gripper pointing down should be reachable; a
+/// box larger than the arm's reach is only a warning (the box also crops the cloud, and
+/// keyframes out of reach are refused by the planner with their own error).
+fn check_workspace(cfg: &CellConfig) -> Check {
+    let model = match crate::episode::planner_from_config(cfg) {
+        Ok(p) => p.model,
+        Err(e) => return Check::fail("workspace", format!("{e:#}"), "fix [robot] and [limits]"),
+    };
+    let (lo, hi) = (cfg.workspace.min, cfg.workspace.max);
+    let down = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+    let mut unreachable = Vec::new();
+    for corner in 0..8 {
+        let pick = |k: usize| if corner & (1 << k) != 0 { hi[k] } else { lo[k] };
+        // Just above the table: the gripper cannot go below it anyway.
+        let z = pick(2).max(cfg.workspace.table_height + 0.05);
+        let pose = Isometry3::from_parts(Translation3::new(pick(0), pick(1), z), down);
+        let ok = model
+            .ik(&Transform::from_isometry(pose))
+            .is_ok_and(|s| !s.is_empty());
+        if !ok {
+            unreachable.push(format!("[{:.2}, {:.2}, {:.2}]", pick(0), pick(1), z));
+        }
+    }
+    if unreachable.is_empty() {
+        Check::pass(
+            "workspace",
+            "every corner is reachable with the gripper pointing down",
+        )
+    } else {
+        Check::warn(
+            "workspace",
+            format!(
+                "corners not reachable gripper-down: {}",
+                unreachable.join(" ")
+            ),
+            "keyframes there will be refused as unreachable; shrink [workspace] min/max to \
+             what the arm reaches if the policy should not aim there",
+        )
+    }
+}
