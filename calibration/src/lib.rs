@@ -8,11 +8,18 @@
 //! Libraries: `nalgebra` (the workspace's matrix library) for geometry; no image-processing
 //! library is needed because the fusion works on depth images pixel by pixel.
 
+pub mod board;
 pub mod camera;
+pub mod capture;
 pub mod error;
 pub mod fusion;
 pub mod view;
 
+pub use board::{BoardConfig, BoardKind};
 pub use camera::{DepthMode, Distortion, Intrinsics};
+pub use capture::{
+    load_captures, CameraInfo, CameraView, Capture, CaptureFolder, CaptureSet, Corner, DepthSample,
+    PixelConvention, Session,
+};
 pub use error::CalibrationError;
 pub use fusion::{CameraCalibration, CellCalibration, FusionParams, FusionPipeline};
