@@ -13,6 +13,8 @@ pub mod camera;
 pub mod capture;
 pub mod error;
 pub mod fusion;
+pub mod geometry;
+pub mod simulate;
 pub mod view;
 
 pub use board::{BoardConfig, BoardKind};
