@@ -15,6 +15,7 @@ pub mod error;
 pub mod fusion;
 pub mod geometry;
 pub mod simulate;
+pub mod solve;
 pub mod view;
 
 pub use board::{BoardConfig, BoardKind};

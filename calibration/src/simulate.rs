@@ -107,6 +107,8 @@ pub struct SimConfig {
     pub margin_px: f64,
     /// Whether to record depth samples on the board.
     pub depth_samples: bool,
+    /// Fewest cameras that must see the whole board in a pose (clamped to 1..=cameras).
+    pub min_cameras_per_pose: usize,
 }
 
 /// The optical frame at `eye` looking at `target`, image "up" along +z of the base (the
@@ -153,12 +155,13 @@ impl SimConfig {
             flange_from_board: Transform::from_parts(t, rot),
             poses: 30,
             noise: SimNoise::realistic(),
-            region_min: [0.35, -0.2, 0.15],
-            region_max: [0.75, 0.2, 0.45],
-            max_tilt_deg: 35.0,
-            max_obliquity_deg: 70.0,
+            region_min: [0.2, -0.4, 0.1],
+            region_max: [0.8, 0.4, 0.7],
+            max_tilt_deg: 45.0,
+            max_obliquity_deg: 75.0,
             margin_px: 8.0,
             depth_samples: true,
+            min_cameras_per_pose: 3,
         }
     }
 
@@ -302,40 +305,31 @@ pub fn simulate_set_with(
             continue;
         }
         // Every camera must see every corner, not too obliquely.
+        // Which cameras see every corner, not too obliquely.
         let mut pixels = Vec::with_capacity(cfg.cameras.len());
-        let mut visible = true;
         for cam in &cfg.cameras {
             let camera_from_board = cam.base_from_camera.isometry().inverse() * base_from_board;
             let to_cam = cam.base_from_camera.translation() - pos;
             if normal.dot(&to_cam.normalize()) < cos_obl {
-                visible = false;
-                break;
+                pixels.push(None);
+                continue;
             }
             let k = &cam.intrinsics;
-            let mut px = Vec::with_capacity(corners.len());
-            for b in &corners {
-                let c = camera_from_board * b;
-                match k.project(&c) {
-                    Ok(p)
-                        if p.x >= cfg.margin_px
+            let px: Option<Vec<_>> = corners
+                .iter()
+                .map(|b| {
+                    k.project(&(camera_from_board * b)).ok().filter(|p| {
+                        p.x >= cfg.margin_px
                             && p.y >= cfg.margin_px
                             && p.x <= f64::from(k.width) - 1.0 - cfg.margin_px
-                            && p.y <= f64::from(k.height) - 1.0 - cfg.margin_px =>
-                    {
-                        px.push(p)
-                    }
-                    _ => {
-                        visible = false;
-                        break;
-                    }
-                }
-            }
-            if !visible {
-                break;
-            }
-            pixels.push((camera_from_board, px));
+                            && p.y <= f64::from(k.height) - 1.0 - cfg.margin_px
+                    })
+                })
+                .collect();
+            pixels.push(px.map(|px| (camera_from_board, px)));
         }
-        if !visible {
+        let seen = pixels.iter().filter(|p| p.is_some()).count();
+        if seen < cfg.min_cameras_per_pose.clamp(1, cfg.cameras.len()) {
             continue;
         }
         let base_from_flange_true: Transform<Base, Flange> =
@@ -357,7 +351,10 @@ pub fn simulate_set_with(
         }
         let recorded = Transform::from_isometry(base_from_flange_true.isometry() * exp6(&n));
         let mut views = Vec::with_capacity(cfg.cameras.len());
-        for (cam, (camera_from_board, px)) in cfg.cameras.iter().zip(pixels) {
+        for (cam, seen) in cfg.cameras.iter().zip(pixels) {
+            let Some((camera_from_board, px)) = seen else {
+                continue;
+            };
             let corners_px: Vec<Corner> = px
                 .iter()
                 .enumerate()
