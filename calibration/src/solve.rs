@@ -475,7 +475,6 @@ fn run_ba<'a>(mut ba: Ba<'a>, huber_px: f64) -> Result<Ba<'a>, CalibrationError>
 struct Prepared {
     cams: Vec<(u8, String, Intrinsics)>,
     frames: Vec<Isometry3<f64>>,
-    frame_index: Vec<usize>,
     obs: Vec<Obs>,
     /// Per camera: (frame, camera_from_board from PnP).
     pnp: Vec<Vec<(usize, Isometry3<f64>)>>,
@@ -494,7 +493,6 @@ fn prepare(set: &CaptureSet, opts: &SolveOptions) -> Result<Prepared, Calibratio
         .map(|c| (c.id, c.name.clone(), c.intrinsics))
         .collect();
     let mut frames = Vec::new();
-    let mut frame_index = Vec::new();
     let mut obs = Vec::new();
     let mut pnp = vec![Vec::new(); cams.len()];
     let mut depth = vec![Vec::new(); cams.len()];
@@ -553,7 +551,6 @@ fn prepare(set: &CaptureSet, opts: &SolveOptions) -> Result<Prepared, Calibratio
         }
         if used {
             frames.push(*cap.base_from_flange.isometry());
-            frame_index.push(cap.index);
         }
     }
     if frames.len() < opts.min_poses {
@@ -597,7 +594,6 @@ fn prepare(set: &CaptureSet, opts: &SolveOptions) -> Result<Prepared, Calibratio
     Ok(Prepared {
         cams,
         frames,
-        frame_index,
         obs,
         pnp,
         depth,
@@ -781,7 +777,6 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
         let n = ba.eta.len().max(1) as f64;
         ((t / n).sqrt() * 1e3, (r / n).sqrt().to_degrees())
     });
-    let _ = &prep.frame_index;
     Ok(Solution {
         cameras,
         flange_from_board: Transform::from_isometry(ba.x()),
