@@ -40,11 +40,14 @@ pub struct BoardConfig {
 }
 
 impl Default for BoardConfig {
+    /// A 7 x 10-corner chessboard of 35 mm squares (8 x 11 squares, 38.5 x 28 cm printed):
+    /// `rows + cols` odd, so a plain chessboard's half-turn is told apart by
+    /// [`crate::detect::detect_chessboard`].
     fn default() -> Self {
         Self {
-            kind: BoardKind::Charuco,
+            kind: BoardKind::Chessboard,
             rows: 7,
-            cols: 9,
+            cols: 10,
             square_m: 0.035,
         }
     }

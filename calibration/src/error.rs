@@ -185,4 +185,10 @@ pub enum CalibrationError {
         /// Why.
         why: String,
     },
+    /// No complete board was found in an image.
+    #[error("board not found in the IR image: {why}; keep the whole board inside the image, facing the camera (tilted less than 60 degrees), evenly lit with the IR projector off")]
+    BoardNotFound {
+        /// What the detector saw.
+        why: String,
+    },
 }

@@ -33,6 +33,7 @@
 pub mod board;
 pub mod camera;
 pub mod capture;
+pub mod detect;
 pub mod error;
 pub mod fusion;
 pub mod geometry;

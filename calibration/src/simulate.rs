@@ -109,6 +109,9 @@ pub struct SimConfig {
     pub depth_samples: bool,
     /// Fewest cameras that must see the whole board in a pose (clamped to 1..=cameras).
     pub min_cameras_per_pose: usize,
+    /// Feasible candidates drawn per pose kept; the kept poses are the most spread out of
+    /// them (greedy farthest-point). 1 keeps the random draw as it is.
+    pub candidates_per_pose: usize,
 }
 
 /// The optical frame at `eye` looking at `target`, image "up" along +z of the base (the
@@ -123,7 +126,7 @@ pub fn look_at(eye: Point3<f64>, target: Point3<f64>) -> Transform<Base, Camera>
 
 impl SimConfig {
     /// The simulated cell: `hil_sim`'s three 848x480 D455s (front, left and right
-    /// shoulder), a 7x9-corner board of 35 mm squares 60 mm in front of the flange, 30
+    /// shoulder), a 7x10-corner chessboard of 35 mm squares 60 mm in front of the flange, 30
     /// poses, realistic noise.
     pub fn default_cell() -> Self {
         let eyes = [
@@ -162,6 +165,7 @@ impl SimConfig {
             margin_px: 8.0,
             depth_samples: true,
             min_cameras_per_pose: 3,
+            candidates_per_pose: 3,
         }
     }
 
@@ -259,20 +263,13 @@ pub fn simulate_set_with(
     let board_centre = cfg.board.centre();
     let x = *cfg.flange_from_board.isometry();
     let cos_obl = cfg.max_obliquity_deg.to_radians().cos();
-    let mut captures = Vec::new();
-    let mut truths: Vec<Transform<Base, Flange>> = Vec::new();
     let mut kept_boards: Vec<Isometry3<f64>> = Vec::new();
-    const ATTEMPTS: usize = 200_000;
+    let mut candidates = Vec::new();
+    let wanted = cfg.poses * cfg.candidates_per_pose.max(1);
+    const ATTEMPTS: usize = 400_000;
     let mut attempts = 0;
-    while captures.len() < cfg.poses {
+    while candidates.len() < wanted && attempts < ATTEMPTS {
         attempts += 1;
-        if attempts > ATTEMPTS {
-            return Err(CalibrationError::TooFewPoses {
-                got: captures.len(),
-                needed: cfg.poses,
-                more: cfg.poses - captures.len(),
-            });
-        }
         // Board pose: normal tilted from the mean direction, turned about it.
         let pos = Vector3::new(
             rng.random_range(lo.x..=hi.x),
@@ -339,6 +336,23 @@ pub fn simulate_set_with(
             PoseCheck::Accept(j) => j,
         };
         kept_boards.push(base_from_board);
+        candidates.push((base_from_board, base_from_flange_true, joints, pixels));
+    }
+    if candidates.len() < cfg.poses {
+        return Err(CalibrationError::TooFewPoses {
+            got: candidates.len(),
+            needed: cfg.poses,
+            more: cfg.poses - candidates.len(),
+        });
+    }
+    let chosen = farthest_poses(
+        &candidates.iter().map(|c| c.0).collect::<Vec<_>>(),
+        cfg.poses,
+    );
+    let mut captures = Vec::new();
+    let mut truths: Vec<Transform<Base, Flange>> = Vec::new();
+    for ci in chosen {
+        let (_, base_from_flange_true, joints, pixels) = candidates[ci].clone();
         // Noise: robot, corners, depth.
         let mut n = [0.0; 6];
         for (i, v) in n.iter_mut().enumerate() {
@@ -402,6 +416,47 @@ pub fn simulate_set_with(
             base_from_flange: truths,
         },
     ))
+}
+
+/// Greedy farthest-point selection of `n` board poses (distance: 10 cm of position or 20°
+/// of rotation count as 1), starting from the pose nearest the centre: spreads the poses
+/// over the reachable set, which conditions the hand-eye problem far better than a random
+/// draw of the same size.
+fn farthest_poses(boards: &[Isometry3<f64>], n: usize) -> Vec<usize> {
+    let dist = |a: &Isometry3<f64>, b: &Isometry3<f64>| {
+        let dp = (a.translation.vector - b.translation.vector).norm() / 0.1;
+        let dr = a.rotation.angle_to(&b.rotation) / 20f64.to_radians();
+        (dp * dp + dr * dr).sqrt()
+    };
+    if boards.is_empty() {
+        return Vec::new();
+    }
+    let centre = boards
+        .iter()
+        .fold(Vector3::zeros(), |a, b| a + b.translation.vector)
+        / boards.len() as f64;
+    let first = (0..boards.len())
+        .min_by(|&a, &b| {
+            (boards[a].translation.vector - centre)
+                .norm()
+                .total_cmp(&(boards[b].translation.vector - centre).norm())
+        })
+        .unwrap_or(0);
+    let mut chosen = vec![first];
+    let mut nearest: Vec<f64> = boards.iter().map(|b| dist(b, &boards[first])).collect();
+    while chosen.len() < n.min(boards.len()) {
+        let Some(next) = (0..boards.len())
+            .filter(|i| !chosen.contains(i))
+            .max_by(|&a, &b| nearest[a].total_cmp(&nearest[b]))
+        else {
+            break;
+        };
+        chosen.push(next);
+        for (i, d) in nearest.iter_mut().enumerate() {
+            *d = d.min(dist(&boards[i], &boards[next]));
+        }
+    }
+    chosen
 }
 
 /// Depth samples at the integer pixels nearest the corners: the board plane's depth along

@@ -172,6 +172,19 @@ impl Solution {
     pub fn camera(&self, id: u8) -> Option<&CameraResult> {
         self.cameras.iter().find(|c| c.id == id)
     }
+
+    /// Errors against a simulation's truth: `(camera id, position error m, rotation error
+    /// rad)` per camera the truth knows.
+    pub fn errors_to(&self, truth: &crate::simulate::Truth) -> Vec<(u8, f64, f64)> {
+        self.cameras
+            .iter()
+            .filter_map(|c| {
+                let t = truth.base_from_camera(c.id)?;
+                let (dt, dr) = c.base_from_camera.error_to(&t);
+                Some((c.id, dt, dr))
+            })
+            .collect()
+    }
 }
 
 /// One corner observation.
@@ -848,13 +861,9 @@ mod tests {
     use crate::simulate::{simulate_set, SimConfig, SimNoise};
 
     fn errors(sol: &Solution, truth: &crate::simulate::Truth) -> Vec<(f64, f64)> {
-        sol.cameras
-            .iter()
-            .map(|c| {
-                c.base_from_camera
-                    .error_to(&truth.base_from_camera(c.id).unwrap())
-            })
-            .collect()
+        let e = sol.errors_to(truth);
+        assert_eq!(e.len(), sol.cameras.len());
+        e.into_iter().map(|(_, dt, dr)| (dt, dr)).collect()
     }
 
     #[test]
@@ -902,7 +911,7 @@ mod tests {
             // injected 0.5 px corner noise.
             let held = c.heldout_rms_px.unwrap();
             assert!(held > 0.45 && held < 0.5 + 0.3, "held-out {held}");
-            assert!(c.heldout_corners >= 30 * 63 - 1);
+            assert_eq!(c.heldout_corners, 30 * cfg.board.corner_count());
             // The stated uncertainty is honest: error within 4 sigma of the largest axis.
             let s_pos = c.sigma_pos_mm.iter().copied().fold(0.0, f64::max);
             assert!(dt * 1e3 < 4.0 * s_pos * 3f64.sqrt(), "{dt} vs {s_pos}");
@@ -949,7 +958,7 @@ mod tests {
         let n = ba_t.len();
         let (mt, mr, mc) = (median(&mut ba_t), median(&mut ba_r), median(&mut cf_t));
         eprintln!("median BA {:.3} mm {:.4} deg, closed form {:.3} mm; {within}/{n} within 1 mm / 0.05 deg", mt * 1e3, mr.to_degrees(), mc * 1e3);
-        assert!(mt < 0.5e-3 && mr.to_degrees() < 0.025);
+        assert!(mt < 0.6e-3 && mr.to_degrees() < 0.035);
         assert!(within * 10 >= n * 9, "{within}/{n}");
         assert!(mt < mc);
     }
@@ -1104,13 +1113,14 @@ mod explore {
                 .unwrap_or(d)
         };
         let mut cfg = SimConfig::default_cell();
-        cfg.board.rows = env("ROWS", 7.0) as u32;
-        cfg.board.cols = env("COLS", 9.0) as u32;
-        cfg.board.square_m = env("SQ", 0.035);
+        cfg.board.rows = env("ROWS", f64::from(cfg.board.rows)) as u32;
+        cfg.board.cols = env("COLS", f64::from(cfg.board.cols)) as u32;
+        cfg.board.square_m = env("SQ", cfg.board.square_m);
         cfg.max_tilt_deg = env("TILT", 45.0);
         cfg.max_obliquity_deg = env("OBL", 75.0);
         cfg.noise.corner_px = env("CPX", 0.5);
         cfg.min_cameras_per_pose = env("MINCAM", 3.0) as usize;
+        cfg.candidates_per_pose = env("CPP", 3.0) as usize;
         let grow = env("GROW", 0.0);
         for a in 0..3 {
             cfg.region_min[a] -= grow;
