@@ -239,7 +239,7 @@ fn saddles(g: &Gray, min_response: f64) -> Vec<Point2<f64>> {
     }
     let thr = min_response * max;
     let mut out = Vec::new();
-    const R: usize = 3;
+    const R: usize = 1;
     for y in R + 1..h - R - 1 {
         for x in R + 1..w - R - 1 {
             let s = resp[y * w + x];
@@ -303,8 +303,9 @@ fn refine(g: &Gray, start: Point2<f64>, radius: i64) -> Option<Point2<f64>> {
     Some(q)
 }
 
-/// True when a ring around `q` alternates dark, light, dark, light (an X-junction), which
-/// rejects the T-junctions where the squares meet the board's margin.
+/// True when a ring around `q` alternates dark, light, dark, light and is symmetric under a
+/// half turn (an X-junction), which rejects the T-junctions where the squares meet the
+/// board's margin and points of the margin between two squares.
 fn is_x_junction(g: &Gray, q: Point2<f64>) -> bool {
     const N: usize = 24;
     let mut ring = [0.0; N];
@@ -327,64 +328,55 @@ fn is_x_junction(g: &Gray, q: Point2<f64>) -> bool {
     let changes = (0..N)
         .filter(|&k| (ring[k] > mid) != (ring[(k + 1) % N] > mid))
         .count();
-    changes == 4
+    // An X-junction looks the same turned by half a turn (locally affine).
+    let asym = (0..N / 2)
+        .map(|k| (ring[k] - ring[k + N / 2]).abs())
+        .sum::<f64>()
+        / (N / 2) as f64;
+    changes == 4 && asym < 0.25 * (hi - lo)
 }
 
-/// Detects the inner corners of `board` in an IR image; returns them with their ids.
-pub fn detect_chessboard(
-    img: &Image<u8>,
-    board: &BoardConfig,
-    params: &DetectParams,
-) -> Result<Vec<Corner>, CalibrationError> {
-    board.validate()?;
-    let not_found = |why: String| CalibrationError::BoardNotFound { why };
-    if !img.is_consistent() {
-        return Err(not_found("the image buffer does not match its size".into()));
-    }
-    let g = blur(img, params.blur_sigma);
+/// Refined, de-duplicated X-junction candidates, strongest first.
+fn candidates(g: &Gray, params: &DetectParams) -> Vec<Point2<f64>> {
+    let starts = saddles(g, params.min_response);
+    // Where corners crowd (foreshortened boards), a window reaching the next corner would
+    // pull the refinement onto it: shrink it to under half the distance to the nearest
+    // other saddle, and reject refinements that wander further than that.
+    let refined: Vec<Point2<f64>> = starts
+        .iter()
+        .filter_map(|p| {
+            let d = starts
+                .iter()
+                .map(|o| (o - p).norm())
+                .filter(|d| *d > 1.0)
+                .fold(f64::INFINITY, f64::min);
+            let r = ((0.45 * d).floor() as i64).clamp(2, params.subpix_radius.max(2));
+            refine(g, *p, r).filter(|q| (q - p).norm() < (0.4 * d).max(1.0))
+        })
+        .filter(|q| is_x_junction(g, *q))
+        .collect();
+    // Several saddle maxima may refine onto one corner: keep the strongest.
+    let merge = 1.5;
     let mut cands: Vec<Point2<f64>> = Vec::new();
-    for p in saddles(&g, params.min_response) {
-        if let Some(q) = refine(&g, p, params.subpix_radius) {
-            if is_x_junction(&g, q) && cands.iter().all(|c| (c - q).norm() > 2.0) {
-                cands.push(q);
-            }
+    for q in refined {
+        if cands.iter().all(|c| (c - q).norm() > merge) {
+            cands.push(q);
         }
     }
-    let needed = board.corner_count();
-    if cands.len() < needed {
-        return Err(not_found(format!(
-            "{} corner candidates, the board has {needed}",
-            cands.len()
-        )));
-    }
-    // Seed: the candidate nearest the centroid of the strongest `needed` candidates.
-    let centroid = cands[..needed]
-        .iter()
-        .fold(Vector2::zeros(), |a, p| a + p.coords)
-        / needed as f64;
-    let seed = (0..cands.len())
-        .min_by(|&a, &b| {
-            (cands[a].coords - centroid)
-                .norm()
-                .total_cmp(&(cands[b].coords - centroid).norm())
-        })
-        .ok_or_else(|| not_found("no candidates".into()))?;
-    let mut near: Vec<Vector2<f64>> = cands
-        .iter()
-        .map(|c| c - cands[seed])
-        .filter(|d| d.norm() > 1e-9)
-        .collect();
-    near.sort_by(|a, b| a.norm().total_cmp(&b.norm()));
-    let d1 = *near
-        .first()
-        .ok_or_else(|| not_found("a single candidate".into()))?;
-    let d2 = *near
-        .iter()
-        .find(|d| (d.dot(&d1) / (d.norm() * d1.norm())).abs() < 0.5)
-        .ok_or_else(|| not_found("the candidates do not form a grid".into()))?;
-    // Grow the grid.
-    // Grid position -> (candidate, local step along i, local step along j).
-    type Node = (usize, Vector2<f64>, Vector2<f64>);
+    cands
+}
+
+/// Grid position -> (candidate, local step along i, local step along j).
+type Node = (usize, Vector2<f64>, Vector2<f64>);
+
+/// Grows the grid from `seed` with the first steps `d1`, `d2`: predicts each neighbour from
+/// the local step and takes the nearest free candidate within 35 % of a step.
+fn grow_grid(
+    cands: &[Point2<f64>],
+    seed: usize,
+    d1: Vector2<f64>,
+    d2: Vector2<f64>,
+) -> HashMap<(i64, i64), Node> {
     let mut grid: HashMap<(i64, i64), Node> = HashMap::new();
     let mut owner: Vec<Option<(i64, i64)>> = vec![None; cands.len()];
     grid.insert((0, 0), (seed, d1, d2));
@@ -424,13 +416,21 @@ pub fn detect_chessboard(
             queue.push_back(key);
         }
     }
+    grid
+}
+
+/// The one fully populated `rows x cols` (or `cols x rows`) window of a grown grid
+/// `(i0, j0, extent i, extent j)`: stray candidates next to the board may extend the grid
+/// by a partial row or column.
+fn board_window(
+    grid: &HashMap<(i64, i64), Node>,
+    rows: i64,
+    cols: i64,
+) -> Result<(i64, i64, i64, i64), String> {
     let gimin = grid.keys().map(|k| k.0).min().unwrap_or(0);
     let gimax = grid.keys().map(|k| k.0).max().unwrap_or(0);
     let gjmin = grid.keys().map(|k| k.1).min().unwrap_or(0);
     let gjmax = grid.keys().map(|k| k.1).max().unwrap_or(0);
-    let (rows, cols) = (i64::from(board.rows), i64::from(board.cols));
-    // The board is the one fully populated rows x cols window of the grown grid (stray
-    // candidates next to the board may extend it by a partial row or column).
     let mut windows = Vec::new();
     for (wi, wj) in [(cols, rows), (rows, cols)] {
         for i0 in gimin..=gimax - wi + 1 {
@@ -442,28 +442,106 @@ pub fn detect_chessboard(
             }
         }
     }
-    let (imin, jmin, ni, nj) = match windows.as_slice() {
-        [w] => *w,
-        [] => {
-            return Err(not_found(format!(
-                "found a grid of {} corners spanning {} x {}, the board has {} x {}",
-                grid.len(),
-                gimax - gimin + 1,
-                gjmax - gjmin + 1,
-                board.rows,
-                board.cols
-            )))
+    match windows.as_slice() {
+        [w] => Ok(*w),
+        [] => Err(format!(
+            "found a grid of {} corners spanning {} x {}, the board has {rows} x {cols}",
+            grid.len(),
+            gimax - gimin + 1,
+            gjmax - gjmin + 1,
+        )),
+        _ => Err(format!(
+            "the grid of {} corners holds the {rows} x {cols} board in {} places; crop the image to the board",
+            grid.len(),
+            windows.len()
+        )),
+    }
+}
+
+/// Detects the inner corners of `board` in an IR image; returns them with their ids.
+pub fn detect_chessboard(
+    img: &Image<u8>,
+    board: &BoardConfig,
+    params: &DetectParams,
+) -> Result<Vec<Corner>, CalibrationError> {
+    board.validate()?;
+    let not_found = |why: String| CalibrationError::BoardNotFound { why };
+    if !img.is_consistent() {
+        return Err(not_found("the image buffer does not match its size".into()));
+    }
+    let g = blur(img, params.blur_sigma);
+    let cands = candidates(&g, params);
+    let needed = board.corner_count();
+    if cands.len() < needed {
+        return Err(not_found(format!(
+            "{} corner candidates, the board has {needed}",
+            cands.len()
+        )));
+    }
+    // Seed: the candidate nearest the centroid of the strongest `needed` candidates.
+    let centroid = cands[..needed]
+        .iter()
+        .fold(Vector2::zeros(), |a, p| a + p.coords)
+        / needed as f64;
+    let seed = (0..cands.len())
+        .min_by(|&a, &b| {
+            (cands[a].coords - centroid)
+                .norm()
+                .total_cmp(&(cands[b].coords - centroid).norm())
+        })
+        .ok_or_else(|| not_found("no candidates".into()))?;
+    // Grid axes run along square edges: the midpoint of an axis step lies on an edge (grey
+    // between dark and light); the midpoint of a diagonal step lies inside a square.
+    let (lo, hi) = (0..24).fold((f64::INFINITY, f64::NEG_INFINITY), |(l, h), k| {
+        let a = k as f64 * std::f64::consts::TAU / 24.0;
+        match g.bilinear(cands[seed] + Vector2::new(a.cos(), a.sin()) * 3.0) {
+            Some(v) => (l.min(v), h.max(v)),
+            None => (l, h),
         }
-        _ => {
-            return Err(not_found(format!(
-                "the grid of {} corners holds the {} x {} board in {} places; crop the image to the board",
-                grid.len(),
-                board.rows,
-                board.cols,
-                windows.len()
-            )))
-        }
+    });
+    let mid_level = (lo + hi) / 2.0;
+    let axis_like = |d: &Vector2<f64>| {
+        g.bilinear(cands[seed] + d * 0.5)
+            .is_some_and(|v| (v - mid_level).abs() < 0.25 * (hi - lo))
     };
+    let mut near: Vec<Vector2<f64>> = cands
+        .iter()
+        .map(|c| c - cands[seed])
+        .filter(|d| d.norm() > 1e-9)
+        .filter(|d| axis_like(d))
+        .collect();
+    near.sort_by(|a, b| a.norm().total_cmp(&b.norm()));
+    let d1 = *near
+        .first()
+        .ok_or_else(|| not_found("a single candidate".into()))?;
+    // The second axis: the shortest axis-like step not parallel to d1, also among the
+    // steps minus multiples of d1 (a sheared basis would index the grid wrongly).
+    let cos = |a: &Vector2<f64>, b: &Vector2<f64>| (a.dot(b) / (a.norm() * b.norm())).abs();
+    // Second-axis choices: axis-like steps not parallel to d1, shortest first; the first
+    // that grows a grid holding the board wins (a sheared basis indexes the grid wrongly
+    // and holds no full board window).
+    let mut d2s: Vec<Vector2<f64>> = near
+        .iter()
+        .take(16)
+        .flat_map(|v| (-2..=2).map(move |k| v - d1 * f64::from(k)))
+        .filter(|w| w.norm() > 1e-9 && cos(w, &d1) < 0.9 && axis_like(w))
+        .collect();
+    d2s.sort_by(|a, b| a.norm().total_cmp(&b.norm()));
+    d2s.dedup_by(|a, b| (*a - *b).norm() < 0.5);
+    let (rows, cols) = (i64::from(board.rows), i64::from(board.cols));
+    let mut last_why = "the candidates do not form a grid".to_string();
+    let mut chosen = None;
+    for d2 in d2s.into_iter().take(6) {
+        let grid = grow_grid(&cands, seed, d1, d2);
+        match board_window(&grid, rows, cols) {
+            Ok(w) => {
+                chosen = Some((grid, w));
+                break;
+            }
+            Err(why) => last_why = format!("{why} (of {} candidates)", cands.len()),
+        }
+    }
+    let (grid, (imin, jmin, ni, nj)) = chosen.ok_or_else(|| not_found(last_why))?;
     let at = |i: i64, j: i64| grid.get(&(i, j)).map(|e| cands[e.0]);
     // The 8 symmetries: (swap, flip col, flip row) map (i, j) to (col, row).
     let mut found: Vec<Vec<Corner>> = Vec::new();
@@ -628,5 +706,57 @@ mod tests {
         );
         let err = detect_chessboard(&img, &even, &DetectParams::default()).unwrap_err();
         assert!(err.to_string().contains("180 degrees"), "{err}");
+    }
+}
+
+#[cfg(test)]
+mod debug_dump {
+    use super::*;
+
+    #[test]
+    #[ignore = "debugging aid: writes /tmp/ir_*.pgm and the candidates"]
+    fn dump_failing_views() {
+        let mut cfg = crate::simulate::SimConfig::default_cell();
+        cfg.poses = 15;
+        cfg.max_obliquity_deg = 65.0;
+        cfg.noise = crate::simulate::SimNoise::none();
+        let (_, truth) = crate::simulate::simulate_set(&cfg, 8).unwrap();
+        let x = cfg.flange_from_board.isometry();
+        let mut n = 0;
+        for f in &truth.base_from_flange {
+            for cam in &cfg.cameras {
+                let cfb = cam.base_from_camera.isometry().inverse() * f.isometry() * x;
+                let img = render_board_ir(&cam.intrinsics, &cfb, &cfg.board, &IrLevels::default());
+                if let Err(e) = detect_chessboard(&img, &cfg.board, &DetectParams::default()) {
+                    let g = blur(&img, 1.0);
+                    let cands: Vec<_> = saddles(&g, DetectParams::default().min_response)
+                        .into_iter()
+                        .map(|p| {
+                            (
+                                p,
+                                refine(&g, p, 3),
+                                refine(&g, p, 3).map(|q| is_x_junction(&g, q)),
+                            )
+                        })
+                        .collect();
+                    let mut out = format!("P2 {} {} 255\n", img.width, img.height).into_bytes();
+                    for v in &img.data {
+                        out.extend_from_slice(format!("{v}\n").as_bytes());
+                    }
+                    std::fs::write(format!("/tmp/ir_{n}.pgm"), out).unwrap();
+                    let passed = cands.iter().filter(|c| c.2 == Some(true)).count();
+                    let kept = candidates(&g, &DetectParams::default()).len();
+                    std::fs::write(
+                        format!("/tmp/ir_{n}.txt"),
+                        format!("{e} passed {passed} kept {kept}\n{cands:?}"),
+                    )
+                    .unwrap();
+                    n += 1;
+                    if n >= 12 {
+                        return;
+                    }
+                }
+            }
+        }
     }
 }

@@ -30,6 +30,7 @@ use crate::capture::{
     write_atomic, write_captures, CameraInfo, CameraView, Capture, CaptureSet, Corner, DepthSample,
     Session,
 };
+use crate::detect::{detect_chessboard, render_board_ir, DetectParams, IrLevels};
 use crate::error::CalibrationError;
 use crate::geometry::exp6;
 
@@ -112,6 +113,10 @@ pub struct SimConfig {
     /// Feasible candidates drawn per pose kept; the kept poses are the most spread out of
     /// them (greedy farthest-point). 1 keeps the random draw as it is.
     pub candidates_per_pose: usize,
+    /// `Some(sigma)`: render each view's IR image (grey-level noise `sigma`) and detect the
+    /// corners in it ([`crate::detect`]) instead of projecting them with `noise.corner_px`.
+    #[serde(default)]
+    pub ir_noise: Option<f64>,
 }
 
 /// The optical frame at `eye` looking at `target`, image "up" along +z of the base (the
@@ -166,6 +171,7 @@ impl SimConfig {
             depth_samples: true,
             min_cameras_per_pose: 3,
             candidates_per_pose: 3,
+            ir_noise: None,
         }
     }
 
@@ -369,19 +375,39 @@ pub fn simulate_set_with(
             let Some((camera_from_board, px)) = seen else {
                 continue;
             };
-            let corners_px: Vec<Corner> = px
-                .iter()
-                .enumerate()
-                .map(|(id, p)| {
-                    let du: f64 = rng.sample(StandardNormal);
-                    let dv: f64 = rng.sample(StandardNormal);
-                    Corner {
-                        id: id as u32,
-                        u: p.x + du * cfg.noise.corner_px,
-                        v: p.y + dv * cfg.noise.corner_px,
+            let corners_px: Vec<Corner> = match cfg.ir_noise {
+                // The whole chain: render the IR image, detect the corners in it.
+                Some(sigma) => {
+                    let mut img = render_board_ir(
+                        &cam.intrinsics,
+                        &camera_from_board,
+                        &cfg.board,
+                        &IrLevels::default(),
+                    );
+                    for p in &mut img.data {
+                        let g: f64 = rng.sample(StandardNormal);
+                        *p = (f64::from(*p) + sigma * g).round().clamp(0.0, 255.0) as u8;
                     }
-                })
-                .collect();
+                    match detect_chessboard(&img, &cfg.board, &DetectParams::default()) {
+                        Ok(c) => c,
+                        // Like a real capture: a view without a detection is not recorded.
+                        Err(_) => continue,
+                    }
+                }
+                None => px
+                    .iter()
+                    .enumerate()
+                    .map(|(id, p)| {
+                        let du: f64 = rng.sample(StandardNormal);
+                        let dv: f64 = rng.sample(StandardNormal);
+                        Corner {
+                            id: id as u32,
+                            u: p.x + du * cfg.noise.corner_px,
+                            v: p.y + dv * cfg.noise.corner_px,
+                        }
+                    })
+                    .collect(),
+            };
             let board_depth = if cfg.depth_samples {
                 depth_samples(
                     &cam.intrinsics,
@@ -565,6 +591,58 @@ mod tests {
                     assert!(on_board.z.abs() < 2e-3, "{}", on_board.z);
                 }
             }
+        }
+    }
+
+    #[test]
+    fn the_whole_chain_from_ir_images_recovers_the_cameras() {
+        // Render IR images, detect the chessboard, solve: no robot noise, so what is left is
+        // the detector's sub-pixel error.
+        // Views at most 65 degrees oblique (a chessboard detector needs squares of a few
+        // pixels in an 848x480 image).
+        let mut cfg = SimConfig::default_cell();
+        cfg.poses = 15;
+        cfg.noise = SimNoise::none();
+        cfg.ir_noise = Some(2.0);
+        cfg.max_obliquity_deg = 65.0;
+        let (set, truth) = simulate_set(&cfg, 8).unwrap();
+        let (projected, _) = simulate_set(
+            &SimConfig {
+                ir_noise: None,
+                ..cfg.clone()
+            },
+            8,
+        )
+        .unwrap();
+        let seen: usize = projected.captures.iter().map(|c| c.views.len()).sum();
+        let mut views = 0;
+        for c in &set.captures {
+            views += c.views.len();
+            for v in &c.views {
+                assert_eq!(v.corners.len(), cfg.board.corner_count());
+            }
+        }
+        assert!(views * 10 >= seen * 9, "{views} of {seen} views detected");
+        let opts = crate::solve::SolveOptions {
+            robot_prior: None,
+            corner_sigma_px: 0.05,
+            min_poses: 10,
+            min_views_per_camera: 5,
+            holdout_folds: 0,
+            ..Default::default()
+        };
+        let sol = crate::solve::solve(&set, &opts).unwrap();
+        eprintln!("IR chain: {views} of {seen} views detected");
+        for (id, dt, dr) in sol.errors_to(&truth) {
+            eprintln!("camera {id}: {:.4} mm {:.5} deg", dt * 1e3, dr.to_degrees());
+            assert!(
+                dt < 0.3e-3 && dr.to_degrees() < 0.02,
+                "camera {id}: {dt} m {dr} rad"
+            );
+        }
+        for c in &sol.cameras {
+            eprintln!("camera {}: fit RMS {:.4} px", c.id, c.fit_rms_px);
+            assert!(c.fit_rms_px < 0.1, "{}", c.fit_rms_px);
         }
     }
 
