@@ -109,4 +109,86 @@ pub enum CalibrationError {
         /// Points needed.
         needed: usize,
     },
+    /// A calibration board description is unusable.
+    #[error("calibration board invalid: {why}; fix the [board] entry (rows and cols count inner corners, at least 2 each; square size in metres, > 0)")]
+    InvalidBoard {
+        /// What is wrong.
+        why: String,
+    },
+    /// Reading or writing a captures folder, a report or `calibration.toml` failed.
+    #[error(
+        "{path}: {why}; check the path and free space; files already captured are left as they are"
+    )]
+    CaptureIo {
+        /// The file or folder.
+        path: String,
+        /// The operating system's or parser's message.
+        why: String,
+    },
+    /// A captures folder holds files that do not fit together.
+    #[error("captures in {path} are inconsistent: {why}; {what_to_do}")]
+    InconsistentCaptures {
+        /// The file (or folder) at fault.
+        path: String,
+        /// What does not fit.
+        why: String,
+        /// What to do about it.
+        what_to_do: String,
+    },
+    /// Too few robot poses for a calibration.
+    #[error("only {got} usable robot poses, at least {needed} are needed; capture {more} more poses (25-40 diverse poses recommended), the ones already captured are kept")]
+    TooFewPoses {
+        /// Usable poses found.
+        got: usize,
+        /// Poses needed.
+        needed: usize,
+        /// How many more to capture.
+        more: usize,
+    },
+    /// A camera saw the board in too few poses.
+    #[error("camera {camera} saw the board in {views} poses, at least {needed} are needed; capture poses where the board faces camera {camera} fully inside its image (tilted less than 60 degrees to its line of sight)")]
+    BoardNotSeen {
+        /// The camera id.
+        camera: u8,
+        /// Poses in which it saw enough corners.
+        views: usize,
+        /// Poses needed.
+        needed: usize,
+    },
+    /// The robot poses seen by a camera do not rotate the board about two different axes.
+    #[error("camera {camera}: the flange rotations of its {views} poses are degenerate ({why}); hand-eye needs rotations of at least {min_angle_deg} degrees about two different axes: capture poses that tilt the board about its x and y axes and turn it about its normal")]
+    NoRotationDiversity {
+        /// The camera id.
+        camera: u8,
+        /// Poses the camera saw.
+        views: usize,
+        /// What is missing.
+        why: String,
+        /// Minimum relative rotation asked for (degrees).
+        min_angle_deg: f64,
+    },
+    /// The board pose in one view could not be estimated.
+    #[error("camera {camera}, pose {pose}: board pose estimation failed ({why}); delete or re-capture that pose")]
+    PoseEstimation {
+        /// The camera id.
+        camera: u8,
+        /// The capture index.
+        pose: usize,
+        /// Why.
+        why: String,
+    },
+    /// The least-squares solver did not converge.
+    #[error("calibration solver failed in {stage}: {why}; check the captures for outliers (wrong joint files, misdetected boards) or add poses")]
+    SolverFailed {
+        /// Which stage.
+        stage: &'static str,
+        /// Why.
+        why: String,
+    },
+    /// No complete board was found in an image.
+    #[error("board not found in the IR image: {why}; keep the whole board inside the image, facing the camera (tilted less than 60 degrees), evenly lit with the IR projector off")]
+    BoardNotFound {
+        /// What the detector saw.
+        why: String,
+    },
 }

@@ -1,0 +1,298 @@
+//! The calibration report and `calibration.toml` (issue 8 item 4).
+//!
+//! [`Solution::report`] condenses a solution into a [`Report`] (text via its `Display`, JSON
+//! via serde): per camera the held-out reprojection RMS (k-fold over robot poses, recorded
+//! robot poses, px per coordinate), the fit RMS, the one-sigma pose uncertainty, and the
+//! depth-vs-board-plane residual. [`Solution::write_calibration_toml`] writes what the
+//! perception pipeline reads: a [`CellCalibration`] (`[[cameras]]` with id, intrinsics and
+//! `base_from_camera`), plus the board pose and the quality numbers for people.
+
+use std::fmt;
+use std::path::Path;
+
+use cell_types::{Board, Flange, Transform};
+use serde::{Deserialize, Serialize};
+
+use crate::capture::write_atomic;
+use crate::error::CalibrationError;
+use crate::fusion::{CameraCalibration, CellCalibration};
+use crate::solve::{DepthResidual, RejectedView, Solution};
+
+/// The format tag of `calibration.toml`.
+pub const CALIBRATION_FORMAT: &str = "equact-calibration/1";
+
+/// One camera's line of the report.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraReport {
+    /// Camera id.
+    pub id: u8,
+    /// Camera name.
+    pub name: String,
+    /// Poses in which it saw the board.
+    pub views: usize,
+    /// Translation of `base_from_camera` (m).
+    pub translation_m: [f64; 3],
+    /// Rotation of `base_from_camera` as a quaternion `[x, y, z, w]`.
+    pub rotation_xyzw: [f64; 4],
+    /// Held-out reprojection RMS (px per coordinate), when cross-validated.
+    pub heldout_rms_px: Option<f64>,
+    /// Fit reprojection RMS (px per coordinate).
+    pub fit_rms_px: f64,
+    /// One-sigma position uncertainty along base x, y, z (mm).
+    pub sigma_pos_mm: [f64; 3],
+    /// One-sigma rotation uncertainty about base x, y, z (deg).
+    pub sigma_rot_deg: [f64; 3],
+    /// Depth measured on the board minus the calibrated board plane.
+    pub depth: Option<DepthResidual>,
+}
+
+/// A calibration's report.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Report {
+    /// Per camera.
+    pub cameras: Vec<CameraReport>,
+    /// The board on the flange.
+    pub flange_from_board: Transform<Flange, Board>,
+    /// Robot poses used.
+    pub poses: usize,
+    /// Corner observations used.
+    pub observations: usize,
+    /// Views left out, and why.
+    pub rejected: Vec<RejectedView>,
+    /// Residual variance factor (about 1 when the noise model is right).
+    pub variance_factor: f64,
+    /// Corner noise assumed (px per coordinate): the floor of the held-out RMS.
+    pub corner_sigma_px: f64,
+    /// RMS flange-pose corrections (mm, deg), when the robot prior is on.
+    pub robot_correction_rms: Option<(f64, f64)>,
+}
+
+impl Solution {
+    /// The report of this solution.
+    pub fn report(&self) -> Report {
+        Report {
+            cameras: self
+                .cameras
+                .iter()
+                .map(|c| {
+                    let t = c.base_from_camera.translation();
+                    let q = c.base_from_camera.rotation().into_inner().coords;
+                    CameraReport {
+                        id: c.id,
+                        name: c.name.clone(),
+                        views: c.views,
+                        translation_m: [t.x, t.y, t.z],
+                        rotation_xyzw: [q.x, q.y, q.z, q.w],
+                        heldout_rms_px: c.heldout_rms_px,
+                        fit_rms_px: c.fit_rms_px,
+                        sigma_pos_mm: c.sigma_pos_mm,
+                        sigma_rot_deg: c.sigma_rot_deg,
+                        depth: c.depth,
+                    }
+                })
+                .collect(),
+            flange_from_board: self.flange_from_board,
+            poses: self.poses,
+            observations: self.observations,
+            rejected: self.rejected.clone(),
+            variance_factor: self.variance_factor,
+            corner_sigma_px: self.options.corner_sigma_px,
+            robot_correction_rms: self.robot_correction_rms,
+        }
+    }
+
+    /// The calibration the perception pipeline uses.
+    pub fn calibration(&self) -> CellCalibration {
+        CellCalibration {
+            cameras: self
+                .cameras
+                .iter()
+                .map(|c| CameraCalibration {
+                    id: c.id,
+                    intrinsics: c.intrinsics,
+                    base_from_camera: c.base_from_camera,
+                })
+                .collect(),
+        }
+    }
+
+    /// Writes `calibration.toml` atomically (see the module docs).
+    pub fn write_calibration_toml(&self, path: &Path) -> Result<(), CalibrationError> {
+        let file = CalibrationFile {
+            format: CALIBRATION_FORMAT.to_string(),
+            cameras: self.calibration().cameras,
+            flange_from_board: self.flange_from_board,
+            quality: self.report().cameras,
+        };
+        let body = toml::to_string(&file).map_err(|e| CalibrationError::CaptureIo {
+            path: path.display().to_string(),
+            why: e.to_string(),
+        })?;
+        let text = format!(
+            "# Camera extrinsics from `equact calibrate solve` (joint bundle adjustment).\n\
+             # base_from_camera maps the optical frame (x right, y down, z forward) into the\n\
+             # robot base; rotation is a quaternion [x, y, z, w], translation in metres.\n{body}"
+        );
+        write_atomic(path, text.as_bytes())
+    }
+}
+
+/// What `calibration.toml` holds.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+struct CalibrationFile {
+    format: String,
+    cameras: Vec<CameraCalibration>,
+    flange_from_board: Transform<Flange, Board>,
+    quality: Vec<CameraReport>,
+}
+
+/// Reads the camera calibration from a `calibration.toml` written by
+/// [`Solution::write_calibration_toml`] (other keys are ignored).
+pub fn read_calibration_toml(path: &Path) -> Result<CellCalibration, CalibrationError> {
+    let io = |why: String| CalibrationError::CaptureIo {
+        path: path.display().to_string(),
+        why,
+    };
+    let text = std::fs::read_to_string(path).map_err(|e| io(e.to_string()))?;
+    let cal: CellCalibration = toml::from_str(&text).map_err(|e| io(e.to_string()))?;
+    for c in &cal.cameras {
+        if !c.base_from_camera.is_finite() {
+            return Err(CalibrationError::BadExtrinsics { camera: c.id });
+        }
+        c.intrinsics.validate()?;
+    }
+    Ok(cal)
+}
+
+impl Report {
+    /// The report as pretty JSON.
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+    }
+}
+
+impl fmt::Display for Report {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        writeln!(
+            f,
+            "calibration: {} poses, {} corner observations, variance factor {:.3}",
+            self.poses, self.observations, self.variance_factor
+        )?;
+        for c in &self.cameras {
+            let held = c
+                .heldout_rms_px
+                .map_or("not cross-validated".to_string(), |h| {
+                    format!(
+                        "{h:.3} px ({:+.3} px over the {:.2} px noise floor)",
+                        h - self.corner_sigma_px,
+                        self.corner_sigma_px
+                    )
+                });
+            writeln!(f, "camera {} ({}), {} views:", c.id, c.name, c.views)?;
+            writeln!(
+                f,
+                "  base_from_camera t = [{:.5}, {:.5}, {:.5}] m, q = [{:.6}, {:.6}, {:.6}, {:.6}]",
+                c.translation_m[0],
+                c.translation_m[1],
+                c.translation_m[2],
+                c.rotation_xyzw[0],
+                c.rotation_xyzw[1],
+                c.rotation_xyzw[2],
+                c.rotation_xyzw[3]
+            )?;
+            writeln!(
+                f,
+                "  reprojection RMS: held-out {held}, fit {:.3} px",
+                c.fit_rms_px
+            )?;
+            writeln!(
+                f,
+                "  1-sigma: position [{:.3}, {:.3}, {:.3}] mm, rotation [{:.4}, {:.4}, {:.4}] deg (base x, y, z)",
+                c.sigma_pos_mm[0],
+                c.sigma_pos_mm[1],
+                c.sigma_pos_mm[2],
+                c.sigma_rot_deg[0],
+                c.sigma_rot_deg[1],
+                c.sigma_rot_deg[2]
+            )?;
+            match &c.depth {
+                Some(d) => writeln!(
+                    f,
+                    "  depth vs board plane: bias {:+.2} mm, RMS {:.2} mm over {} samples (fit: scale {:.5}, offset {:+.2} mm)",
+                    d.mean_mm, d.rms_mm, d.samples, d.scale, d.offset_mm
+                )?,
+                None => writeln!(f, "  depth vs board plane: no depth samples captured")?,
+            }
+        }
+        if let Some((t, r)) = self.robot_correction_rms {
+            writeln!(
+                f,
+                "robot pose corrections: RMS {t:.3} mm, {r:.4} deg (compare with the robot's accuracy)"
+            )?;
+        }
+        for r in &self.rejected {
+            writeln!(
+                f,
+                "left out: pose {}, camera {}: {}",
+                r.pose, r.camera, r.why
+            )?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::simulate::{simulate_set, SimConfig};
+    use crate::solve::{solve, SolveOptions};
+
+    #[test]
+    fn report_and_calibration_toml_round_trip() {
+        let (set, truth) = simulate_set(&SimConfig::default_cell(), 21).unwrap();
+        let sol = solve(
+            &set,
+            &SolveOptions {
+                holdout_folds: 3,
+                ..SolveOptions::default()
+            },
+        )
+        .unwrap();
+        let report = sol.report();
+        let text = report.to_string();
+        assert!(
+            text.contains("camera 2 (right_shoulder), 30 views"),
+            "{text}"
+        );
+        assert!(text.contains("held-out") && text.contains("depth vs board plane: bias"));
+        let json: serde_json::Value = serde_json::from_str(&report.to_json()).unwrap();
+        assert_eq!(json["cameras"].as_array().unwrap().len(), 3);
+        assert!(json["cameras"][0]["heldout_rms_px"].as_f64().unwrap() > 0.4);
+        let back: Report = serde_json::from_str(&report.to_json()).unwrap();
+        assert_eq!(back, report);
+
+        let dir = std::env::temp_dir().join(format!("calib-report-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("calibration.toml");
+        sol.write_calibration_toml(&path).unwrap();
+        let cal = read_calibration_toml(&path).unwrap();
+        assert_eq!(cal, sol.calibration());
+        cal.validate_against(&[0, 1, 2]).unwrap();
+        for c in &cal.cameras {
+            let (dt, dr) = c
+                .base_from_camera
+                .error_to(&truth.base_from_camera(c.id).unwrap());
+            assert!(dt < 1e-3 && dr < 0.05f64.to_radians());
+        }
+        let text = std::fs::read_to_string(&path).unwrap();
+        assert!(
+            text.contains("[[cameras]]") && text.contains("[[quality]]"),
+            "{text}"
+        );
+        // A broken file is a typed error naming it.
+        std::fs::write(&path, "cameras = 3").unwrap();
+        let err = read_calibration_toml(&path).unwrap_err();
+        assert!(err.to_string().contains("calibration.toml"));
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}

@@ -1,0 +1,700 @@
+//! Synthetic captures with known truth (issue 8 item 5): `equact calibrate simulate`.
+//!
+//! Board poses are drawn at random (seeded, ChaCha8): the board centre uniformly in a box
+//! in front of the cameras, its face normal tilted up to `max_tilt_deg` from the mean
+//! direction towards the cameras, a uniform turn about the normal. A pose is kept when
+//! every camera sees every corner inside its image (with a margin) at an obliquity below
+//! `max_obliquity_deg`, when it is not a near-duplicate of a kept pose, and when the
+//! optional pose check (the CLI passes the planner's IK and collision check here) accepts
+//! the flange pose. Corners are projected through the camera model (librealsense pixel
+//! convention) and get Gaussian noise; the recorded flange pose gets Gaussian robot noise
+//! (per axis, in the flange frame); depth samples on the board follow the D455 axial noise
+//! model `sigma_z = z^2 s / (f B)` with 1 mm quantisation.
+//!
+//! The calibration crate may not depend on `hil_sim` (which depends on it), so the camera
+//! rig is an input: [`SimConfig::default_cell`] repeats `hil_sim::depth_camera::default_rig`'s
+//! three camera poses (the tests crate checks that they agree).
+
+use std::path::Path;
+
+use cell_types::{Base, Board, Camera, Flange, Joints, Transform};
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal, StandardNormal};
+use serde::{Deserialize, Serialize};
+
+use crate::board::BoardConfig;
+use crate::camera::{DepthMode, Intrinsics, D455_BASELINE_M, D455_DEPTH_SCALE};
+use crate::capture::{
+    write_atomic, write_captures, CameraInfo, CameraView, Capture, CaptureSet, Corner, DepthSample,
+    Session,
+};
+use crate::detect::{detect_chessboard, render_board_ir, DetectParams, IrLevels};
+use crate::error::CalibrationError;
+use crate::geometry::exp6;
+
+/// A simulated camera: its intrinsics and true pose.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SimCamera {
+    /// Camera id.
+    pub id: u8,
+    /// Name.
+    pub name: String,
+    /// Intrinsics (of the stream the board is detected in).
+    pub intrinsics: Intrinsics,
+    /// The true pose.
+    pub base_from_camera: Transform<Base, Camera>,
+}
+
+/// Noise injected into synthetic captures (standard deviations, per axis).
+#[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SimNoise {
+    /// Corner pixel noise (px, per coordinate).
+    pub corner_px: f64,
+    /// Robot flange position noise (m, per axis).
+    pub robot_m: f64,
+    /// Robot flange rotation noise (rad, per axis).
+    pub robot_rad: f64,
+    /// D455 stereo subpixel error `s` for the board depth samples (0: exact depth, still
+    /// quantised to 1 mm).
+    pub depth_subpixel: f64,
+}
+
+impl SimNoise {
+    /// No noise at all (depth still quantised).
+    pub fn none() -> Self {
+        Self {
+            corner_px: 0.0,
+            robot_m: 0.0,
+            robot_rad: 0.0,
+            depth_subpixel: 0.0,
+        }
+    }
+
+    /// The issue's realistic noise: 0.5 px corners, robot 0.5 mm / 0.05 deg, D455 depth.
+    pub fn realistic() -> Self {
+        Self {
+            corner_px: 0.5,
+            robot_m: 0.5e-3,
+            robot_rad: 0.05_f64.to_radians(),
+            depth_subpixel: 0.08,
+        }
+    }
+}
+
+/// What to simulate.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct SimConfig {
+    /// The board.
+    pub board: BoardConfig,
+    /// The cameras and their true poses.
+    pub cameras: Vec<SimCamera>,
+    /// The board's true pose on the flange.
+    pub flange_from_board: Transform<Flange, Board>,
+    /// Number of robot poses.
+    pub poses: usize,
+    /// Noise.
+    pub noise: SimNoise,
+    /// Lower corner of the box the board centre is drawn in (base frame, m).
+    pub region_min: [f64; 3],
+    /// Upper corner of that box.
+    pub region_max: [f64; 3],
+    /// Largest tilt of the board normal from the mean direction to the cameras (deg).
+    pub max_tilt_deg: f64,
+    /// Largest angle between the board normal and a camera's line of sight (deg).
+    pub max_obliquity_deg: f64,
+    /// Corners must project at least this far inside the image (px).
+    pub margin_px: f64,
+    /// Whether to record depth samples on the board.
+    pub depth_samples: bool,
+    /// Fewest cameras that must see the whole board in a pose (clamped to 1..=cameras).
+    pub min_cameras_per_pose: usize,
+    /// Feasible candidates drawn per pose kept; the kept poses are the most spread out of
+    /// them (greedy farthest-point). 1 keeps the random draw as it is.
+    pub candidates_per_pose: usize,
+    /// `Some(sigma)`: render each view's IR image (grey-level noise `sigma`) and detect the
+    /// corners in it ([`crate::detect`]) instead of projecting them with `noise.corner_px`.
+    #[serde(default)]
+    pub ir_noise: Option<f64>,
+}
+
+/// The optical frame at `eye` looking at `target`, image "up" along +z of the base (the
+/// same construction as `hil_sim::depth_camera::look_at`).
+pub fn look_at(eye: Point3<f64>, target: Point3<f64>) -> Transform<Base, Camera> {
+    let z = (target - eye).normalize();
+    let x = z.cross(&Vector3::z()).normalize();
+    let y = z.cross(&x);
+    let r = Rotation3::from_matrix_unchecked(Matrix3::from_columns(&[x, y, z]));
+    Transform::from_parts(eye.coords, UnitQuaternion::from_rotation_matrix(&r))
+}
+
+impl SimConfig {
+    /// The simulated cell: `hil_sim`'s three 848x480 D455s (front, left and right
+    /// shoulder), a 7x10-corner chessboard of 35 mm squares 60 mm in front of the flange, 30
+    /// poses, realistic noise.
+    pub fn default_cell() -> Self {
+        let eyes = [
+            (Point3::new(1.35, 0.0, 0.55), Point3::new(0.55, 0.0, -0.02)),
+            (Point3::new(0.05, 0.6, 0.75), Point3::new(0.6, -0.05, -0.05)),
+            (Point3::new(0.05, -0.6, 0.75), Point3::new(0.6, 0.05, -0.05)),
+        ];
+        let names = ["front", "left_shoulder", "right_shoulder"];
+        let cameras = eyes
+            .iter()
+            .zip(names)
+            .enumerate()
+            .map(|(i, ((eye, target), name))| SimCamera {
+                id: i as u8,
+                name: name.to_string(),
+                intrinsics: Intrinsics::d455_depth(DepthMode::Wvga848x480),
+                base_from_camera: look_at(*eye, *target),
+            })
+            .collect();
+        let board = BoardConfig::default();
+        let c = board.centre();
+        // Board face along the flange's z, centred on the flange axis 60 mm out, turned a
+        // little so that no axis is special.
+        let rot = UnitQuaternion::from_euler_angles(0.03, -0.02, 0.5);
+        let t = Vector3::new(0.004, -0.003, 0.06) - rot * c.coords;
+        Self {
+            board,
+            cameras,
+            flange_from_board: Transform::from_parts(t, rot),
+            poses: 30,
+            noise: SimNoise::realistic(),
+            region_min: [0.2, -0.4, 0.1],
+            region_max: [0.8, 0.4, 0.7],
+            max_tilt_deg: 45.0,
+            max_obliquity_deg: 75.0,
+            margin_px: 8.0,
+            depth_samples: true,
+            min_cameras_per_pose: 3,
+            candidates_per_pose: 3,
+            ir_noise: None,
+        }
+    }
+
+    /// The session a simulated capture writes.
+    pub fn session(&self) -> Session {
+        Session::new(
+            self.board,
+            self.cameras
+                .iter()
+                .map(|c| CameraInfo {
+                    id: c.id,
+                    name: c.name.clone(),
+                    intrinsics: c.intrinsics,
+                })
+                .collect(),
+        )
+    }
+}
+
+/// The ground truth of a simulated capture set (`truth.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Truth {
+    /// The seed.
+    pub seed: u64,
+    /// The configuration simulated.
+    pub config: SimConfig,
+    /// The true flange pose of every capture (the captures hold the noisy ones).
+    pub base_from_flange: Vec<Transform<Base, Flange>>,
+}
+
+impl Truth {
+    /// The true pose of camera `id`.
+    pub fn base_from_camera(&self, id: u8) -> Option<Transform<Base, Camera>> {
+        self.config
+            .cameras
+            .iter()
+            .find(|c| c.id == id)
+            .map(|c| c.base_from_camera)
+    }
+}
+
+/// The verdict of a caller's pose check (reachability, collisions).
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub enum PoseCheck {
+    /// The pose cannot be used.
+    Reject,
+    /// The pose is fine; the joint state reaching it, when known.
+    Accept(Option<Joints>),
+}
+
+/// Simulates captures of `cfg` with `seed` in memory; every flange pose is accepted.
+pub fn simulate_set(cfg: &SimConfig, seed: u64) -> Result<(CaptureSet, Truth), CalibrationError> {
+    simulate_set_with(cfg, seed, &mut |_| PoseCheck::Accept(None))
+}
+
+/// Simulates captures like [`simulate_set`], asking `check` about every candidate flange
+/// pose (the CLI passes the planner's IK and collision check; accepted joints are recorded).
+pub fn simulate_set_with(
+    cfg: &SimConfig,
+    seed: u64,
+    check: &mut dyn FnMut(&Transform<Base, Flange>) -> PoseCheck,
+) -> Result<(CaptureSet, Truth), CalibrationError> {
+    cfg.board.validate()?;
+    let bad = |what: &'static str, value: f64, why: &'static str| {
+        Err(CalibrationError::InvalidParameter { what, value, why })
+    };
+    for (what, v) in [
+        ("noise.corner_px", cfg.noise.corner_px),
+        ("noise.robot_m", cfg.noise.robot_m),
+        ("noise.robot_rad", cfg.noise.robot_rad),
+        ("noise.depth_subpixel", cfg.noise.depth_subpixel),
+    ] {
+        if !(v.is_finite() && v >= 0.0) {
+            return bad(what, v, "a standard deviation must be finite and >= 0");
+        }
+    }
+    if cfg.cameras.is_empty() {
+        return bad("cameras", 0.0, "simulate at least one camera");
+    }
+    for c in &cfg.cameras {
+        c.intrinsics.validate()?;
+    }
+    let session = cfg.session();
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let lo = Vector3::from(cfg.region_min);
+    let hi = Vector3::from(cfg.region_max);
+    let centre = Point3::from((lo + hi) / 2.0);
+    let mean_dir = cfg
+        .cameras
+        .iter()
+        .map(|c| (Point3::from(c.base_from_camera.translation()) - centre).normalize())
+        .sum::<Vector3<f64>>()
+        .normalize();
+    let corners = cfg.board.corners();
+    let board_centre = cfg.board.centre();
+    let x = *cfg.flange_from_board.isometry();
+    let cos_obl = cfg.max_obliquity_deg.to_radians().cos();
+    let mut kept_boards: Vec<Isometry3<f64>> = Vec::new();
+    let mut candidates = Vec::new();
+    let wanted = cfg.poses * cfg.candidates_per_pose.max(1);
+    const ATTEMPTS: usize = 400_000;
+    let mut attempts = 0;
+    while candidates.len() < wanted && attempts < ATTEMPTS {
+        attempts += 1;
+        // Board pose: normal tilted from the mean direction, turned about it.
+        let pos = Vector3::new(
+            rng.random_range(lo.x..=hi.x),
+            rng.random_range(lo.y..=hi.y),
+            rng.random_range(lo.z..=hi.z),
+        );
+        let tilt = cfg.max_tilt_deg.to_radians() * rng.random::<f64>().sqrt();
+        let az = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+        let other = if mean_dir.x.abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        };
+        let perp = mean_dir.cross(&other).normalize();
+        let tilt_axis = UnitQuaternion::from_scaled_axis(mean_dir * az) * perp;
+        let normal = UnitQuaternion::from_scaled_axis(tilt_axis * tilt) * mean_dir;
+        let spin = rng.random_range(-std::f64::consts::PI..std::f64::consts::PI);
+        let face = UnitQuaternion::rotation_between(&Vector3::z(), &normal).unwrap_or_else(|| {
+            UnitQuaternion::from_scaled_axis(Vector3::x() * std::f64::consts::PI)
+        });
+        let rot = face * UnitQuaternion::from_scaled_axis(Vector3::z() * spin);
+        let base_from_board = Isometry3::from_parts(
+            nalgebra::Translation3::from(pos - rot * board_centre.coords),
+            rot,
+        );
+        if kept_boards.iter().any(|k| {
+            (k.translation.vector - base_from_board.translation.vector).norm() < 0.03
+                && k.rotation.angle_to(&base_from_board.rotation) < 5f64.to_radians()
+        }) {
+            continue;
+        }
+        // Every camera must see every corner, not too obliquely.
+        // Which cameras see every corner, not too obliquely.
+        let mut pixels = Vec::with_capacity(cfg.cameras.len());
+        for cam in &cfg.cameras {
+            let camera_from_board = cam.base_from_camera.isometry().inverse() * base_from_board;
+            let to_cam = cam.base_from_camera.translation() - pos;
+            if normal.dot(&to_cam.normalize()) < cos_obl {
+                pixels.push(None);
+                continue;
+            }
+            let k = &cam.intrinsics;
+            let px: Option<Vec<_>> = corners
+                .iter()
+                .map(|b| {
+                    k.project(&(camera_from_board * b)).ok().filter(|p| {
+                        p.x >= cfg.margin_px
+                            && p.y >= cfg.margin_px
+                            && p.x <= f64::from(k.width) - 1.0 - cfg.margin_px
+                            && p.y <= f64::from(k.height) - 1.0 - cfg.margin_px
+                    })
+                })
+                .collect();
+            pixels.push(px.map(|px| (camera_from_board, px)));
+        }
+        let seen = pixels.iter().filter(|p| p.is_some()).count();
+        if seen < cfg.min_cameras_per_pose.clamp(1, cfg.cameras.len()) {
+            continue;
+        }
+        let base_from_flange_true: Transform<Base, Flange> =
+            Transform::from_isometry(base_from_board * x.inverse());
+        let joints = match check(&base_from_flange_true) {
+            PoseCheck::Reject => continue,
+            PoseCheck::Accept(j) => j,
+        };
+        kept_boards.push(base_from_board);
+        candidates.push((base_from_board, base_from_flange_true, joints, pixels));
+    }
+    if candidates.len() < cfg.poses {
+        return Err(CalibrationError::TooFewPoses {
+            got: candidates.len(),
+            needed: cfg.poses,
+            more: cfg.poses - candidates.len(),
+        });
+    }
+    let chosen = farthest_poses(
+        &candidates.iter().map(|c| c.0).collect::<Vec<_>>(),
+        cfg.poses,
+    );
+    let mut captures = Vec::new();
+    let mut truths: Vec<Transform<Base, Flange>> = Vec::new();
+    for ci in chosen {
+        let (_, base_from_flange_true, joints, pixels) = candidates[ci].clone();
+        // Noise: robot, corners, depth.
+        let mut n = [0.0; 6];
+        for (i, v) in n.iter_mut().enumerate() {
+            let s: f64 = rng.sample(StandardNormal);
+            *v = s * if i < 3 {
+                cfg.noise.robot_rad
+            } else {
+                cfg.noise.robot_m
+            };
+        }
+        let recorded = Transform::from_isometry(base_from_flange_true.isometry() * exp6(&n));
+        let mut views = Vec::with_capacity(cfg.cameras.len());
+        for (cam, seen) in cfg.cameras.iter().zip(pixels) {
+            let Some((camera_from_board, px)) = seen else {
+                continue;
+            };
+            let corners_px: Vec<Corner> = match cfg.ir_noise {
+                // The whole chain: render the IR image, detect the corners in it.
+                Some(sigma) => {
+                    let mut img = render_board_ir(
+                        &cam.intrinsics,
+                        &camera_from_board,
+                        &cfg.board,
+                        &IrLevels::default(),
+                    );
+                    for p in &mut img.data {
+                        let g: f64 = rng.sample(StandardNormal);
+                        *p = (f64::from(*p) + sigma * g).round().clamp(0.0, 255.0) as u8;
+                    }
+                    match detect_chessboard(&img, &cfg.board, &DetectParams::default()) {
+                        Ok(c) => c,
+                        // Like a real capture: a view without a detection is not recorded.
+                        Err(_) => continue,
+                    }
+                }
+                None => px
+                    .iter()
+                    .enumerate()
+                    .map(|(id, p)| {
+                        let du: f64 = rng.sample(StandardNormal);
+                        let dv: f64 = rng.sample(StandardNormal);
+                        Corner {
+                            id: id as u32,
+                            u: p.x + du * cfg.noise.corner_px,
+                            v: p.y + dv * cfg.noise.corner_px,
+                        }
+                    })
+                    .collect(),
+            };
+            let board_depth = if cfg.depth_samples {
+                depth_samples(
+                    &cam.intrinsics,
+                    &camera_from_board,
+                    &px,
+                    cfg.noise.depth_subpixel,
+                    &mut rng,
+                )
+            } else {
+                Vec::new()
+            };
+            views.push(CameraView {
+                camera: cam.id,
+                corners: corners_px,
+                board_depth,
+            });
+        }
+        captures.push(Capture {
+            index: captures.len(),
+            joints,
+            base_from_flange: recorded,
+            views,
+        });
+        truths.push(base_from_flange_true);
+    }
+    let set = CaptureSet { session, captures };
+    Ok((
+        set,
+        Truth {
+            seed,
+            config: cfg.clone(),
+            base_from_flange: truths,
+        },
+    ))
+}
+
+/// Greedy farthest-point selection of `n` board poses (distance: 10 cm of position or 20°
+/// of rotation count as 1), starting from the pose nearest the centre: spreads the poses
+/// over the reachable set, which conditions the hand-eye problem far better than a random
+/// draw of the same size.
+fn farthest_poses(boards: &[Isometry3<f64>], n: usize) -> Vec<usize> {
+    let dist = |a: &Isometry3<f64>, b: &Isometry3<f64>| {
+        let dp = (a.translation.vector - b.translation.vector).norm() / 0.1;
+        let dr = a.rotation.angle_to(&b.rotation) / 20f64.to_radians();
+        (dp * dp + dr * dr).sqrt()
+    };
+    if boards.is_empty() {
+        return Vec::new();
+    }
+    let centre = boards
+        .iter()
+        .fold(Vector3::zeros(), |a, b| a + b.translation.vector)
+        / boards.len() as f64;
+    let first = (0..boards.len())
+        .min_by(|&a, &b| {
+            (boards[a].translation.vector - centre)
+                .norm()
+                .total_cmp(&(boards[b].translation.vector - centre).norm())
+        })
+        .unwrap_or(0);
+    let mut chosen = vec![first];
+    let mut nearest: Vec<f64> = boards.iter().map(|b| dist(b, &boards[first])).collect();
+    while chosen.len() < n.min(boards.len()) {
+        let Some(next) = (0..boards.len())
+            .filter(|i| !chosen.contains(i))
+            .max_by(|&a, &b| nearest[a].total_cmp(&nearest[b]))
+        else {
+            break;
+        };
+        chosen.push(next);
+        for (i, d) in nearest.iter_mut().enumerate() {
+            *d = d.min(dist(&boards[i], &boards[next]));
+        }
+    }
+    chosen
+}
+
+/// Depth samples at the integer pixels nearest the corners: the board plane's depth along
+/// each pixel's ray, D455 axial noise, 1 mm quantisation.
+fn depth_samples(
+    k: &Intrinsics,
+    camera_from_board: &Isometry3<f64>,
+    pixels: &[nalgebra::Point2<f64>],
+    subpixel: f64,
+    rng: &mut ChaCha8Rng,
+) -> Vec<DepthSample> {
+    let n = camera_from_board.rotation * Vector3::z();
+    let p0 = camera_from_board.translation.vector;
+    let f = (k.fx + k.fy) / 2.0;
+    let mut out = Vec::with_capacity(pixels.len());
+    for p in pixels {
+        let (u, v) = (p.x.round(), p.y.round());
+        let Ok(ray) = k.pixel_ray(nalgebra::Point2::new(u, v)) else {
+            continue;
+        };
+        let denom = n.dot(&ray);
+        if denom.abs() < 1e-9 {
+            continue;
+        }
+        let z = n.dot(&p0) / denom;
+        let sigma = z * z * subpixel / (f * D455_BASELINE_M);
+        let noisy = if sigma > 0.0 {
+            Normal::new(z, sigma).map_or(z, |d| d.sample(rng))
+        } else {
+            z
+        };
+        let q = (noisy / D455_DEPTH_SCALE).round() * D455_DEPTH_SCALE;
+        if q > 0.0 {
+            out.push(DepthSample { u, v, depth_m: q });
+        }
+    }
+    out
+}
+
+/// The truth file's name in a simulated captures folder.
+pub const TRUTH_FILE: &str = "truth.json";
+
+/// Simulates captures of `cfg` with `seed` into the captures folder `dir` (plus
+/// `truth.json`), resuming an interrupted run (poses already written are kept; the same
+/// seed regenerates the same poses).
+pub fn simulate(
+    cfg: &SimConfig,
+    seed: u64,
+    dir: &Path,
+) -> Result<(CaptureSet, Truth), CalibrationError> {
+    let (set, truth) = simulate_set(cfg, seed)?;
+    write_captures(dir, &set)?;
+    let path = dir.join(TRUTH_FILE);
+    let text = serde_json::to_vec_pretty(&truth).map_err(|e| CalibrationError::CaptureIo {
+        path: path.display().to_string(),
+        why: e.to_string(),
+    })?;
+    write_atomic(&path, &text)?;
+    Ok((set, truth))
+}
+
+/// Reads `truth.json` of a simulated captures folder.
+pub fn load_truth(dir: &Path) -> Result<Truth, CalibrationError> {
+    let path = dir.join(TRUTH_FILE);
+    let io = |e: &dyn std::fmt::Display| CalibrationError::CaptureIo {
+        path: path.display().to_string(),
+        why: e.to_string(),
+    };
+    let text = std::fs::read_to_string(&path).map_err(|e| io(&e))?;
+    serde_json::from_str(&text).map_err(|e| io(&e))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::capture::load_captures;
+
+    #[test]
+    fn noise_free_captures_project_exactly_and_see_every_corner() {
+        let mut cfg = SimConfig::default_cell();
+        cfg.noise = SimNoise::none();
+        let (set, truth) = simulate_set(&cfg, 1).unwrap();
+        assert_eq!(set.captures.len(), 30);
+        set.validate("sim").unwrap();
+        let x = cfg.flange_from_board.isometry();
+        for (c, f) in set.captures.iter().zip(&truth.base_from_flange) {
+            assert_eq!(c.views.len(), 3);
+            assert_eq!(c.base_from_flange, *f);
+            for v in &c.views {
+                assert_eq!(v.corners.len(), cfg.board.corner_count());
+                let cam = truth.base_from_camera(v.camera).unwrap();
+                let k = set.session.camera(v.camera).unwrap().intrinsics;
+                for k_ in &v.corners {
+                    let b = cfg.board.corner(k_.id).unwrap();
+                    let p = cam.isometry().inverse() * f.isometry() * x * b;
+                    let px = k.project(&p).unwrap();
+                    assert!((px.x - k_.u).abs() < 1e-9 && (px.y - k_.v).abs() < 1e-9);
+                }
+                // Depth samples lie on the board (1 mm quantisation).
+                assert!(!v.board_depth.is_empty());
+                for d in &v.board_depth {
+                    let p = k
+                        .deproject(nalgebra::Point2::new(d.u, d.v), d.depth_m)
+                        .unwrap();
+                    let on_board = (f.isometry() * x).inverse() * cam.isometry() * p;
+                    assert!(on_board.z.abs() < 2e-3, "{}", on_board.z);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_whole_chain_from_ir_images_recovers_the_cameras() {
+        // Render IR images, detect the chessboard, solve: no robot noise, so what is left is
+        // the detector's sub-pixel error.
+        // Views at most 65 degrees oblique (a chessboard detector needs squares of a few
+        // pixels in an 848x480 image).
+        let mut cfg = SimConfig::default_cell();
+        cfg.poses = 15;
+        cfg.noise = SimNoise::none();
+        cfg.ir_noise = Some(2.0);
+        cfg.max_obliquity_deg = 65.0;
+        let (set, truth) = simulate_set(&cfg, 8).unwrap();
+        let (projected, _) = simulate_set(
+            &SimConfig {
+                ir_noise: None,
+                ..cfg.clone()
+            },
+            8,
+        )
+        .unwrap();
+        let seen: usize = projected.captures.iter().map(|c| c.views.len()).sum();
+        let mut views = 0;
+        for c in &set.captures {
+            views += c.views.len();
+            for v in &c.views {
+                assert_eq!(v.corners.len(), cfg.board.corner_count());
+            }
+        }
+        assert!(views * 10 >= seen * 9, "{views} of {seen} views detected");
+        let opts = crate::solve::SolveOptions {
+            robot_prior: None,
+            corner_sigma_px: 0.05,
+            min_poses: 10,
+            min_views_per_camera: 5,
+            holdout_folds: 0,
+            ..Default::default()
+        };
+        let sol = crate::solve::solve(&set, &opts).unwrap();
+        eprintln!("IR chain: {views} of {seen} views detected");
+        for (id, dt, dr) in sol.errors_to(&truth) {
+            eprintln!("camera {id}: {:.4} mm {:.5} deg", dt * 1e3, dr.to_degrees());
+            assert!(
+                dt < 0.3e-3 && dr.to_degrees() < 0.02,
+                "camera {id}: {dt} m {dr} rad"
+            );
+        }
+        for c in &sol.cameras {
+            eprintln!("camera {}: fit RMS {:.4} px", c.id, c.fit_rms_px);
+            assert!(c.fit_rms_px < 0.1, "{}", c.fit_rms_px);
+        }
+    }
+
+    #[test]
+    fn same_seed_same_captures_and_noise_is_seeded() {
+        let cfg = SimConfig::default_cell();
+        let (a, _) = simulate_set(&cfg, 5).unwrap();
+        let (b, _) = simulate_set(&cfg, 5).unwrap();
+        let (c, _) = simulate_set(&cfg, 6).unwrap();
+        assert_eq!(a, b);
+        assert_ne!(a, c);
+    }
+
+    #[test]
+    fn the_check_can_reject_poses_and_record_joints() {
+        let cfg = SimConfig {
+            poses: 5,
+            ..SimConfig::default_cell()
+        };
+        let mut asked = 0;
+        let (set, _) = simulate_set_with(&cfg, 2, &mut |f| {
+            asked += 1;
+            if f.translation().z > 0.2 {
+                PoseCheck::Accept(Some([f.translation().z; 6]))
+            } else {
+                PoseCheck::Reject
+            }
+        })
+        .unwrap();
+        assert!(asked >= 5);
+        for c in &set.captures {
+            let q = c.joints.unwrap();
+            assert!(q[0] > 0.2);
+        }
+    }
+
+    #[test]
+    fn simulate_writes_a_loadable_folder_and_resumes() {
+        let dir = std::env::temp_dir().join(format!("calib-sim-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let cfg = SimConfig {
+            poses: 6,
+            ..SimConfig::default_cell()
+        };
+        let (set, truth) = simulate(&cfg, 3, &dir).unwrap();
+        // Interrupt: lose two poses, then run again: they come back, identical.
+        std::fs::remove_file(dir.join("pose_0002.json")).unwrap();
+        std::fs::remove_file(dir.join("pose_0005.json")).unwrap();
+        simulate(&cfg, 3, &dir).unwrap();
+        let loaded = load_captures(&dir).unwrap();
+        assert_eq!(loaded, set);
+        assert_eq!(load_truth(&dir).unwrap(), truth);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+}
