@@ -479,6 +479,21 @@ mod tests {
                 )
             })
             .collect();
+        for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+            let ok: Vec<&ProblemResult> = results
+                .iter()
+                .filter(|r| r.solved && (r.cloud_points > 0) == matches!(mode, WorldMode::Cloud))
+                .collect();
+            let mut exact: Vec<f64> = ok.iter().map(|r| r.exact_s * 1e3).collect();
+            let mut checks: Vec<f64> = ok.iter().map(|r| r.exact_checks as f64).collect();
+            let mut valid: Vec<f64> = ok.iter().map(|r| r.validate_s * 1e3).collect();
+            eprintln!(
+                "{mode:?}: exact re-check median/p95 {:?} ms, checks {:?}; sphere validation {:?} ms",
+                median_p95(&mut exact),
+                median_p95(&mut checks),
+                median_p95(&mut valid)
+            );
+        }
         assert!(results.len() >= 140);
         assert!(
             failed.is_empty(),

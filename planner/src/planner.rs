@@ -509,6 +509,31 @@ mod tests {
     }
 
     #[test]
+    fn exact_margin_larger_than_the_clearance_gives_a_typed_exact_collision() {
+        let config = PlannerConfig {
+            exact_margin: 0.3,
+            ..PlannerConfig::default()
+        };
+        let p = Planner::new(RobotModel::ur5().unwrap(), PlannerLimits::default(), config).unwrap();
+        let world = World::empty().with_obstacle(wall());
+        let start = [-2.4, -1.57, 1.57, -1.57, -1.57, 0.0];
+        let goal = [-0.9, -1.57, 1.57, -1.57, -1.57, 0.0];
+        let err = p.plan_to_joints(&start, &goal, &world).unwrap_err();
+        match err {
+            PlanError::ExactCollision { contact, .. } => {
+                assert_eq!(contact.other, crate::ExactOther::Obstacle("wall".into()));
+                assert!(p.model.chain.link_index(contact.link).is_some());
+            }
+            e => panic!("unexpected {e}"),
+        }
+        let bad = PlannerConfig {
+            exact_margin: f64::NAN,
+            ..PlannerConfig::default()
+        };
+        assert!(Planner::new(RobotModel::ur5().unwrap(), PlannerLimits::default(), bad).is_err());
+    }
+
+    #[test]
     fn start_in_collision_and_out_of_limits_are_typed() {
         let p = planner();
         let world = World::empty().with_obstacle(Obstacle::HalfSpace {
