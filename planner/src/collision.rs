@@ -66,7 +66,13 @@ pub fn cover_shape(shape: &Shape, inflate: f64) -> Vec<(Point3<f64>, f64)> {
     };
     match shape {
         Shape::Sphere { origin, radius } => vec![(origin * Point3::origin(), *radius)],
+        // The end spheres (radius above the shape's) also cover a capsule's half-ball caps.
         Shape::Cylinder {
+            origin,
+            radius,
+            length,
+        }
+        | Shape::Capsule {
             origin,
             radius,
             length,
@@ -94,6 +100,29 @@ pub fn cover_shape(shape: &Shape, inflate: f64) -> Vec<(Point3<f64>, f64)> {
     }
 }
 
+/// Self-collision is checked between rigid bodies at least this many moving joints apart;
+/// nearer pairs (URDF neighbours, and the overlapping UR wrists) are allowed to touch.
+pub const SELF_BODY_GAP: usize = 3;
+
+/// The rigid body of every link: 0 for the root and the links fixed to it, `k + 1` for the
+/// links moved by the `k`-th revolute joint (in chain order) and those fixed to them.
+pub fn link_bodies(chain: &Chain) -> Vec<usize> {
+    let n = chain.links.len();
+    // Follow fixed joints to the nearest link with a moving parent joint.
+    let mut body_of = vec![0usize; n];
+    let mut bodies = 1usize;
+    for j in &chain.joints {
+        let pb = body_of.get(j.parent).copied().unwrap_or(0);
+        if j.axis.is_some() {
+            body_of[j.child] = bodies;
+            bodies += 1;
+        } else {
+            body_of[j.child] = pb;
+        }
+    }
+    body_of
+}
+
 fn leak(s: &str) -> &'static str {
     // Link names live as long as the model; models are built a handful of times per process.
     Box::leak(s.to_owned().into_boxed_str())
@@ -103,33 +132,14 @@ impl SphereModel {
     /// Builds the sphere model of a chain: covers each primitive, groups links into bodies,
     /// and lists the sphere pairs to check for self-collision.
     pub fn from_chain(chain: &Chain, inflate: f64) -> Result<Self, PlanError> {
-        let n = chain.links.len();
-        // Body of each link: follow fixed joints to the nearest link with a moving parent joint.
-        let mut body_of: Vec<Option<usize>> = vec![None; n];
-        let mut depth = vec![0usize; n];
-        let root = (0..n)
-            .find(|i| chain.joints.iter().all(|j| j.child != *i))
-            .unwrap_or(0);
-        body_of[root] = Some(0);
-        let mut bodies = 1usize;
-        for j in &chain.joints {
-            let pb = body_of[j.parent].unwrap_or(0);
-            if j.axis.is_some() {
-                body_of[j.child] = Some(bodies);
-                depth[j.child] = depth[j.parent] + 1;
-                bodies += 1;
-            } else {
-                body_of[j.child] = Some(pb);
-                depth[j.child] = depth[j.parent];
-            }
-        }
+        let body_of = link_bodies(chain);
         let mut spheres = Vec::new();
         for (link, shapes) in chain.shapes.iter().enumerate() {
             for s in shapes {
                 for (c, r) in cover_shape(s, inflate) {
                     spheres.push(LinkSphere {
                         link,
-                        body: body_of[link].unwrap_or(0),
+                        body: body_of[link],
                         center: c,
                         radius: r,
                     });
@@ -146,7 +156,7 @@ impl SphereModel {
         let mut self_pairs = Vec::new();
         for (i, a) in spheres.iter().enumerate() {
             for (k, b) in spheres.iter().enumerate().skip(i + 1) {
-                if body_depth(a.body).abs_diff(body_depth(b.body)) >= 3 {
+                if body_depth(a.body).abs_diff(body_depth(b.body)) >= SELF_BODY_GAP {
                     self_pairs.push((i as u16, k as u16));
                 }
             }

@@ -122,6 +122,20 @@ pub enum PlanError {
         /// What touches what.
         contact: Contact,
     },
+    /// The executed trajectory touches something when re-checked with the exact link shapes.
+    #[error("trajectory collides at t = {t} s in the exact re-check: {contact}")]
+    ExactCollision {
+        /// Time of the first contact (s).
+        t: f64,
+        /// Which link touches what.
+        contact: ExactContact,
+    },
+    /// The exact geometry library cannot test a pair of shapes.
+    #[error("exact check: parry cannot test {what}")]
+    ExactUnsupported {
+        /// The shape pair.
+        what: String,
+    },
     /// A trajectory could not be built from the samples.
     #[error("trajectory could not be built: {message}")]
     Trajectory {
@@ -148,5 +162,38 @@ pub struct Contact {
 impl std::fmt::Display for Contact {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "link {} touches {}", self.link, self.other)
+    }
+}
+
+/// What a robot link touches in the exact (parry) check.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ExactOther {
+    /// Another link of the same robot (self-collision).
+    Link(&'static str),
+    /// A static obstacle, by name.
+    Obstacle(String),
+    /// A point of the observed cloud (base frame, m).
+    CloudPoint([f64; 3]),
+}
+
+/// A contact found by the exact check: a robot link and what it touches.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ExactContact {
+    /// The robot link in contact.
+    pub link: &'static str,
+    /// The other side.
+    pub other: ExactOther,
+}
+
+impl std::fmt::Display for ExactContact {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "link {} touches ", self.link)?;
+        match &self.other {
+            ExactOther::Link(l) => write!(f, "link {l} (self-collision)"),
+            ExactOther::Obstacle(n) => write!(f, "obstacle {n}"),
+            ExactOther::CloudPoint(p) => {
+                write!(f, "cloud point ({:.4}, {:.4}, {:.4}) m", p[0], p[1], p[2])
+            }
+        }
     }
 }

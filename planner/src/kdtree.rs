@@ -85,6 +85,57 @@ impl KdTree {
         self.within_rec(0, &q, r * r)
     }
 
+    /// The first point within `r` of `p` (nearer subtrees first, not the nearest point) for
+    /// which `hit` returns true; `hit` sees every point within `r` until one is accepted.
+    pub fn find_within<F: FnMut(&Point3<f64>) -> bool>(
+        &self,
+        p: &Point3<f64>,
+        r: f64,
+        hit: &mut F,
+    ) -> Option<Point3<f64>> {
+        if self.nodes.is_empty() {
+            return None;
+        }
+        let q = [p.x as f32, p.y as f32, p.z as f32];
+        let r = r as f32 + 1e-6;
+        self.find_rec(0, &q, r * r, hit)
+    }
+
+    fn find_rec<F: FnMut(&Point3<f64>) -> bool>(
+        &self,
+        id: u32,
+        q: &[f32; 3],
+        r2: f32,
+        hit: &mut F,
+    ) -> Option<Point3<f64>> {
+        let n = self.nodes[id as usize];
+        if n.left == NONE {
+            for p in &self.pts[n.lo..n.hi] {
+                let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
+                if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= r2 {
+                    let pt = Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+                    if hit(&pt) {
+                        return Some(pt);
+                    }
+                }
+            }
+            return None;
+        }
+        let diff = q[n.axis as usize] - n.split;
+        let (near, far) = if diff < 0.0 {
+            (n.left, n.right)
+        } else {
+            (n.right, n.left)
+        };
+        if let Some(p) = self.find_rec(near, q, r2, hit) {
+            return Some(p);
+        }
+        if diff * diff <= r2 {
+            return self.find_rec(far, q, r2, hit);
+        }
+        None
+    }
+
     fn within_rec(&self, id: u32, q: &[f32; 3], r2: f32) -> bool {
         let n = self.nodes[id as usize];
         if n.left == NONE {
@@ -137,5 +188,25 @@ mod tests {
             }
         }
         assert!(!KdTree::build(&[]).any_within(&Point3::origin(), 1.0));
+        // The visitor sees exactly the points within r (up to the same slack).
+        for _ in 0..200 {
+            let p = Point3::new(rng.random(), rng.random(), rng.random());
+            let r = rng.random_range(0.0..0.15);
+            let mut seen = 0usize;
+            let none = t.find_within(&p, r, &mut |_| {
+                seen += 1;
+                false
+            });
+            assert!(none.is_none());
+            let brute = pts
+                .iter()
+                .filter(|q| (q.cast::<f64>() - p).norm() <= r + 2e-6)
+                .count();
+            let inner = pts
+                .iter()
+                .filter(|q| (q.cast::<f64>() - p).norm() <= r - 2e-6)
+                .count();
+            assert!(inner <= seen && seen <= brute, "{inner} {seen} {brute}");
+        }
     }
 }

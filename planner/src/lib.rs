@@ -3,12 +3,15 @@
 //!
 //! Libraries: `urdf-rs` parses the URDF; `nalgebra` is the workspace's linear algebra;
 //! `rsruckig` (pure-Rust Ruckig) does jerk-limited timing without the C++ library's cloud
-//! client; `rand_chacha` gives seeded, platform-independent sampling for RRT-Connect.
+//! client; `rand_chacha` gives seeded, platform-independent sampling for RRT-Connect;
+//! `parry3d` gives the exact link, obstacle and point queries of the final re-check of every
+//! trajectory ([`exact`]), independent of the sphere model the search uses.
 
 pub mod checker;
 pub mod cloud_io;
 pub mod collision;
 pub mod error;
+pub mod exact;
 pub mod ik;
 pub mod kdtree;
 pub mod kinematics;
@@ -20,7 +23,7 @@ pub mod timing;
 pub mod urdf;
 pub mod world;
 
-pub use error::{Contact, PlanError};
+pub use error::{Contact, ExactContact, ExactOther, PlanError};
 pub use model::RobotModel;
 pub use planner::{ClosingVolume, PlanStats, PlannedMotion, Planner, PlannerConfig};
 pub use rrt::RrtParams;

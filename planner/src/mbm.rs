@@ -252,6 +252,10 @@ pub struct ProblemResult {
     pub timing_s: f64,
     /// Validation (s).
     pub validate_s: f64,
+    /// Exact (parry) re-check of the trajectory (s).
+    pub exact_s: f64,
+    /// Configurations the exact re-check tested.
+    pub exact_checks: u64,
     /// Whole plan excluding the cloud build (s).
     pub total_s: f64,
     /// Joint-space path length (rad).
@@ -278,6 +282,8 @@ pub fn run_problem(
         shortcut_s: 0.0,
         timing_s: 0.0,
         validate_s: 0.0,
+        exact_s: 0.0,
+        exact_checks: 0,
         total_s: 0.0,
         path_length: 0.0,
         duration_s: 0.0,
@@ -307,6 +313,8 @@ pub fn run_problem(
             r.shortcut_s = m.stats.shortcut_s;
             r.timing_s = m.stats.timing_s;
             r.validate_s = m.stats.validate_s;
+            r.exact_s = m.stats.exact_s;
+            r.exact_checks = m.stats.exact_checks;
             r.total_s = m.stats.total_s;
             r.path_length = m.stats.path_length;
             r.duration_s = m.trajectory.duration();
@@ -343,6 +351,8 @@ pub struct SceneSummary {
     pub shortcut_ms: (f64, f64),
     /// Median / p95 timing + validation time (ms).
     pub timing_validate_ms: (f64, f64),
+    /// Median / p95 exact (parry) dense re-check time (ms), included in `plan_ms`.
+    pub exact_ms: (f64, f64),
     /// Median / p95 cloud build time (ms).
     pub build_ms: (f64, f64),
     /// Median path length (rad).
@@ -374,6 +384,7 @@ pub fn summarize(results: &[ProblemResult]) -> Vec<SceneSummary> {
                 search_ms: col(&|r| r.search_s),
                 shortcut_ms: col(&|r| r.shortcut_s),
                 timing_validate_ms: col(&|r| r.timing_s + r.validate_s),
+                exact_ms: col(&|r| r.exact_s),
                 build_ms: col(&|r| r.build_s),
                 path_length_median: {
                     let mut v: Vec<f64> = ok.iter().map(|r| r.path_length).collect();
@@ -468,6 +479,21 @@ mod tests {
                 )
             })
             .collect();
+        for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+            let ok: Vec<&ProblemResult> = results
+                .iter()
+                .filter(|r| r.solved && (r.cloud_points > 0) == matches!(mode, WorldMode::Cloud))
+                .collect();
+            let mut exact: Vec<f64> = ok.iter().map(|r| r.exact_s * 1e3).collect();
+            let mut checks: Vec<f64> = ok.iter().map(|r| r.exact_checks as f64).collect();
+            let mut valid: Vec<f64> = ok.iter().map(|r| r.validate_s * 1e3).collect();
+            eprintln!(
+                "{mode:?}: exact re-check median/p95 {:?} ms, checks {:?}; sphere validation {:?} ms",
+                median_p95(&mut exact),
+                median_p95(&mut checks),
+                median_p95(&mut valid)
+            );
+        }
         assert!(results.len() >= 140);
         assert!(
             failed.is_empty(),

@@ -4,6 +4,7 @@
 
 use crate::checker::{lerp, Checker};
 use crate::error::PlanError;
+use crate::exact::{validate_exact, ExactChecker, ExactModel};
 use crate::model::RobotModel;
 use crate::rrt::{path_length, plan_path, shortcut, RrtParams};
 use crate::timing::{time_path, validate_limits, PlannerLimits};
@@ -57,6 +58,9 @@ pub struct PlannerConfig {
     pub goal_weights: Joints,
     /// The gripper's closing volume for grasp/place keyframes.
     pub closing_volume: ClosingVolume,
+    /// Clearance (m) the exact re-check demands between the link shapes and the world; 0: the
+    /// shapes must not touch (the sphere cover is conservative only for 0).
+    pub exact_margin: f64,
 }
 
 impl Default for PlannerConfig {
@@ -67,6 +71,7 @@ impl Default for PlannerConfig {
             validate_resolution: 0.01,
             goal_weights: [3.0, 3.0, 2.0, 1.0, 1.0, 1.0],
             closing_volume: ClosingVolume::default(),
+            exact_margin: 0.0,
         }
     }
 }
@@ -82,8 +87,12 @@ pub struct PlanStats {
     pub shortcut_s: f64,
     /// Ruckig timing (s).
     pub timing_s: f64,
-    /// Limit validation and dense re-check (s).
+    /// Limit validation and dense re-check with the spheres (s).
     pub validate_s: f64,
+    /// Dense re-check with the exact parry shapes (s).
+    pub exact_s: f64,
+    /// Configurations checked with the exact shapes.
+    pub exact_checks: u64,
     /// Everything (s).
     pub total_s: f64,
     /// RRT iterations (0: the direct segment was free).
@@ -118,6 +127,8 @@ pub struct Planner {
     pub limits: PlannerLimits,
     /// Search settings.
     pub config: PlannerConfig,
+    /// The robot's exact (parry) shapes for the final re-check.
+    pub exact: ExactModel,
 }
 
 impl Planner {
@@ -128,10 +139,12 @@ impl Planner {
         config: PlannerConfig,
     ) -> Result<Self, PlanError> {
         limits.validate()?;
+        let exact = ExactModel::new(&model, config.exact_margin)?;
         Ok(Self {
             model,
             limits,
             config,
+            exact,
         })
     }
 
@@ -242,8 +255,10 @@ impl Planner {
         let mut spent = checker.checks;
         let mut res = self.config.check_resolution;
         let mut result = first;
-        while matches!(result, Err(PlanError::TrajectoryCollides { .. }))
-            && res > self.config.validate_resolution / 2.0
+        while matches!(
+            result,
+            Err(PlanError::TrajectoryCollides { .. } | PlanError::ExactCollision { .. })
+        ) && res > self.config.validate_resolution / 2.0
         {
             res /= 2.0;
             let mut finer = Checker::new(&self.model, world, res);
@@ -287,6 +302,17 @@ impl Planner {
         let mut dense = Checker::new(&self.model, world, self.config.validate_resolution);
         validate_dense(&trajectory, &mut dense)?;
         stats.validate_s = t.elapsed().as_secs_f64();
+        // The same world the search used (keyframe semantics applied), with the exact shapes.
+        let t = Instant::now();
+        let mut exact = ExactChecker::new(
+            &self.exact,
+            &self.model.chain,
+            world,
+            self.config.validate_resolution,
+        );
+        validate_exact(&trajectory, &mut exact)?;
+        stats.exact_s = t.elapsed().as_secs_f64();
+        stats.exact_checks = exact.checks;
         stats.checks = checker.checks + dense.checks;
         Ok(PlannedMotion {
             trajectory,
@@ -480,6 +506,31 @@ mod tests {
         // With the cloud only, "ignore collisions" plans straight to the goal.
         let m = p.plan_to_keyframe(&HOME, &kf_ignore, &world).unwrap();
         assert_eq!(m.trajectory.goal(), Some(&m.goal));
+    }
+
+    #[test]
+    fn exact_margin_larger_than_the_clearance_gives_a_typed_exact_collision() {
+        let config = PlannerConfig {
+            exact_margin: 0.3,
+            ..PlannerConfig::default()
+        };
+        let p = Planner::new(RobotModel::ur5().unwrap(), PlannerLimits::default(), config).unwrap();
+        let world = World::empty().with_obstacle(wall());
+        let start = [-2.4, -1.57, 1.57, -1.57, -1.57, 0.0];
+        let goal = [-0.9, -1.57, 1.57, -1.57, -1.57, 0.0];
+        let err = p.plan_to_joints(&start, &goal, &world).unwrap_err();
+        match err {
+            PlanError::ExactCollision { contact, .. } => {
+                assert_eq!(contact.other, crate::ExactOther::Obstacle("wall".into()));
+                assert!(p.model.chain.link_index(contact.link).is_some());
+            }
+            e => panic!("unexpected {e}"),
+        }
+        let bad = PlannerConfig {
+            exact_margin: f64::NAN,
+            ..PlannerConfig::default()
+        };
+        assert!(Planner::new(RobotModel::ur5().unwrap(), PlannerLimits::default(), bad).is_err());
     }
 
     #[test]

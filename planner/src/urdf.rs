@@ -270,6 +270,16 @@ pub enum Shape {
         /// Length (m).
         length: f64,
     },
+    /// A capsule: a cylinder of `length` along its origin's z, centred on the origin, capped
+    /// by half balls of the same radius (URDF `capsule`).
+    Capsule {
+        /// Pose in the link frame.
+        origin: Isometry3<f64>,
+        /// Radius (m).
+        radius: f64,
+        /// Length of the cylindrical part (m).
+        length: f64,
+    },
     /// A box centred on its origin.
     Cuboid {
         /// Pose in the link frame.
@@ -341,8 +351,12 @@ impl Chain {
                         origin,
                         radius: *radius,
                     }),
-                    urdf_rs::Geometry::Cylinder { radius, length }
-                    | urdf_rs::Geometry::Capsule { radius, length } => v.push(Shape::Cylinder {
+                    urdf_rs::Geometry::Cylinder { radius, length } => v.push(Shape::Cylinder {
+                        origin,
+                        radius: *radius,
+                        length: *length,
+                    }),
+                    urdf_rs::Geometry::Capsule { radius, length } => v.push(Shape::Capsule {
                         origin,
                         radius: *radius,
                         length: *length,
@@ -562,6 +576,31 @@ pub fn surface_samples(shape: &Shape, n: usize) -> Vec<Point3<f64>> {
                 for k in 0..m {
                     let ph = TAU * k as f64 / m as f64;
                     for z in [-length / 2.0, length / 2.0] {
+                        pts.push(origin * Point3::new(r * ph.cos(), r * ph.sin(), z));
+                    }
+                }
+            }
+        }
+        Shape::Capsule {
+            origin,
+            radius,
+            length,
+        } => {
+            for i in 0..=m {
+                let z = -length / 2.0 + length * i as f64 / m as f64;
+                for k in 0..m {
+                    let ph = TAU * k as f64 / m as f64;
+                    pts.push(origin * Point3::new(radius * ph.cos(), radius * ph.sin(), z));
+                }
+            }
+            // The caps: half spheres around the axis ends.
+            for i in 0..m {
+                let th = PI / 2.0 * (i as f64 + 0.5) / m as f64;
+                for k in 0..m {
+                    let ph = TAU * k as f64 / m as f64;
+                    let (r, h) = (radius * th.sin(), radius * th.cos());
+                    for s in [-1.0, 1.0] {
+                        let z = s * (length / 2.0 + h);
                         pts.push(origin * Point3::new(r * ph.cos(), r * ph.sin(), z));
                     }
                 }

@@ -366,6 +366,11 @@ impl DistanceField {
         }
     }
 
+    /// The k-d tree over the cloud points (exact radius queries).
+    pub fn tree(&self) -> &KdTree {
+        &self.tree
+    }
+
     /// Cell edge (m).
     pub fn cell(&self) -> f64 {
         self.h

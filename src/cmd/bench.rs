@@ -86,22 +86,23 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
         if !a.json {
             println!("mode {mode:?} ({:.1} s wall)", t.elapsed().as_secs_f64());
             println!(
-                "{:<18} {:>9} {:>17} {:>17} {:>17} {:>17} {:>17} {:>8}",
+                "{:<18} {:>9} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>8}",
                 "scene",
                 "solved",
                 "plan ms med/p95",
                 "search",
                 "shortcut",
                 "timing+valid.",
+                "exact re-check",
                 "cloud build",
                 "len rad"
             );
             for s in &summary {
                 println!(
-                    "{:<18} {:>4}/{:<4} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.2}/{:<8.2} {:>8.2}",
+                    "{:<18} {:>4}/{:<4} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.2}/{:<8.2} {:>8.2}",
                     s.scene, s.solved, s.total, s.plan_ms.0, s.plan_ms.1, s.search_ms.0, s.search_ms.1,
                     s.shortcut_ms.0, s.shortcut_ms.1, s.timing_validate_ms.0, s.timing_validate_ms.1,
-                    s.build_ms.0, s.build_ms.1, s.path_length_median
+                    s.exact_ms.0, s.exact_ms.1, s.build_ms.0, s.build_ms.1, s.path_length_median
                 );
             }
         }
