@@ -830,17 +830,18 @@ impl Policy {
         Ok((r, v))
     }
 
-    /// Equivariance of the network on a prepared input under `motion` (x → R x + t): relative
-    /// errors of the translation logits at the moved queries, of the open logit, and of the
-    /// rotation logits on the moved coarse grid (max abs difference / max abs value).
+    /// Equivariance of the network on a prepared input under each `motion` (x → R x + t):
+    /// relative errors of the translation logits at the moved queries, of the open logit, and
+    /// of the rotation logits on the moved rotation grid (max abs difference / max abs value).
+    /// The unmoved input is encoded once.
     pub fn equivariance_errors(
         &self,
         prep: &PreparedInput,
         instruction: &InstructionEmbedding,
         queries: &[[f32; 3]],
         rot_query: [f32; 3],
-        motion: &Isometry3<f64>,
-    ) -> Result<[f64; 3]> {
+        motions: &[Isometry3<f64>],
+    ) -> Result<Vec<[f64; 3]>> {
         let run = |p: &PreparedInput, q: &[[f32; 3]], rq: [f32; 3]| -> Result<_> {
             let enc = self.model.encode(
                 &p.xyz,
@@ -853,62 +854,123 @@ impl Policy {
             self.model.query(&enc, q, rq)
         };
         let a = run(prep, queries, rot_query)?;
-        let mv = |p: &[f32; 3]| {
-            let q = motion * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-            [q.x as f32, q.y as f32, q.z as f32]
-        };
-        let rm = motion.rotation.to_rotation_matrix().into_inner();
-        let turn = |v: &[f32; 3]| {
-            let w = rm * Vector3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]));
-            [w.x as f32, w.y as f32, w.z as f32]
-        };
-        let g = prep.gripper;
-        let gq = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
-            f64::from(g.quaternion[3]),
-            f64::from(g.quaternion[0]),
-            f64::from(g.quaternion[1]),
-            f64::from(g.quaternion[2]),
-        ));
-        let gq2 = motion.rotation * gq;
-        let moved = PreparedInput {
-            xyz: prep.xyz.iter().map(mv).collect(),
-            rgb: prep.rgb.clone(),
-            gripper: GripperState {
-                position: mv(&g.position),
-                quaternion: [
-                    gq2.coords.x as f32,
-                    gq2.coords.y as f32,
-                    gq2.coords.z as f32,
-                    gq2.coords.w as f32,
-                ],
-                open: g.open,
-            },
-            gripper_eps: prep.gripper_eps.iter().map(turn).collect(),
-            in_workspace: prep.in_workspace,
-        };
-        let mq: Vec<[f32; 3]> = queries.iter().map(mv).collect();
-        let b = run(&moved, &mq, mv(&rot_query))?;
-        let grid: Vec<GridRotation> = self
-            .model
-            .heads()
-            .grid()
-            .iter()
-            .map(|g| GridRotation {
-                angles: g.angles,
-                matrix: rm * g.matrix,
-            })
-            .collect();
-        let b_rot = self.model.heads().logits_on(&b.rot.so3_coeffs, &grid)?;
         let f = |v: &[f32]| v.iter().map(|x| f64::from(*x)).collect::<Vec<_>>();
-        Ok([
-            relative_error(&f(&b.trans_logits), &f(&a.trans_logits)),
-            relative_error(
-                &[f64::from(b.rot.open_logit)],
-                &[f64::from(a.rot.open_logit)],
-            ),
-            relative_error(&b_rot, &a.rot.rot_logits),
-        ])
+        let mut out = Vec::with_capacity(motions.len());
+        for motion in motions {
+            let (moved, mq, mrq) = move_input(prep, queries, rot_query, motion);
+            let b = run(&moved, &mq, mrq)?;
+            let rm = motion.rotation.to_rotation_matrix().into_inner();
+            let grid: Vec<GridRotation> = self
+                .model
+                .heads()
+                .grid()
+                .iter()
+                .map(|g| GridRotation {
+                    angles: g.angles,
+                    matrix: rm * g.matrix,
+                })
+                .collect();
+            let b_rot = self.model.heads().logits_on(&b.rot.so3_coeffs, &grid)?;
+            out.push([
+                relative_error(&f(&b.trans_logits), &f(&a.trans_logits)),
+                relative_error(
+                    &[f64::from(b.rot.open_logit)],
+                    &[f64::from(a.rot.open_logit)],
+                ),
+                relative_error(&b_rot, &a.rot.rot_logits),
+            ]);
+        }
+        Ok(out)
     }
+}
+
+/// The prepared input, queries and rotation query moved by `motion` (the gripper jitter
+/// turns with it).
+pub fn move_input(
+    prep: &PreparedInput,
+    queries: &[[f32; 3]],
+    rot_query: [f32; 3],
+    motion: &Isometry3<f64>,
+) -> (PreparedInput, Vec<[f32; 3]>, [f32; 3]) {
+    let mv = |p: &[f32; 3]| {
+        let q = motion * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+        [q.x as f32, q.y as f32, q.z as f32]
+    };
+    let rm = motion.rotation.to_rotation_matrix().into_inner();
+    let turn = |v: &[f32; 3]| {
+        let w = rm * Vector3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]));
+        [w.x as f32, w.y as f32, w.z as f32]
+    };
+    let g = prep.gripper;
+    let gq = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        f64::from(g.quaternion[3]),
+        f64::from(g.quaternion[0]),
+        f64::from(g.quaternion[1]),
+        f64::from(g.quaternion[2]),
+    ));
+    let gq2 = motion.rotation * gq;
+    let moved = PreparedInput {
+        xyz: prep.xyz.iter().map(mv).collect(),
+        rgb: prep.rgb.clone(),
+        gripper: GripperState {
+            position: mv(&g.position),
+            quaternion: [
+                gq2.coords.x as f32,
+                gq2.coords.y as f32,
+                gq2.coords.z as f32,
+                gq2.coords.w as f32,
+            ],
+            open: g.open,
+        },
+        gripper_eps: prep.gripper_eps.iter().map(turn).collect(),
+        in_workspace: prep.in_workspace,
+    };
+    (moved, queries.iter().map(mv).collect(), mv(&rot_query))
+}
+
+/// A synthetic tabletop scene in the base frame for benchmarks and tests: a table just below
+/// the focus box (z = −0.08 m) over x 0.25..0.9, y −0.33..0.33, and three hemispherical
+/// blobs on it, random colours; `n` points (at least 8).
+pub fn synthetic_scene(n: usize, seed: u64) -> Result<PointCloud> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let n = n.max(8);
+    let n_table = n * 4 / 7;
+    let mut pts = Vec::with_capacity(n);
+    for _ in 0..n_table {
+        pts.push(Point3::new(
+            rng.random_range(0.25..0.9f32),
+            rng.random_range(-0.33..0.33f32),
+            -0.08,
+        ));
+    }
+    let blobs = [
+        (0.45f32, 0.1f32, 0.05f32),
+        (0.6, -0.15, 0.07),
+        (0.75, 0.05, 0.04),
+    ];
+    let mut b = 0;
+    while pts.len() < n {
+        let (cx, cy, r) = blobs[b % 3];
+        b += 1;
+        let d = Vector3::new(
+            rng.random_range(-1.0..1.0f32),
+            rng.random_range(-1.0..1.0f32),
+            rng.random_range(0.0..1.0f32),
+        );
+        let len = d.norm();
+        if !(1e-3..=1.0).contains(&len) {
+            continue;
+        }
+        let d = d / len;
+        pts.push(Point3::new(cx + r * d.x, cy + r * d.y, -0.05 + r * d.z));
+    }
+    let rgb = (0..pts.len())
+        .map(|_| [rng.random(), rng.random(), rng.random()])
+        .collect();
+    PointCloud::new(FrameId::Base, pts, Some(rgb)).map_err(|e| PolicyError::Sidecar {
+        path: "synthetic scene".into(),
+        message: e.to_string(),
+    })
 }
 
 /// max |x − y| / max |y|.

@@ -151,9 +151,9 @@ fn moving_the_scene_moves_the_keyframe_in_equivariant_mode() {
             &InstructionEmbedding::random(4),
             &queries,
             [0.5, 0.0, 0.2],
-            &motion,
+            &[motion],
         )
-        .unwrap();
+        .unwrap()[0];
     println!(
         "equivariant mode: translation error {dt:.2e} m, rotation error {dr:.2e} rad; logits \
          (trans, open, rot) relative error {errs:?}"
