@@ -40,6 +40,15 @@ pub enum PolicyError {
         /// The number of points given.
         got: usize,
     },
+    /// The observed point cloud has no points at all.
+    #[error("the point cloud is empty; the policy needs an observed scene (check the cameras and the crop)")]
+    EmptyCloud,
+    /// The point cloud is not in the frame the policy needs.
+    #[error("the point cloud is in the {got} frame; the policy needs it in the robot base frame")]
+    WrongFrame {
+        /// The cloud's frame.
+        got: String,
+    },
     /// A point coordinate was NaN or infinite.
     #[error("{what}: point {index} has a non-finite coordinate {value:?}; drop or repair invalid points before calling")]
     NonFinitePoint {

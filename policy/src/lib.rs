@@ -18,6 +18,10 @@
 //! - [`language`]: the instruction encoder (FiLM condition);
 //! - [`heads`]: translation, gripper-open and rotation field heads;
 //! - [`model`]: the whole `EquFieldUnet` (U-net plus heads), parity or equivariant mode;
+//! - [`init`]: seeded random parameters for any configuration (runs without a checkpoint);
+//! - [`predict`]: the inference API [`Policy`] (input preparation, coarse-to-fine translation
+//!   sampling, open logit, rotation argmax with local refinement), its configuration and the
+//!   instruction-embedding file;
 //! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`).
 //!
 //! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit),
@@ -28,10 +32,12 @@ pub mod error;
 pub mod fixtures;
 pub mod grids;
 pub mod heads;
+pub mod init;
 pub mod language;
 pub mod layers;
 pub mod model;
 pub mod points;
+pub mod predict;
 pub mod rotation_head;
 pub mod so2_conv;
 pub mod so3;
@@ -39,3 +45,4 @@ pub mod transblock;
 pub mod weights;
 
 pub use error::{PolicyError, Result};
+pub use predict::{GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode};

@@ -43,6 +43,64 @@ impl Weights {
         }
     }
 
+    /// Number of tensors.
+    pub fn len(&self) -> usize {
+        self.tensors.len()
+    }
+
+    /// Whether the store holds no tensor.
+    pub fn is_empty(&self) -> bool {
+        self.tensors.is_empty()
+    }
+
+    /// Total number of scalar values (parameters) over all tensors.
+    pub fn num_values(&self) -> usize {
+        self.tensors
+            .values()
+            .map(|t| t.shape.iter().product::<usize>())
+            .sum()
+    }
+
+    /// All keys, sorted.
+    pub fn keys(&self) -> Vec<&str> {
+        let mut k: Vec<&str> = self.tensors.keys().map(String::as_str).collect();
+        k.sort_unstable();
+        k
+    }
+
+    /// Writes every tensor to a safetensors file (F32 and I64, little-endian, keys sorted).
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let bad = |message: String| PolicyError::Safetensors {
+            path: path.to_path_buf(),
+            message,
+        };
+        let bytes: Vec<(&str, &[usize], safetensors::Dtype, Vec<u8>)> = self
+            .keys()
+            .into_iter()
+            .filter_map(|k| self.tensors.get(k).map(|t| (k, t)))
+            .map(|(k, t)| {
+                let (dtype, raw) = match &t.data {
+                    TensorData::F32(v) => (
+                        safetensors::Dtype::F32,
+                        v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                    ),
+                    TensorData::I64(v) => (
+                        safetensors::Dtype::I64,
+                        v.iter().flat_map(|x| x.to_le_bytes()).collect(),
+                    ),
+                };
+                (k, t.shape.as_slice(), dtype, raw)
+            })
+            .collect();
+        let mut views = Vec::with_capacity(bytes.len());
+        for (k, shape, dtype, raw) in &bytes {
+            let v = safetensors::tensor::TensorView::new(*dtype, shape.to_vec(), raw)
+                .map_err(|e| bad(format!("{k}: {e}")))?;
+            views.push((*k, v));
+        }
+        safetensors::serialize_to_file(views, None, path).map_err(|e| bad(e.to_string()))
+    }
+
     /// Where the tensors came from (for error messages).
     pub fn source(&self) -> &str {
         &self.source

@@ -22,6 +22,35 @@ pub enum BenchWhat {
     Planner(PlannerBenchArgs),
     /// The UR driver's streaming-loop jitter at 125 and 500 Hz.
     Ur(super::bench_ur::BenchUrArgs),
+    /// The EquAct policy, physical configuration: per-stage timing of a keyframe and the
+    /// equivariance error of parity and equivariant mode over random SE(3) motions.
+    Policy(PolicyBenchArgs),
+}
+
+/// Arguments of `equact bench policy`.
+#[derive(Args, Debug)]
+pub struct PolicyBenchArgs {
+    /// Points fed to the network.
+    #[arg(long, default_value_t = 2048)]
+    pub points: usize,
+    /// Random SE(3) motions of the equivariance measurement.
+    #[arg(long, default_value_t = 10)]
+    pub repeats: usize,
+    /// Timed predictions per mode (the median is reported).
+    #[arg(long, default_value_t = 3)]
+    pub predictions: usize,
+    /// Points of the synthetic input cloud.
+    #[arg(long, default_value_t = 20_000)]
+    pub cloud_points: usize,
+    /// S2 grid size of equivariant mode.
+    #[arg(long, default_value_t = 16)]
+    pub s2_grid: usize,
+    /// Only one mode: parity or equivariant.
+    #[arg(long)]
+    pub mode: Option<String>,
+    /// Seed of the motions, the scene and the predictions.
+    #[arg(long, default_value_t = 1)]
+    pub seed: u64,
 }
 
 /// Arguments of `equact bench planner`.
@@ -49,6 +78,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     match args.what {
         BenchWhat::Planner(a) => run_planner(a),
         BenchWhat::Ur(a) => super::bench_ur::run(a),
+        BenchWhat::Policy(a) => run_policy(a),
     }
 }
 
@@ -138,5 +168,169 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
     if a.json {
         println!("{}", serde_json::to_string_pretty(&out)?);
     }
+    Ok(())
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    if v.is_empty() {
+        f64::NAN
+    } else {
+        v[v.len() / 2]
+    }
+}
+
+/// A uniformly random rotation (normalised Gaussian quaternion) and a shift within ±0.2 m.
+fn random_motion(rng: &mut rand_chacha::ChaCha8Rng) -> nalgebra::Isometry3<f64> {
+    use rand::Rng;
+    let mut g = || {
+        // Box-Muller.
+        let (u1, u2): (f64, f64) = (1.0 - rng.random::<f64>(), rng.random::<f64>());
+        (-2.0 * u1.ln()).sqrt() * (std::f64::consts::TAU * u2).cos()
+    };
+    let q = nalgebra::Quaternion::new(g(), g(), g(), g());
+    let r = nalgebra::UnitQuaternion::from_quaternion(q);
+    let t = nalgebra::Translation3::new(
+        rng.random_range(-0.2..0.2),
+        rng.random_range(-0.2..0.2),
+        rng.random_range(-0.2..0.2),
+    );
+    nalgebra::Isometry3::from_parts(t, r)
+}
+
+fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
+    use policy::predict::{
+        synthetic_scene, GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode,
+    };
+    use rand::{Rng, SeedableRng};
+    let modes: Vec<PolicyMode> = match a.mode.as_deref() {
+        None => vec![
+            PolicyMode::Parity,
+            PolicyMode::Equivariant { s2_grid: a.s2_grid },
+        ],
+        Some("parity") => vec![PolicyMode::Parity],
+        Some("equivariant") => vec![PolicyMode::Equivariant { s2_grid: a.s2_grid }],
+        Some(m) => anyhow::bail!("unknown --mode {m}; use parity or equivariant"),
+    };
+    let cloud = synthetic_scene(a.cloud_points, a.seed)?;
+    let gripper = GripperPose {
+        base_from_tcp: cell_types::Transform::from_xyz_rpy([0.5, 0.02, 0.3], [3.0, 0.1, 0.4]),
+        open: true,
+    };
+    let instruction = InstructionEmbedding::random(a.seed);
+    let mut out = serde_json::Map::new();
+    let physical = PolicyConfig::physical();
+    out.insert(
+        "config".into(),
+        serde_json::json!({
+            "points": a.points,
+            "cloud_points": cloud.len(),
+            "lmax": physical.model.lmax,
+            "mmax": physical.model.mmax,
+            "sphere_channels": physical.model.sphere_channels,
+            "field_nn_c": physical.model.field_nn_c,
+            "translation_samples": physical.sampling.levels * physical.sampling.per_level,
+            "rotation_grid_level": physical.rotation.grid_level,
+            "threads": 1,
+        }),
+    );
+    for mode in modes {
+        let name = match mode {
+            PolicyMode::Parity => "parity".to_string(),
+            PolicyMode::Equivariant { s2_grid } => format!("equivariant_s2_{s2_grid}"),
+        };
+        let mut cfg = PolicyConfig::physical().with_mode(mode);
+        cfg.n_points = a.points;
+        cfg.n_outside_focus = a.points / 4;
+        let t = Instant::now();
+        let mut policy = Policy::random(cfg.clone(), 1)?;
+        let build_s = t.elapsed().as_secs_f64();
+        let mut runs = Vec::new();
+        for i in 0..a.predictions.max(1) {
+            policy.seed = a.seed + i as u64;
+            runs.push(policy.predict_detailed(&cloud, &gripper, &instruction)?);
+            eprintln!(
+                "{name}: prediction {} of {}: {:.3} s",
+                i + 1,
+                a.predictions.max(1),
+                runs.last().map_or(0.0, |r| r.timings.total)
+            );
+        }
+        let stage = |f: &dyn Fn(&policy::predict::StageTimings) -> f64| {
+            let mut v: Vec<f64> = runs.iter().map(|r| f(&r.timings)).collect();
+            median(&mut v)
+        };
+        let mut blocks = serde_json::Map::new();
+        if let Some(first) = runs.first() {
+            for (j, (bn, _)) in first.timings.blocks.iter().enumerate() {
+                let mut v: Vec<f64> = runs
+                    .iter()
+                    .filter_map(|r| r.timings.blocks.get(j).map(|b| b.1))
+                    .collect();
+                blocks.insert(bn.clone(), serde_json::json!(median(&mut v)));
+            }
+        }
+        let timings = serde_json::json!({
+            "input_prep": stage(&|t| t.input_prep),
+            "language": stage(&|t| t.language),
+            "unet_blocks": blocks,
+            "unet_total": stage(&|t| t.blocks.iter().map(|b| b.1).sum()),
+            "encoder": stage(&|t| t.encoder),
+            "translation_head": stage(&|t| t.translation_head),
+            "rotation_head": stage(&|t| t.rotation_head),
+            "rotation_search": stage(&|t| t.rotation_search),
+            "total": stage(&|t| t.total),
+        });
+        // Equivariance of the network on one prepared input.
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
+        let prep = policy.prepare(&cloud, &gripper, &mut rng)?;
+        let b = cfg.gripper_bounds;
+        let queries: Vec<[f32; 3]> = (0..cfg.sampling.per_level)
+            .map(|_| [0, 1, 2].map(|i| rng.random_range(b[0][i]..b[1][i]) as f32))
+            .collect();
+        let motions: Vec<_> = (0..a.repeats).map(|_| random_motion(&mut rng)).collect();
+        let t = Instant::now();
+        let errs = if motions.is_empty() {
+            Vec::new()
+        } else {
+            policy.equivariance_errors(
+                &prep,
+                &instruction,
+                &queries,
+                [0.55, 0.0, 0.15],
+                &motions,
+            )?
+        };
+        let forward_s = t.elapsed().as_secs_f64() / (motions.len() + 1) as f64;
+        let summary = |k: usize| {
+            let mut v: Vec<f64> = errs.iter().map(|e| e[k]).collect();
+            let max = v.iter().copied().fold(f64::NAN, f64::max);
+            serde_json::json!({"median": median(&mut v), "max": max})
+        };
+        eprintln!(
+            "{name}: median total {:.3} s; equivariance (trans, open, rot) {} {} {}",
+            stage(&|t| t.total),
+            summary(0),
+            summary(1),
+            summary(2)
+        );
+        out.insert(
+            name,
+            serde_json::json!({
+                "build_random_weights_s": build_s,
+                "time_per_keyframe_s": stage(&|t| t.total),
+                "stage_timings_s": timings,
+                "equivariance": {
+                    "motions": motions.len(),
+                    "translation_logits_rel": summary(0),
+                    "open_logit_rel": summary(1),
+                    "rotation_logits_rel": summary(2),
+                    "forward_s": forward_s,
+                    "queries": queries.len(),
+                },
+            }),
+        );
+    }
+    println!("{}", serde_json::to_string_pretty(&out)?);
     Ok(())
 }

@@ -1,6 +1,11 @@
-//! `equact policy ...`: tools around the EquAct network (fixture parity checks for now).
+//! `equact policy ...`: tools around the EquAct network: fixture parity checks and one
+//! prediction from a cloud file.
 
-use clap::{Args, Subcommand};
+use anyhow::Context;
+use cell_types::{Base, Tcp, Transform};
+use clap::{Args, Subcommand, ValueEnum};
+use policy::predict::{GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode};
+use std::time::Instant;
 
 /// Arguments of `equact policy`.
 #[derive(Args, Debug)]
@@ -22,11 +27,158 @@ pub enum PolicyCommand {
         #[arg(long)]
         verbose: bool,
     },
+    /// Predict one keyframe from a point cloud file (base frame, metres) and print it with
+    /// the stage timings.
+    Predict(PredictArgs),
+}
+
+/// Which network mode to run.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ModeArg {
+    /// The reference as it is (coarse S2 grids, L1 up-sampling).
+    Parity,
+    /// Fine S2 grids, Euclidean up-sampling, gripper jitter in the gripper frame.
+    Equivariant,
+}
+
+impl ModeArg {
+    /// The policy mode, with `s2_grid` × `s2_grid` grids when equivariant.
+    pub fn mode(self, s2_grid: usize) -> PolicyMode {
+        match self {
+            Self::Parity => PolicyMode::Parity,
+            Self::Equivariant => PolicyMode::Equivariant { s2_grid },
+        }
+    }
+}
+
+/// Arguments of `equact policy predict`.
+#[derive(Args, Debug)]
+pub struct PredictArgs {
+    /// Point cloud in the robot base frame (PLY or PCD, metres; colours used when present).
+    #[arg(long)]
+    pub cloud: std::path::PathBuf,
+    /// Network weights (our safetensors, or a converted reference checkpoint); default:
+    /// seeded random weights (for timing and plumbing only).
+    #[arg(long)]
+    pub weights: Option<std::path::PathBuf>,
+    /// Instruction embedding (safetensors, one tensor 53 x 512, CLIP last hidden state);
+    /// default: a seeded random embedding.
+    #[arg(long)]
+    pub instruction_embedding: Option<std::path::PathBuf>,
+    /// Seed of the prediction's random choices (permutation, jitter, translation samples).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Seed of the random weights (without --weights).
+    #[arg(long, default_value_t = 1)]
+    pub weight_seed: u64,
+    /// Current TCP pose in the base frame: x,y,z (m), roll,pitch,yaw (rad).
+    #[arg(
+        long,
+        allow_hyphen_values = true,
+        default_value = "0.5,0,0.35,3.14159,0,0"
+    )]
+    pub gripper: String,
+    /// The gripper is currently closed (default open).
+    #[arg(long)]
+    pub closed: bool,
+    /// Network mode.
+    #[arg(long, value_enum, default_value_t = ModeArg::Equivariant)]
+    pub mode: ModeArg,
+    /// S2 activation grid size in equivariant mode.
+    #[arg(long, default_value_t = 16)]
+    pub s2_grid: usize,
+    /// Print JSON.
+    #[arg(long)]
+    pub json: bool,
+}
+
+fn numbers<const N: usize>(s: &str, what: &str) -> anyhow::Result<[f64; N]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|x| x.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("--{what} must be {N} comma-separated numbers"))?;
+    v.try_into()
+        .map_err(|v: Vec<f64>| anyhow::anyhow!("--{what} has {} numbers, need {N}", v.len()))
+}
+
+fn predict(a: PredictArgs) -> anyhow::Result<()> {
+    let bytes =
+        std::fs::read(&a.cloud).with_context(|| format!("reading {}", a.cloud.display()))?;
+    let cloud = planner::cloud_io::read_cloud(&bytes)
+        .with_context(|| format!("parsing {}", a.cloud.display()))?;
+    let g = numbers::<6>(&a.gripper, "gripper")?;
+    let gripper = GripperPose {
+        base_from_tcp: Transform::<Base, Tcp>::from_xyz_rpy([g[0], g[1], g[2]], [g[3], g[4], g[5]]),
+        open: !a.closed,
+    };
+    let instruction = match &a.instruction_embedding {
+        Some(p) => InstructionEmbedding::from_file(p)?,
+        None => InstructionEmbedding::random(a.seed),
+    };
+    let cfg = PolicyConfig::physical().with_mode(a.mode.mode(a.s2_grid));
+    let t = Instant::now();
+    let mut policy = match &a.weights {
+        Some(p) => Policy::load(cfg, p)?,
+        None => Policy::random(cfg, a.weight_seed)?,
+    };
+    let load_s = t.elapsed().as_secs_f64();
+    policy.seed = a.seed;
+    let p = policy.predict_detailed(&cloud, &gripper, &instruction)?;
+    let k = p.keyframe;
+    let tr = k.base_from_tcp.translation();
+    let q = k.base_from_tcp.rotation();
+    let (roll, pitch, yaw) = q.euler_angles();
+    if a.json {
+        let out = serde_json::json!({
+            "keyframe": k,
+            "position": [tr.x, tr.y, tr.z],
+            "rpy": [roll, pitch, yaw],
+            "quaternion_xyzw": [q.coords.x, q.coords.y, q.coords.z, q.coords.w],
+            "gripper_open": k.gripper_open,
+            "open_probability": p.open_probability,
+            "translation_logit": p.translation_logit,
+            "rotation_logit": p.rotation_logit,
+            "cloud_points": cloud.len(),
+            "points_in_workspace": p.in_workspace,
+            "weights_load_s": load_s,
+            "timings_s": p.timings.to_json(),
+        });
+        println!("{}", serde_json::to_string_pretty(&out)?);
+        return Ok(());
+    }
+    println!(
+        "cloud: {} points, {} inside the workspace; weights {} ({load_s:.2} s)",
+        cloud.len(),
+        p.in_workspace,
+        a.weights
+            .as_ref()
+            .map_or(format!("random (seed {})", a.weight_seed), |w| w
+                .display()
+                .to_string())
+    );
+    println!(
+        "keyframe: position [{:.4}, {:.4}, {:.4}] m, rpy [{:.4}, {:.4}, {:.4}] rad, quaternion xyzw [{:.4}, {:.4}, {:.4}, {:.4}], gripper {} (p_open {:.3})",
+        tr.x, tr.y, tr.z, roll, pitch, yaw, q.coords.x, q.coords.y, q.coords.z, q.coords.w,
+        if k.gripper_open { "open" } else { "closed" },
+        p.open_probability
+    );
+    let t = &p.timings;
+    let unet: f64 = t.blocks.iter().map(|b| b.1).sum();
+    println!(
+        "timing: total {:.3} s = input prep {:.3} + encoder {:.3} (language {:.3}, U-net blocks {:.3}) + translation head {:.3} + rotation head {:.3} + rotation search {:.3}",
+        t.total, t.input_prep, t.encoder, t.language, unet, t.translation_head, t.rotation_head, t.rotation_search
+    );
+    for (name, s) in &t.blocks {
+        println!("  {name:<8} {s:.3} s");
+    }
+    Ok(())
 }
 
 /// Runs `equact policy`.
 pub fn run(args: PolicyArgs) -> anyhow::Result<()> {
     match args.command {
+        PolicyCommand::Predict(a) => predict(a),
         PolicyCommand::CheckFixtures { dir, verbose } => {
             let reports = policy::fixtures::check_dir(&dir)?;
             let mut failed = 0;

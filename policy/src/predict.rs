@@ -1,0 +1,1044 @@
+//! Inference: one observation (cloud, gripper, instruction) in, one keyframe out.
+//!
+//! Spec: `equact.md` ("Point cloud in", "Heads") and the reference's `EquAct.forward` in
+//! evaluation mode. [`Policy::predict`]:
+//! 1. input preparation: the cloud (base frame, metres) is cropped to the workspace box; up to
+//!    `n_outside_focus` points are farthest-point sampled outside the focus box (the gripper
+//!    bounds with z-min at the table height) and the rest inside it, then randomly permuted;
+//!    colours go to [0, 1] (grey without colour); the model writes the gripper into the last
+//!    `n_gripper_pos` points;
+//! 2. the U-net encodes the scene once;
+//! 3. coarse-to-fine translation: level 0 samples uniformly in the gripper bounds, level l > 0
+//!    uniformly in balls of diameter 0.25/4^(l−1) m (clipped to the bounds) around the top-k
+//!    samples of the level before; the answer is the best sample of the last level;
+//! 4. at that point: the gripper-open logit and the rotation logits; the rotation is the
+//!    argmax over a HEALPix SO(3) grid refined by a local pattern search on SO(3) (the
+//!    reference evaluates a 2.36 M-rotation grid instead).
+//!
+//! Every random choice (permutation, gripper jitter, samples) comes from a ChaCha generator
+//! seeded with [`Policy::seed`], so a prediction is a deterministic function of the seed and
+//! the inputs. The boxes live in a workspace frame (`base_from_workspace`, identity by
+//! default) and the samples are drawn in that frame: moving the scene, the gripper and that
+//! frame together moves the keyframe with them (the equivariance test).
+
+use std::path::Path;
+use std::time::Instant;
+
+use cell_types::{Base, FrameId, Keyframe, PointCloud, Tcp, Transform};
+use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use crate::error::{PolicyError, Result};
+use crate::fixtures::{read_safetensors, StoredTensor, TensorData};
+use crate::grids::{so3_healpix_grid, GridRotation, S2Resolution};
+use crate::init::{random_weights, ExtraSizes};
+use crate::model::{EquFieldUnet, GripperState, ModelConfig};
+use crate::points::{check_finite, farthest_point_sampling, UpsampleDistance};
+use crate::rotation_head::{flat_wigner, RotationHead, SO3_COEFFS};
+use crate::so3::WignerCalculator;
+use crate::weights::Weights;
+
+/// Tokens of a CLIP-style instruction embedding.
+pub const INSTRUCTION_TOKENS: usize = 53;
+/// Width of a CLIP-style instruction token.
+pub const INSTRUCTION_DIM: usize = 512;
+/// Radius of the reference's gripper-point jitter (m).
+pub const GRIPPER_JITTER: f64 = 1e-5;
+
+/// A precomputed instruction embedding `[tokens, dim]` (CLIP text model, last hidden state).
+#[derive(Debug, Clone, PartialEq)]
+pub struct InstructionEmbedding {
+    tokens: usize,
+    dim: usize,
+    values: Vec<f32>,
+}
+
+impl InstructionEmbedding {
+    /// Wraps `values` `[tokens, dim]`, checking the size.
+    pub fn new(values: Vec<f32>, tokens: usize, dim: usize) -> Result<Self> {
+        if values.len() != tokens * dim || tokens == 0 || dim == 0 {
+            return Err(PolicyError::ShapeMismatch {
+                name: "instruction embedding".into(),
+                expected: vec![tokens, dim],
+                got: vec![values.len()],
+            });
+        }
+        Ok(Self {
+            tokens,
+            dim,
+            values,
+        })
+    }
+
+    /// A seeded N(0, 1) embedding of the CLIP size (for tests and benchmarks).
+    pub fn random(seed: u64) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let values = (0..INSTRUCTION_TOKENS * INSTRUCTION_DIM)
+            .map(|_| {
+                // Sum of 12 uniforms − 6: unit variance, close enough to normal here.
+                (0..12).map(|_| rng.random::<f32>()).sum::<f32>() - 6.0
+            })
+            .collect();
+        Self {
+            tokens: INSTRUCTION_TOKENS,
+            dim: INSTRUCTION_DIM,
+            values,
+        }
+    }
+
+    /// Reads a safetensors file holding one F32 tensor `[53, 512]` or `[1, 53, 512]` (or
+    /// several, one of them named `instruction` or `embedding`).
+    pub fn from_file(path: &Path) -> Result<Self> {
+        let tensors = read_safetensors(path)?;
+        let key = if tensors.len() == 1 {
+            tensors.keys().next().cloned()
+        } else {
+            ["instruction", "embedding"]
+                .iter()
+                .find(|k| tensors.contains_key(**k))
+                .map(|k| (*k).to_string())
+        };
+        let Some(key) = key else {
+            return Err(PolicyError::MissingTensor {
+                name: "instruction (or a file with a single tensor)".into(),
+                file: path.display().to_string(),
+            });
+        };
+        let t = tensors
+            .get(&key)
+            .ok_or_else(|| PolicyError::MissingTensor {
+                name: key.clone(),
+                file: path.display().to_string(),
+            })?;
+        let name = format!("{} in {}", key, path.display());
+        let TensorData::F32(values) = &t.data else {
+            return Err(PolicyError::WrongDtype {
+                name,
+                expected: "F32",
+                got: "I64".into(),
+            });
+        };
+        let dims: Vec<usize> = match t.shape.as_slice() {
+            [1, a, b] | [a, b] => vec![*a, *b],
+            _ => vec![],
+        };
+        if dims != [INSTRUCTION_TOKENS, INSTRUCTION_DIM] {
+            return Err(PolicyError::ShapeMismatch {
+                name,
+                expected: vec![INSTRUCTION_TOKENS, INSTRUCTION_DIM],
+                got: t.shape.clone(),
+            });
+        }
+        Self::new(values.clone(), INSTRUCTION_TOKENS, INSTRUCTION_DIM)
+    }
+
+    /// Writes the embedding as a safetensors file with one tensor `instruction` `[tokens, dim]`.
+    pub fn save(&self, path: &Path) -> Result<()> {
+        let mut map = std::collections::HashMap::new();
+        map.insert(
+            "instruction".to_string(),
+            StoredTensor {
+                shape: vec![self.tokens, self.dim],
+                data: TensorData::F32(self.values.clone()),
+            },
+        );
+        Weights::from_tensors("instruction", map).save(path)
+    }
+
+    /// Number of tokens.
+    pub fn tokens(&self) -> usize {
+        self.tokens
+    }
+
+    /// Width of one token.
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+
+    /// The values, row-major `[tokens, dim]`.
+    pub fn values(&self) -> &[f32] {
+        &self.values
+    }
+}
+
+/// The robot state the policy reads: current TCP pose in the base frame and gripper state.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GripperPose {
+    /// Current TCP pose.
+    pub base_from_tcp: Transform<Base, Tcp>,
+    /// Whether the gripper is open.
+    pub open: bool,
+}
+
+impl GripperPose {
+    /// The model's view: position, quaternion (x, y, z, w), open as 1/0.
+    pub fn state(&self) -> GripperState {
+        let t = self.base_from_tcp.translation();
+        let q = self.base_from_tcp.rotation();
+        let c = q.coords;
+        GripperState {
+            position: [t.x as f32, t.y as f32, t.z as f32],
+            quaternion: [c.x as f32, c.y as f32, c.z as f32, c.w as f32],
+            open: if self.open { 1.0 } else { 0.0 },
+        }
+    }
+}
+
+/// Parity (the reference as it is) or equivariant mode.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PolicyMode {
+    /// The reference's coarse S2 grids, L1 up-sampling weights, gripper jitter in the base
+    /// frame.
+    Parity,
+    /// `s2_grid` × `s2_grid` S2 activation grids, Euclidean up-sampling weights, gripper
+    /// jitter in the gripper's own frame (so it turns with the gripper).
+    Equivariant {
+        /// Latitude and longitude samples of every S2 activation grid.
+        s2_grid: usize,
+    },
+}
+
+/// The coarse-to-fine translation sampling of the reference (evaluation mode).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SamplingConfig {
+    /// Sampling levels.
+    pub levels: usize,
+    /// Samples per level (a multiple of `top_k`).
+    pub per_level: usize,
+    /// Anchors kept per level.
+    pub top_k: usize,
+    /// Ball diameter of level 1 (m); level l uses this / 4^(l−1).
+    pub fine_ball_diameter: f64,
+}
+
+/// The local rotation search.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct RotationSearch {
+    /// HEALPix level of the coarse SO(3) grid (72·8^level rotations).
+    pub grid_level: u32,
+    /// Smallest pattern-search step (rad); the search stops below it.
+    pub min_step: f64,
+}
+
+impl RotationSearch {
+    /// Starting step: about half the coarse grid spacing.
+    pub fn start_step(&self) -> f64 {
+        // 6·2^level gammas per turn: spacing 2π/(6·2^level).
+        std::f64::consts::PI / (6.0 * f64::from(1u32 << self.grid_level))
+    }
+}
+
+/// Everything the policy needs besides the weights.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PolicyConfig {
+    /// The network (its mode fields are set from `mode`).
+    pub model: ModelConfig,
+    /// Sizes the weight generator needs.
+    pub extra: ExtraSizes,
+    /// Parity or equivariant mode.
+    pub mode: PolicyMode,
+    /// Points fed to the network (gripper points included).
+    pub n_points: usize,
+    /// Of those, at most this many from outside the focus box.
+    pub n_outside_focus: usize,
+    /// The frame the boxes are expressed in.
+    pub base_from_workspace: Isometry3<f64>,
+    /// Crop box [min, max] (m).
+    pub workspace_bounds: [[f64; 3]; 2],
+    /// Where the gripper may go [min, max] (m): the translation samples.
+    pub gripper_bounds: [[f64; 3]; 2],
+    /// Table height (m): the focus box is the gripper bounds with this z-min.
+    pub table_height: f64,
+    /// Translation sampling.
+    pub sampling: SamplingConfig,
+    /// Rotation search.
+    pub rotation: RotationSearch,
+}
+
+impl PolicyConfig {
+    /// The physical-robot configuration (2048 points, l_max 3, the reference's default
+    /// widths), equivariant mode with 16 × 16 S2 grids.
+    pub fn physical() -> Self {
+        let per = 1000 / 3;
+        Self {
+            model: ModelConfig::reference(),
+            extra: ExtraSizes::reference(),
+            mode: PolicyMode::Equivariant { s2_grid: 16 },
+            n_points: 2048,
+            n_outside_focus: 512,
+            base_from_workspace: Isometry3::identity(),
+            workspace_bounds: [[0.18, -0.39, -0.10], [0.96, 0.39, 0.53]],
+            gripper_bounds: [[0.18, -0.39, -0.07], [0.96, 0.39, 0.53]],
+            table_height: -0.06,
+            sampling: SamplingConfig {
+                levels: 3,
+                per_level: per - per % 3,
+                top_k: 3,
+                fine_ball_diameter: 0.25,
+            },
+            rotation: RotationSearch {
+                grid_level: 2,
+                min_step: 1e-4,
+            },
+        }
+        .with_mode(PolicyMode::Equivariant { s2_grid: 16 })
+    }
+
+    /// A tiny configuration for tests: 128 points, 3 scales, narrow layers, 60 samples per
+    /// level.
+    pub fn tiny() -> Self {
+        let model = ModelConfig {
+            max_neighbors: vec![16; 3],
+            max_radius: vec![0.2, 0.4, 0.8],
+            pool_ratio: vec![1.0, 0.25, 0.25],
+            sphere_channels: vec![8, 8, 8, 8],
+            attn_hidden_channels: vec![4; 3],
+            num_heads: 2,
+            attn_alpha_channels: vec![4; 3],
+            attn_value_channels: vec![2; 3],
+            ffn_hidden_channels: vec![8; 3],
+            field_nn_c: 8,
+            lang_heads: 2,
+            lang_dim_head: 8,
+            rotation_grid_level: 1,
+            ..ModelConfig::reference()
+        };
+        Self {
+            model,
+            extra: ExtraSizes {
+                edge_channels: vec![8; 3],
+                num_distance_basis: 16,
+                field_num_basis: 64,
+                film_dim: 16,
+                token_dim: INSTRUCTION_DIM,
+                lang_depth: 1,
+                lang_mlp: 32,
+            },
+            n_points: 128,
+            n_outside_focus: 32,
+            sampling: SamplingConfig {
+                levels: 3,
+                per_level: 30,
+                top_k: 3,
+                fine_ball_diameter: 0.25,
+            },
+            rotation: RotationSearch {
+                grid_level: 1,
+                min_step: 1e-4,
+            },
+            ..Self::physical()
+        }
+        .with_mode(PolicyMode::Parity)
+    }
+
+    /// The same configuration in another mode (sets the network's S2 grids and up-sampling
+    /// distance).
+    pub fn with_mode(mut self, mode: PolicyMode) -> Self {
+        self.mode = mode;
+        match mode {
+            PolicyMode::Parity => {
+                self.model.s2_resolution = S2Resolution::Reference;
+                self.model.upsample_distance = UpsampleDistance::L1;
+            }
+            PolicyMode::Equivariant { s2_grid } => {
+                self.model.s2_resolution = S2Resolution::Square(s2_grid);
+                self.model.upsample_distance = UpsampleDistance::Euclidean;
+            }
+        }
+        self
+    }
+
+    fn check(&self) -> Result<()> {
+        let s = &self.sampling;
+        let bad = |name: &str, expected: usize, got: usize| PolicyError::ShapeMismatch {
+            name: format!("policy config: {name}"),
+            expected: vec![expected],
+            got: vec![got],
+        };
+        if s.levels == 0 || s.top_k == 0 || s.per_level < s.top_k || s.per_level % s.top_k != 0 {
+            return Err(bad(
+                "sampling.per_level (a positive multiple of top_k)",
+                s.top_k,
+                s.per_level,
+            ));
+        }
+        if self.n_points <= self.model.n_gripper_pos {
+            return Err(bad(
+                "n_points (more than the gripper points)",
+                self.model.n_gripper_pos + 1,
+                self.n_points,
+            ));
+        }
+        for b in [self.workspace_bounds, self.gripper_bounds] {
+            if (0..3).any(|i| b[0][i].partial_cmp(&b[1][i]) != Some(std::cmp::Ordering::Less)) {
+                return Err(PolicyError::Sidecar {
+                    path: "policy config".into(),
+                    message: format!("bounds {b:?} are empty (min must be below max)"),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// The network input made from one observation.
+#[derive(Debug, Clone)]
+pub struct PreparedInput {
+    /// Point positions (base frame), `n_points`.
+    pub xyz: Vec<[f32; 3]>,
+    /// Colours in [0, 1].
+    pub rgb: Vec<[f32; 3]>,
+    /// The gripper as the model reads it.
+    pub gripper: GripperState,
+    /// The gripper points' jitter (base frame).
+    pub gripper_eps: Vec<[f32; 3]>,
+    /// Cloud points inside the workspace box.
+    pub in_workspace: usize,
+}
+
+/// Wall time of each stage of one prediction (seconds).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct StageTimings {
+    /// Crop, farthest point sampling, permutation.
+    pub input_prep: f64,
+    /// Instruction encoder.
+    pub language: f64,
+    /// Each U-net block, in execution order.
+    pub blocks: Vec<(String, f64)>,
+    /// Whole encoder (language, input features, U-net, final norm).
+    pub encoder: f64,
+    /// Translation head (all levels, sampling included).
+    pub translation_head: f64,
+    /// Rotation field (TransBlock at the chosen point, open logit, S2 lift).
+    pub rotation_head: f64,
+    /// Coarse grid argmax and local refinement.
+    pub rotation_search: f64,
+    /// Everything.
+    pub total: f64,
+}
+
+impl StageTimings {
+    /// The timings as JSON (seconds).
+    pub fn to_json(&self) -> serde_json::Value {
+        let blocks: serde_json::Map<String, serde_json::Value> = self
+            .blocks
+            .iter()
+            .map(|(n, s)| (n.clone(), serde_json::json!(s)))
+            .collect();
+        serde_json::json!({
+            "input_prep": self.input_prep,
+            "language": self.language,
+            "unet_blocks": blocks,
+            "encoder": self.encoder,
+            "translation_head": self.translation_head,
+            "rotation_head": self.rotation_head,
+            "rotation_search": self.rotation_search,
+            "total": self.total,
+        })
+    }
+}
+
+/// One prediction with what led to it.
+#[derive(Debug, Clone)]
+pub struct Prediction {
+    /// The keyframe (`ignore_collisions` is always false: EquAct does not predict it).
+    pub keyframe: Keyframe,
+    /// Sigmoid of the open logit.
+    pub open_probability: f32,
+    /// The translation logit of the chosen point.
+    pub translation_logit: f32,
+    /// The rotation logit at the refined rotation.
+    pub rotation_logit: f64,
+    /// The best rotation logit on the coarse grid.
+    pub coarse_rotation_logit: f64,
+    /// Per sampling level, the samples (base frame) and their logits.
+    pub levels: Vec<(Vec<[f32; 3]>, Vec<f32>)>,
+    /// Cloud points inside the workspace box.
+    pub in_workspace: usize,
+    /// Stage timings.
+    pub timings: StageTimings,
+}
+
+/// The EquAct policy: network, configuration, rotation grid.
+#[derive(Debug, Clone)]
+pub struct Policy {
+    cfg: PolicyConfig,
+    model: EquFieldUnet,
+    calc: WignerCalculator,
+    grid: Vec<GridRotation>,
+    /// Flat √(2l+1)·D(g) of the coarse grid, `[grid, 165]`.
+    grid_wigners: Vec<f64>,
+    /// Seed of every random choice of [`Policy::predict`].
+    pub seed: u64,
+}
+
+impl Policy {
+    /// Builds the policy from a weights store (keys as the reference's `state_dict()`, no
+    /// prefix).
+    pub fn from_weights(cfg: PolicyConfig, weights: &Weights) -> Result<Self> {
+        let cfg = cfg.clone().with_mode(cfg.mode);
+        cfg.check()?;
+        let model = EquFieldUnet::load(&weights.scope(""), cfg.model.clone())?;
+        if model.language().token_dim() != INSTRUCTION_DIM {
+            return Err(PolicyError::ShapeMismatch {
+                name: "instruction_embedding.weight (token width)".into(),
+                expected: vec![INSTRUCTION_DIM],
+                got: vec![model.language().token_dim()],
+            });
+        }
+        let calc = WignerCalculator::new(crate::rotation_head::ROT_LMAX)?;
+        let grid = so3_healpix_grid(cfg.rotation.grid_level);
+        let mut grid_wigners = Vec::with_capacity(grid.len() * SO3_COEFFS);
+        for g in &grid {
+            grid_wigners.extend(flat_wigner(&calc, &g.matrix)?);
+        }
+        Ok(Self {
+            cfg,
+            model,
+            calc,
+            grid,
+            grid_wigners,
+            seed: 0,
+        })
+    }
+
+    /// A policy with seeded random weights (runs without a checkpoint).
+    pub fn random(cfg: PolicyConfig, weight_seed: u64) -> Result<Self> {
+        let w = random_weights(&cfg.model, &cfg.extra, weight_seed);
+        Self::from_weights(cfg, &w)
+    }
+
+    /// Loads the weights from a safetensors file (ours, or a converted reference checkpoint
+    /// with the `module.equ_net.` prefix stripped).
+    pub fn load(cfg: PolicyConfig, path: &Path) -> Result<Self> {
+        Self::from_weights(cfg, &Weights::from_file(path)?)
+    }
+
+    /// The configuration.
+    pub fn config(&self) -> &PolicyConfig {
+        &self.cfg
+    }
+
+    /// The network.
+    pub fn model(&self) -> &EquFieldUnet {
+        &self.model
+    }
+
+    /// The coarse rotation grid of the search.
+    pub fn rotation_grid(&self) -> &[GridRotation] {
+        &self.grid
+    }
+
+    /// Predicts one keyframe.
+    pub fn predict(
+        &mut self,
+        cloud: &PointCloud,
+        gripper: &GripperPose,
+        instruction: &InstructionEmbedding,
+    ) -> Result<Keyframe> {
+        Ok(self.predict_detailed(cloud, gripper, instruction)?.keyframe)
+    }
+
+    /// Crops, samples and permutes the cloud and draws the gripper jitter (consumes `rng`).
+    pub fn prepare(
+        &self,
+        cloud: &PointCloud,
+        gripper: &GripperPose,
+        rng: &mut ChaCha8Rng,
+    ) -> Result<PreparedInput> {
+        let cfg = &self.cfg;
+        if cloud.frame != FrameId::Base {
+            return Err(PolicyError::WrongFrame {
+                got: cloud.frame.to_string(),
+            });
+        }
+        if cloud.is_empty() {
+            return Err(PolicyError::EmptyCloud);
+        }
+        let raw: Vec<[f32; 3]> = cloud.points.iter().map(|p| [p.x, p.y, p.z]).collect();
+        check_finite("input point cloud", &raw)?;
+        if let Some(c) = &cloud.rgb {
+            if c.len() != raw.len() {
+                return Err(PolicyError::ShapeMismatch {
+                    name: "point cloud colours".into(),
+                    expected: vec![raw.len()],
+                    got: vec![c.len()],
+                });
+            }
+        }
+        let inv = cfg.base_from_workspace.inverse();
+        let inside =
+            |p: &Point3<f64>, b: &[[f64; 3]; 2]| (0..3).all(|i| p[i] >= b[0][i] && p[i] <= b[1][i]);
+        let mut focus_box = cfg.gripper_bounds;
+        focus_box[0][2] = cfg.table_height;
+        let (mut focused, mut other) = (Vec::new(), Vec::new());
+        for (i, p) in raw.iter().enumerate() {
+            let w = inv * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+            if inside(&w, &cfg.workspace_bounds) {
+                if inside(&w, &focus_box) {
+                    focused.push(i);
+                } else {
+                    other.push(i);
+                }
+            }
+        }
+        let in_workspace = focused.len() + other.len();
+        if in_workspace < cfg.n_points {
+            return Err(PolicyError::TooFewPoints {
+                what: "point cloud inside the workspace box (the network's point count)",
+                needed: cfg.n_points,
+                got: in_workspace,
+            });
+        }
+        // Outside the focus box at most n_outside_focus; the focus box fills the rest (and
+        // the outside tops up when the focus box has too few).
+        let n_in = (cfg.n_points - cfg.n_outside_focus.min(other.len())).min(focused.len());
+        let n_out = cfg.n_points - n_in;
+        let mut picked = Vec::with_capacity(cfg.n_points);
+        for (set, n) in [(&other, n_out), (&focused, n_in)] {
+            if n == 0 {
+                continue;
+            }
+            let pos: Vec<[f32; 3]> = set.iter().map(|&i| raw[i]).collect();
+            for j in farthest_point_sampling(&pos, n)? {
+                picked.push(set[j]);
+            }
+        }
+        // Fisher-Yates permutation.
+        for i in (1..picked.len()).rev() {
+            let j = rng.random_range(0..=i);
+            picked.swap(i, j);
+        }
+        let xyz = picked.iter().map(|&i| raw[i]).collect();
+        let rgb = picked
+            .iter()
+            .map(|&i| match &cloud.rgb {
+                Some(c) => c[i].map(|v| f32::from(v) / 255.0),
+                None => [0.5; 3],
+            })
+            .collect();
+        let state = gripper.state();
+        let turn = match cfg.mode {
+            PolicyMode::Parity => Matrix3::identity(),
+            PolicyMode::Equivariant { .. } => *gripper
+                .base_from_tcp
+                .rotation()
+                .to_rotation_matrix()
+                .matrix(),
+        };
+        let mut gripper_eps = Vec::with_capacity(cfg.model.n_gripper_pos);
+        while gripper_eps.len() < cfg.model.n_gripper_pos {
+            let e = Vector3::new(
+                rng.random_range(-GRIPPER_JITTER..GRIPPER_JITTER),
+                rng.random_range(-GRIPPER_JITTER..GRIPPER_JITTER),
+                rng.random_range(-GRIPPER_JITTER..GRIPPER_JITTER),
+            );
+            if e.norm() < GRIPPER_JITTER {
+                let e = turn * e;
+                gripper_eps.push([e.x as f32, e.y as f32, e.z as f32]);
+            }
+        }
+        Ok(PreparedInput {
+            xyz,
+            rgb,
+            gripper: state,
+            gripper_eps,
+            in_workspace,
+        })
+    }
+
+    /// Predicts one keyframe with its logits, samples and stage timings.
+    pub fn predict_detailed(
+        &mut self,
+        cloud: &PointCloud,
+        gripper: &GripperPose,
+        instruction: &InstructionEmbedding,
+    ) -> Result<Prediction> {
+        let t_total = Instant::now();
+        if instruction.dim() != self.model.language().token_dim() {
+            return Err(PolicyError::ShapeMismatch {
+                name: "instruction embedding (token width)".into(),
+                expected: vec![instruction.tokens(), self.model.language().token_dim()],
+                got: vec![instruction.tokens(), instruction.dim()],
+            });
+        }
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
+        let t = Instant::now();
+        let prep = self.prepare(cloud, gripper, &mut rng)?;
+        let input_prep = t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let enc = self.model.encode(
+            &prep.xyz,
+            &prep.rgb,
+            &prep.gripper,
+            &prep.gripper_eps,
+            instruction.values(),
+            &[],
+        )?;
+        let encoder = t.elapsed().as_secs_f64();
+
+        // Coarse-to-fine translation, sampled in the workspace frame.
+        let t = Instant::now();
+        let cfg = &self.cfg;
+        let s = cfg.sampling;
+        let ws = cfg.base_from_workspace;
+        let to_base = |q: &Point3<f64>| {
+            let p = ws * q;
+            [p.x as f32, p.y as f32, p.z as f32]
+        };
+        let mut anchors: Vec<Point3<f64>> = Vec::new();
+        let mut best = (Point3::origin(), f32::NEG_INFINITY);
+        let mut levels = Vec::with_capacity(s.levels);
+        for level in 0..s.levels {
+            let samples: Vec<Point3<f64>> = if level == 0 {
+                (0..s.per_level)
+                    .map(|_| uniform_in_box(&mut rng, &cfg.gripper_bounds))
+                    .collect()
+            } else {
+                let r = s.fine_ball_diameter / 4f64.powi(level as i32 - 1) / 2.0;
+                let per = s.per_level / anchors.len().max(1);
+                let mut out = Vec::with_capacity(s.per_level);
+                for a in &anchors {
+                    out.extend(uniform_in_ball(&mut rng, a, r, &cfg.gripper_bounds, per)?);
+                }
+                out
+            };
+            let queries: Vec<[f32; 3]> = samples.iter().map(to_base).collect();
+            let logits = self
+                .model
+                .heads()
+                .trans_logits(&enc.embedding, &enc.coord, &queries)?;
+            let order = top_k(&logits, s.top_k);
+            anchors = order.iter().map(|&i| samples[i]).collect();
+            if let Some(&i) = order.first() {
+                best = (samples[i], logits[i]);
+            }
+            levels.push((queries, logits));
+        }
+        let translation_head = t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let position = ws * best.0;
+        let rot = self.model.heads().rot_query(
+            &enc.embedding,
+            &enc.coord,
+            [position.x as f32, position.y as f32, position.z as f32],
+        )?;
+        let rotation_head = t.elapsed().as_secs_f64();
+
+        let t = Instant::now();
+        let (coarse_i, coarse_logit) = self.coarse_argmax(&rot.so3_coeffs);
+        let start = self
+            .grid
+            .get(coarse_i)
+            .map_or(Matrix3::identity(), |g| g.matrix);
+        let (rotation, rotation_logit) = self.refine(&rot.so3_coeffs, start, coarse_logit)?;
+        let rotation_search = t.elapsed().as_secs_f64();
+
+        let open_probability = 1.0 / (1.0 + (-rot.open_logit).exp());
+        let base_from_tcp =
+            Transform::from_parts(position.coords, UnitQuaternion::from_matrix(&rotation));
+        let keyframe =
+            Keyframe::new(base_from_tcp, open_probability > 0.5, false).map_err(|e| {
+                PolicyError::Sidecar {
+                    path: "keyframe".into(),
+                    message: e.to_string(),
+                }
+            })?;
+        let timings = StageTimings {
+            input_prep,
+            language: enc.language_seconds,
+            blocks: enc
+                .blocks
+                .iter()
+                .map(|b| (b.name.clone(), b.seconds))
+                .collect(),
+            encoder,
+            translation_head,
+            rotation_head,
+            rotation_search,
+            total: t_total.elapsed().as_secs_f64(),
+        };
+        Ok(Prediction {
+            keyframe,
+            open_probability,
+            translation_logit: best.1,
+            rotation_logit,
+            coarse_rotation_logit: coarse_logit,
+            levels,
+            in_workspace: prep.in_workspace,
+            timings,
+        })
+    }
+
+    /// Index and value of the best coarse-grid rotation.
+    fn coarse_argmax(&self, coeffs: &[f64]) -> (usize, f64) {
+        let mut best = (0, f64::NEG_INFINITY);
+        for (i, fw) in self.grid_wigners.chunks_exact(SO3_COEFFS).enumerate() {
+            let v: f64 = fw.iter().zip(coeffs).map(|(a, b)| a * b).sum();
+            if v > best.1 {
+                best = (i, v);
+            }
+        }
+        best
+    }
+
+    /// The rotation logit at `r`.
+    pub fn rotation_logit(&self, coeffs: &[f64], r: &Matrix3<f64>) -> Result<f64> {
+        let fw = flat_wigner(&self.calc, r)?;
+        Ok(RotationHead::logits(coeffs, &[fw])
+            .first()
+            .copied()
+            .unwrap_or(f64::NAN))
+    }
+
+    /// Pattern search on SO(3): try r·exp(±δ eᵢ), move to the best improvement, halve δ when
+    /// none improves, stop below `min_step`.
+    fn refine(
+        &self,
+        coeffs: &[f64],
+        start: Matrix3<f64>,
+        start_logit: f64,
+    ) -> Result<(Matrix3<f64>, f64)> {
+        let mut r = start;
+        let mut v = start_logit;
+        let mut step = self.cfg.rotation.start_step();
+        let mut evals = 0;
+        while step >= self.cfg.rotation.min_step && evals < 2000 {
+            let mut moved = None;
+            for axis in 0..6 {
+                let mut w = Vector3::zeros();
+                w[axis / 2] = if axis % 2 == 0 { step } else { -step };
+                let cand = r * Rotation3::new(w).into_inner();
+                let c = self.rotation_logit(coeffs, &cand)?;
+                evals += 1;
+                if c > v && moved.as_ref().is_none_or(|(_, b)| c > *b) {
+                    moved = Some((cand, c));
+                }
+            }
+            match moved {
+                Some((cand, c)) => {
+                    // Re-orthonormalise against drift.
+                    r = Rotation3::from_matrix(&cand).into_inner();
+                    v = c;
+                }
+                None => step /= 2.0,
+            }
+        }
+        Ok((r, v))
+    }
+
+    /// Equivariance of the network on a prepared input under each `motion` (x → R x + t):
+    /// relative errors of the translation logits at the moved queries, of the open logit, and
+    /// of the rotation logits on the moved rotation grid (max abs difference / max abs value).
+    /// The unmoved input is encoded once.
+    pub fn equivariance_errors(
+        &self,
+        prep: &PreparedInput,
+        instruction: &InstructionEmbedding,
+        queries: &[[f32; 3]],
+        rot_query: [f32; 3],
+        motions: &[Isometry3<f64>],
+    ) -> Result<Vec<[f64; 3]>> {
+        let run = |p: &PreparedInput, q: &[[f32; 3]], rq: [f32; 3]| -> Result<_> {
+            let enc = self.model.encode(
+                &p.xyz,
+                &p.rgb,
+                &p.gripper,
+                &p.gripper_eps,
+                instruction.values(),
+                &[],
+            )?;
+            self.model.query(&enc, q, rq)
+        };
+        let a = run(prep, queries, rot_query)?;
+        let f = |v: &[f32]| v.iter().map(|x| f64::from(*x)).collect::<Vec<_>>();
+        let mut out = Vec::with_capacity(motions.len());
+        for motion in motions {
+            let (moved, mq, mrq) = move_input(prep, queries, rot_query, motion);
+            let b = run(&moved, &mq, mrq)?;
+            let rm = motion.rotation.to_rotation_matrix().into_inner();
+            let grid: Vec<GridRotation> = self
+                .model
+                .heads()
+                .grid()
+                .iter()
+                .map(|g| GridRotation {
+                    angles: g.angles,
+                    matrix: rm * g.matrix,
+                })
+                .collect();
+            let b_rot = self.model.heads().logits_on(&b.rot.so3_coeffs, &grid)?;
+            out.push([
+                relative_error(&f(&b.trans_logits), &f(&a.trans_logits)),
+                relative_error(
+                    &[f64::from(b.rot.open_logit)],
+                    &[f64::from(a.rot.open_logit)],
+                ),
+                relative_error(&b_rot, &a.rot.rot_logits),
+            ]);
+        }
+        Ok(out)
+    }
+}
+
+/// The prepared input, queries and rotation query moved by `motion` (the gripper jitter
+/// turns with it).
+pub fn move_input(
+    prep: &PreparedInput,
+    queries: &[[f32; 3]],
+    rot_query: [f32; 3],
+    motion: &Isometry3<f64>,
+) -> (PreparedInput, Vec<[f32; 3]>, [f32; 3]) {
+    let mv = |p: &[f32; 3]| {
+        let q = motion * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+        [q.x as f32, q.y as f32, q.z as f32]
+    };
+    let rm = motion.rotation.to_rotation_matrix().into_inner();
+    let turn = |v: &[f32; 3]| {
+        let w = rm * Vector3::new(f64::from(v[0]), f64::from(v[1]), f64::from(v[2]));
+        [w.x as f32, w.y as f32, w.z as f32]
+    };
+    let g = prep.gripper;
+    let gq = UnitQuaternion::from_quaternion(nalgebra::Quaternion::new(
+        f64::from(g.quaternion[3]),
+        f64::from(g.quaternion[0]),
+        f64::from(g.quaternion[1]),
+        f64::from(g.quaternion[2]),
+    ));
+    let gq2 = motion.rotation * gq;
+    let moved = PreparedInput {
+        xyz: prep.xyz.iter().map(mv).collect(),
+        rgb: prep.rgb.clone(),
+        gripper: GripperState {
+            position: mv(&g.position),
+            quaternion: [
+                gq2.coords.x as f32,
+                gq2.coords.y as f32,
+                gq2.coords.z as f32,
+                gq2.coords.w as f32,
+            ],
+            open: g.open,
+        },
+        gripper_eps: prep.gripper_eps.iter().map(turn).collect(),
+        in_workspace: prep.in_workspace,
+    };
+    (moved, queries.iter().map(mv).collect(), mv(&rot_query))
+}
+
+/// A synthetic tabletop scene in the base frame for benchmarks and tests: a table just below
+/// the focus box (z = −0.08 m) over x 0.25..0.9, y −0.33..0.33, and three hemispherical
+/// blobs on it, random colours; `n` points (at least 8).
+pub fn synthetic_scene(n: usize, seed: u64) -> Result<PointCloud> {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let n = n.max(8);
+    let n_table = n * 4 / 7;
+    let mut pts = Vec::with_capacity(n);
+    for _ in 0..n_table {
+        pts.push(Point3::new(
+            rng.random_range(0.25..0.9f32),
+            rng.random_range(-0.33..0.33f32),
+            -0.08,
+        ));
+    }
+    let blobs = [
+        (0.45f32, 0.1f32, 0.05f32),
+        (0.6, -0.15, 0.07),
+        (0.75, 0.05, 0.04),
+    ];
+    let mut b = 0;
+    while pts.len() < n {
+        let (cx, cy, r) = blobs[b % 3];
+        b += 1;
+        let d = Vector3::new(
+            rng.random_range(-1.0..1.0f32),
+            rng.random_range(-1.0..1.0f32),
+            rng.random_range(0.0..1.0f32),
+        );
+        let len = d.norm();
+        if !(1e-3..=1.0).contains(&len) {
+            continue;
+        }
+        let d = d / len;
+        pts.push(Point3::new(cx + r * d.x, cy + r * d.y, -0.05 + r * d.z));
+    }
+    let rgb = (0..pts.len())
+        .map(|_| [rng.random(), rng.random(), rng.random()])
+        .collect();
+    PointCloud::new(FrameId::Base, pts, Some(rgb)).map_err(|e| PolicyError::Sidecar {
+        path: "synthetic scene".into(),
+        message: e.to_string(),
+    })
+}
+
+/// max |x − y| / max |y|.
+pub fn relative_error(x: &[f64], y: &[f64]) -> f64 {
+    let m = y.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+    let e = x
+        .iter()
+        .zip(y)
+        .fold(0.0f64, |e, (p, q)| e.max((p - q).abs()));
+    if m > 0.0 {
+        e / m
+    } else {
+        e
+    }
+}
+
+/// Indices of the `k` largest values, largest first (ties: lower index first).
+pub fn top_k(v: &[f32], k: usize) -> Vec<usize> {
+    let mut idx: Vec<usize> = (0..v.len()).collect();
+    idx.sort_by(|&a, &b| v[b].total_cmp(&v[a]).then(a.cmp(&b)));
+    idx.truncate(k);
+    idx
+}
+
+fn uniform_in_box(rng: &mut ChaCha8Rng, b: &[[f64; 3]; 2]) -> Point3<f64> {
+    Point3::new(
+        rng.random_range(b[0][0]..b[1][0]),
+        rng.random_range(b[0][1]..b[1][1]),
+        rng.random_range(b[0][2]..b[1][2]),
+    )
+}
+
+/// `n` points uniform in the ball (`centre`, `r`) clipped to the box `b` (rejection sampling
+/// in the clipped cube, as the reference).
+fn uniform_in_ball(
+    rng: &mut ChaCha8Rng,
+    centre: &Point3<f64>,
+    r: f64,
+    b: &[[f64; 3]; 2],
+    n: usize,
+) -> Result<Vec<Point3<f64>>> {
+    let mut cube = [[0.0; 3]; 2];
+    for i in 0..3 {
+        cube[0][i] = (centre[i] - r).clamp(b[0][i], b[1][i]);
+        cube[1][i] = (centre[i] + r).clamp(b[0][i], b[1][i]);
+        if cube[0][i].partial_cmp(&cube[1][i]) != Some(std::cmp::Ordering::Less) {
+            return Err(PolicyError::TooFewPoints {
+                what: "translation sampling (anchor ball outside the gripper bounds)",
+                needed: n,
+                got: 0,
+            });
+        }
+    }
+    let mut out = Vec::with_capacity(n);
+    let mut tries = 0usize;
+    while out.len() < n {
+        let p = uniform_in_box(rng, &cube);
+        if (p - centre).norm() < r {
+            out.push(p);
+        }
+        tries += 1;
+        if tries > 1000 * n.max(1) {
+            return Err(PolicyError::TooFewPoints {
+                what: "translation sampling (ball and gripper bounds barely overlap)",
+                needed: n,
+                got: out.len(),
+            });
+        }
+    }
+    Ok(out)
+}
