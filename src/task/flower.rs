@@ -1,7 +1,7 @@
 //! Pluck flower: three flowers stick out of a foam block on a pedestal posed by a seeded
 //! SE(3) transform (x 0.55–0.65 m, y −0.12–0.12 m, facing the robot ±30°, tilt ≤ 10°, lift
 //! ≤ 3 cm), at three heights and staggered sideways. The robot grasps the named flower's
-//! stem, pulls it out of the block along the stem and lifts it. Variations: the top,
+//! head, pulls it out of the block along the stem and lifts it. Variations: the top,
 //! middle or bottom flower.
 
 use std::f64::consts::{FRAC_PI_6, PI};
@@ -13,8 +13,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::{
-    grasp_rotation, keyframe, lying_on_table, pedestal, sample_fixture, Body, BodyPart, GraspSite,
-    TaskInstance, TaskKind,
+    grasp_rotation, keyframe, keyframe_through, lying_on_table, pedestal, sample_fixture, Body,
+    BodyPart, GraspSite, TaskInstance, TaskKind,
 };
 
 /// Radius of a flower's head (m).
@@ -23,8 +23,9 @@ pub const HEAD_RADIUS: f64 = 0.02;
 pub const STEM_RADIUS: f64 = 0.005;
 /// Stem length from the root in the block to the head's centre (m).
 const STEM_LENGTH: f64 = 0.18;
-/// Where the expert grasps the stem, from the root (m): the gripper body clears the block.
-const GRASP_FROM_ROOT: f64 = 0.115;
+/// Where the expert grasps the flower, from the root (m): at its head, so the pulled
+/// flower trails behind the gripper and the gripper body stays clear of the block.
+const GRASP_FROM_ROOT: f64 = STEM_LENGTH;
 /// The block's front face (fixture x, m).
 const FACE_X: f64 = 0.02;
 /// How far the expert pulls the flower along its stem (m).
@@ -88,9 +89,9 @@ pub(crate) fn sample(level: FlowerLevel, seed: u64, table_height: f64) -> TaskIn
             pedestal(0.04, 0.17, 0.045, [120, 100, 80]),
             BodyPart {
                 shape: Primitive::Box {
-                    half_extents: [0.025, 0.16, 0.11],
+                    half_extents: [0.025, 0.16, 0.085],
                 },
-                body_from_part: Isometry3::translation(FACE_X + 0.025, 0.0, 0.11),
+                body_from_part: Isometry3::translation(FACE_X + 0.025, 0.0, 0.085),
                 colour: [70, 140, 70],
             },
         ],
@@ -125,23 +126,23 @@ pub(crate) fn sample(level: FlowerLevel, seed: u64, table_height: f64) -> TaskIn
         ],
         grasp: Some(GraspSite {
             point: Vector3::new(GRASP_FROM_ROOT, 0.0, 0.0),
-            width: 2.0 * STEM_RADIUS,
+            width: 2.0 * HEAD_RADIUS,
         }),
     };
     TaskInstance {
         kind: TaskKind::PluckFlower(level),
         bodies: vec![
             block,
-            flower("bottom flower", -0.10, 0.05, [240, 220, 40]),
-            flower("middle flower", 0.0, 0.11, [240, 120, 180]),
-            flower("top flower", 0.10, 0.17, [220, 40, 40]),
+            flower("bottom flower", -0.10, 0.06, [240, 220, 40]),
+            flower("middle flower", 0.0, 0.10, [240, 120, 180]),
+            flower("top flower", 0.10, 0.14, [220, 40, 40]),
         ],
         base_from_fixture: fixture,
         table_height,
     }
 }
 
-/// Above the stem (open), around it (close), pulled out along the stem, lifted.
+/// Above the head (open), around it (close), pulled out along the stem, lifted.
 pub(crate) fn expert(task: &TaskInstance, level: FlowerLevel) -> Vec<Keyframe> {
     let fz = task.base_from_fixture.rotation * Vector3::z();
     let body = &task.bodies[level.body()];
@@ -149,12 +150,12 @@ pub(crate) fn expert(task: &TaskInstance, level: FlowerLevel) -> Vec<Keyframe> {
     let site = site.coords;
     let outward = body.base_from_body.rotation * Vector3::x();
     let r = grasp_rotation(-fz, fz.cross(&outward));
-    let grasp = site + fz * 0.004;
+    let grasp = site + fz * 0.01;
     let pulled = grasp + outward * PULL;
     vec![
         keyframe(site + fz * 0.10, r, true),
         keyframe(grasp, r, false),
-        keyframe(pulled, r, false),
+        keyframe_through(pulled, r, false),
         keyframe(pulled + Vector3::z() * LIFT, r, false),
     ]
 }

@@ -361,6 +361,16 @@ pub(crate) fn angle_between(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
     a.dot(b).clamp(-1.0, 1.0).acos()
 }
 
+/// A keyframe planned without the observed cloud (the keyframe-policy literature's "ignore
+/// collisions"): short extraction and insertion moves, where the held object's own points
+/// would block the gripper that carries it.
+pub(crate) fn keyframe_through(p: Vector3<f64>, r: UnitQuaternion<f64>, open: bool) -> Keyframe {
+    Keyframe {
+        ignore_collisions: true,
+        ..keyframe(p, r, open)
+    }
+}
+
 /// Half a turn, for the yaw ranges.
 pub(crate) const HALF_TURN: f64 = PI;
 

@@ -14,8 +14,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::{
-    grasp_rotation, keyframe, lying_on_table, pedestal, sample_fixture, Body, BodyPart, GraspSite,
-    TaskInstance, TaskKind,
+    grasp_rotation, keyframe, keyframe_through, lying_on_table, pedestal, sample_fixture, Body,
+    BodyPart, GraspSite, TaskInstance, TaskKind,
 };
 
 /// Radius of a pipe link (m).
@@ -150,8 +150,9 @@ pub(crate) fn sample(part: PipePart, seed: u64, table_height: f64) -> TaskInstan
     }
 }
 
-/// Per link: above it (open), around it (close), pulled out along its axis, lifted. For
-/// `all`, the first link is put down on the table beyond its end before the second.
+/// Per link: above it (open), around it (close), pulled out along its axis (planned without
+/// the cloud: the held link's own points would block it), lifted. For `all`, the first link
+/// is carried outward and dropped onto the table before the second.
 pub(crate) fn expert(task: &TaskInstance, part: PipePart) -> Vec<Keyframe> {
     let fz = task.base_from_fixture.rotation * Vector3::z();
     let mut out = Vec::new();
@@ -166,16 +167,16 @@ pub(crate) fn expert(task: &TaskInstance, part: PipePart) -> Vec<Keyframe> {
         let lifted = pulled + Vector3::z() * LIFT;
         out.push(keyframe(site + fz * 0.12, r, true));
         out.push(keyframe(grasp, r, false));
-        out.push(keyframe(pulled, r, false));
+        out.push(keyframe_through(pulled, r, false));
         out.push(keyframe(lifted, r, false));
         if n + 1 < targets.len() {
-            // Put it down beyond its end, clear of the pipe, and let go.
+            // Carry it outward, clear of the pipe, at the lifted height (the held link's
+            // own points stay below the gripper) and let go: it falls onto the table.
             let mut h = Vector3::new(outward.x, outward.y, 0.0);
             if h.norm() > 1e-6 {
                 h = h.normalize();
             }
-            let mut drop = pulled + h * 0.06;
-            drop.z = task.table_height + 0.10;
+            let drop = lifted + h * 0.10;
             let flat = grasp_rotation(-Vector3::z(), r * Vector3::x());
             out.push(keyframe(drop, flat, true));
         }

@@ -12,8 +12,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::{
-    angle_between, grasp_rotation, keyframe, pedestal, sample_fixture, Body, BodyPart, GraspSite,
-    TaskInstance, TaskKind, HALF_TURN,
+    angle_between, grasp_rotation, keyframe, keyframe_through, pedestal, sample_fixture, Body,
+    BodyPart, GraspSite, TaskInstance, TaskKind, HALF_TURN,
 };
 
 /// Radius of the holder's spindle (m).
@@ -22,8 +22,9 @@ pub const SPINDLE_RADIUS: f64 = 0.012;
 pub const SPINDLE_HEIGHT: f64 = 0.035;
 /// Radius of a roll's hole (m).
 pub const HOLE_RADIUS: f64 = 0.02;
-/// Depth of the grasp TCP below the roll's top (m).
-const GRASP_BELOW_TOP: f64 = 0.02;
+/// Depth of the grasp TCP below the roll's top (m): the gripper's palm is 1 cm behind the
+/// TCP, so the TCP stays at the top face and the 15 mm fingertips hold the roll's rim.
+const GRASP_BELOW_TOP: f64 = 0.0;
 /// Height of the roll's bottom above the seat where the expert lets go (m).
 const RELEASE_HEIGHT: f64 = 0.012;
 /// A seated roll's centre is this close to its place on the holder (m).
@@ -159,7 +160,7 @@ pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
     let grasp = roll.translation.vector + axis * (h - GRASP_BELOW_TOP);
     let fz = task.base_from_fixture.rotation * Vector3::z();
     let r_place = grasp_rotation(-fz, r * Vector3::x());
-    // The TCP when the roll's bottom is `s` above the seat: the roll's centre is h − 2 cm
+    // The TCP when the roll's bottom is `s` above the seat: the roll's centre is h − GRASP_BELOW_TOP
     // below the TCP along the TCP z.
     let place = |s: f64| seated_centre(task, h) + fz * (s + h - GRASP_BELOW_TOP);
     let release = place(RELEASE_HEIGHT);
@@ -168,8 +169,10 @@ pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
         keyframe(grasp, r, false),
         keyframe(grasp + Vector3::z() * 0.15, r, false),
         keyframe(place(SPINDLE_HEIGHT + 0.03), r_place, false),
-        keyframe(release, r_place, true),
-        keyframe(release + fz * 0.10, r_place, true),
+        // Down over the spindle and back up are planned without the cloud: the carried
+        // roll's own points lie where the gripper goes.
+        keyframe_through(release, r_place, true),
+        keyframe_through(release + fz * 0.10, r_place, true),
     ]
 }
 
