@@ -3,6 +3,7 @@
 pub mod bench;
 pub mod bench_ur;
 pub mod config;
+pub mod demos;
 pub mod gripper;
 pub mod inspect;
 pub mod perceive;

@@ -9,6 +9,9 @@ use hil_sim::scene::{robot_capsules, Primitive, HOME_Q};
 use nalgebra::{Isometry3, Point3, Unit, Vector3};
 use planner::{CloudParams, Obstacle, Planner, World};
 
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
 use super::world::TaskWorld;
 use super::TaskInstance;
 use crate::episode::MAX_KEYFRAMES;
@@ -19,6 +22,9 @@ const SPACING: f64 = 0.006;
 const ROBOT_MARGIN: f64 = 0.02;
 /// The episode loop's table band (m).
 const TABLE_BAND: f64 = 0.012;
+/// Amplitude of the uniform jitter on every sampled point (m), standing in for the depth
+/// noise of the fused cloud.
+const JITTER: f64 = 0.003;
 /// The 2F-85's stroke (m).
 const OPEN_WIDTH: f64 = 0.085;
 
@@ -127,7 +133,9 @@ pub fn surface_points(shape: &Primitive, spacing: f64) -> Vec<Point3<f64>> {
 /// The cloud the episode loop would plan against: the bodies' surfaces in the base frame,
 /// without the points within the fusion's margin of the robot at `q` (gripper opened to
 /// `opening`) and without the table band.
-pub fn planning_cloud(world: &TaskWorld, q: &Joints, opening: f64) -> PointCloud {
+/// `seed` draws the jitter.
+pub fn planning_cloud(world: &TaskWorld, q: &Joints, opening: f64, seed: u64) -> PointCloud {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let robot = robot_capsules(q, opening);
     let floor = world.task.table_height + TABLE_BAND;
     let mut points = Vec::new();
@@ -135,7 +143,10 @@ pub fn planning_cloud(world: &TaskWorld, q: &Joints, opening: f64) -> PointCloud
         for part in &body.parts {
             let iso: Isometry3<f64> = pose * part.body_from_part;
             for p in surface_points(&part.shape, SPACING) {
-                let w = iso * p;
+                let mut w = iso * p;
+                for k in 0..3 {
+                    w[k] += rng.random_range(-JITTER..JITTER);
+                }
                 if w.z <= floor {
                     continue;
                 }
@@ -177,7 +188,7 @@ pub fn kinematic_episode(task: &TaskInstance, planner: &Planner) -> KinematicRep
         .enumerate()
         .take(MAX_KEYFRAMES)
     {
-        let cloud = planning_cloud(&world, &q, opening);
+        let cloud = planning_cloud(&world, &q, opening, step as u64);
         let scene = match World::from_cloud(&cloud, &CloudParams::default()) {
             Ok(w) => w.with_obstacle(table.clone()),
             Err(e) => return fail(step, format!("keyframe {step}: world: {e}")),

@@ -231,7 +231,7 @@ impl TaskInstance {
     /// The scripted expert: keyframes from the true body poses.
     pub fn expert_keyframes(&self) -> Vec<Keyframe> {
         match self.kind {
-            TaskKind::PickFruit(_) => pick_fruit::expert(self),
+            TaskKind::PickFruit(f) => pick_fruit::expert(self, f),
             TaskKind::DisassemblePipe(p) => pipe::expert(self, p),
             TaskKind::PluckFlower(l) => flower::expert(self, l),
             TaskKind::InstallToiletRoll(_) => toilet_roll::expert(self),

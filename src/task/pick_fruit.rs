@@ -41,6 +41,13 @@ impl Fruit {
         }
     }
 
+    /// Height of the grasp TCP above the fruit's centre (m): [`GRASP_HEIGHT_ABOVE_CENTRE`],
+    /// or higher for a large fruit, whose top must stay 4 mm clear of the palm (1 cm behind
+    /// the TCP) with the depth noise on it.
+    pub fn grasp_height(self) -> f64 {
+        (self.radius() - 0.004).max(GRASP_HEIGHT_ABOVE_CENTRE)
+    }
+
     /// Colour for the cameras.
     pub fn colour(self) -> [u8; 3] {
         match self {
@@ -83,7 +90,7 @@ pub(crate) fn sample(fruit: Fruit, seed: u64, table_height: f64) -> TaskInstance
                 colour: fruit.colour(),
             }],
             grasp: Some(GraspSite {
-                point: Vector3::zeros(),
+                point: Vector3::new(0.0, 0.0, fruit.grasp_height()),
                 width: 2.0 * fruit.radius(),
             }),
         }],
@@ -93,7 +100,7 @@ pub(crate) fn sample(fruit: Fruit, seed: u64, table_height: f64) -> TaskInstance
 }
 
 /// Pre-grasp above the fruit (open), grasp near its centre (then close), lift.
-pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
+pub(crate) fn expert(task: &TaskInstance, fruit: Fruit) -> Vec<Keyframe> {
     let pose = task.base_from_object();
     let c = pose.translation.vector;
     // Top-down grasp, fingers closing across the fruit's yaw (a sphere has no preferred
@@ -102,10 +109,10 @@ pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
     let at = |dz: f64| c + Vector3::new(0.0, 0.0, dz);
     vec![
         keyframe(at(0.12), down, true),
-        // The TCP 2 cm above the centre: the finger pads reach 15 mm past the TCP (so they
+        // The TCP 2 cm above the centre (more for a peach): the finger pads reach 15 mm past the TCP (so they
         // close just above the equator), and the planner's spheres around the fingertips
         // must clear the table under small fruit.
-        keyframe(at(GRASP_HEIGHT_ABOVE_CENTRE), down, false),
+        keyframe(at(fruit.grasp_height()), down, false),
         keyframe(at(0.18), down, false),
     ]
 }

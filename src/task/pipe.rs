@@ -26,6 +26,11 @@ pub const LINK_HALF_LENGTH: f64 = 0.045;
 const AXIS_HEIGHT: f64 = 0.08;
 /// Distance of a link's centre from the junction (m).
 const LINK_OFFSET: f64 = 0.07;
+/// Where the expert grasps a link: this far out from its centre along its axis (m), so
+/// the gripper's palm (4.5 cm radius) clears the junction.
+const GRASP_OFFSET: f64 = 0.012;
+/// Radius of the junction the links plug into (m).
+const JUNCTION_RADIUS: f64 = 0.022;
 /// How far the expert pulls a link along its axis (m): its inner end clears the junction.
 const PULL: f64 = 0.07;
 /// How far the expert lifts a pulled link (m).
@@ -103,7 +108,9 @@ pub(crate) fn sample(part: PipePart, seed: u64, table_height: f64) -> TaskInstan
                 colour: grey,
             },
             BodyPart {
-                shape: Primitive::Sphere { radius: 0.026 },
+                shape: Primitive::Sphere {
+                    radius: JUNCTION_RADIUS,
+                },
                 body_from_part: Isometry3::translation(0.0, 0.0, AXIS_HEIGHT),
                 colour: [200, 160, 40],
             },
@@ -133,7 +140,7 @@ pub(crate) fn sample(part: PipePart, seed: u64, table_height: f64) -> TaskInstan
                 colour,
             }],
             grasp: Some(GraspSite {
-                point: Vector3::zeros(),
+                point: Vector3::new(GRASP_OFFSET, 0.0, 0.0),
                 width: 2.0 * LINK_RADIUS,
             }),
         }
@@ -159,10 +166,12 @@ pub(crate) fn expert(task: &TaskInstance, part: PipePart) -> Vec<Keyframe> {
     let targets = part.targets();
     for (n, &i) in targets.iter().enumerate() {
         let link = &task.bodies[i].base_from_body;
-        let site = link.translation.vector;
+        let site = (link * nalgebra::Point3::new(GRASP_OFFSET, 0.0, 0.0)).coords;
         let outward = link.rotation * Vector3::x();
         let r = grasp_rotation(-fz, fz.cross(&outward));
-        let grasp = site + fz * 0.01;
+        // The TCP a link radius above the axis: the palm (1 cm behind the TCP) stays 1 cm
+        // above the link's top, where the closing volume no longer hides the link's points.
+        let grasp = site + fz * LINK_RADIUS;
         let pulled = grasp + outward * PULL;
         let lifted = pulled + Vector3::z() * LIFT;
         out.push(keyframe(site + fz * 0.12, r, true));

@@ -101,7 +101,7 @@ mod tests {
     fn a_closed_gripper_carries_and_opening_drops_the_fruit() {
         let task = TaskInstance::sample(TaskKind::PickFruit(Fruit::Plum), 1, -0.06);
         let mut w = TaskWorld::new(task.clone());
-        let at = task.base_from_object() * Isometry3::translation(0.0, 0.0, 0.02);
+        let at = task.base_from_object() * Isometry3::translation(0.0, 0.0, 0.021);
         let far = Isometry3::translation(0.0, 0.0, 0.3) * at;
         assert_eq!(w.before_close(&far), None);
         assert_eq!(w.before_close(&at), Some(0.05));

@@ -15,7 +15,7 @@ fn seeds() -> u64 {
     std::env::var("EQUACT_EXPERT_SEEDS")
         .ok()
         .and_then(|s| s.parse().ok())
-        .unwrap_or(25)
+        .unwrap_or(10)
 }
 
 #[test]
