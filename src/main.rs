@@ -39,6 +39,8 @@ enum Command {
     Plan(cmd::plan::PlanArgs),
     /// Draw a recording: joint motions with their limits, tracking error, cloud + robot per step.
     Plot(cmd::plot::PlotArgs),
+    /// Record scripted-expert demonstrations in the simulated cell into a dataset.
+    Demos(cmd::demos::DemosArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -75,5 +77,6 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Bench(args) => cmd::bench::run(args),
         Command::Plan(args) => cmd::plan::run(args),
         Command::Plot(args) => cmd::plot::run(args),
+        Command::Demos(args) => cmd::demos::run(args),
     }
 }

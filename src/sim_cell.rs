@@ -17,40 +17,50 @@ use firmware_iface::gripper::RobotiqGripper;
 use firmware_iface::ur::{UrArm, UrConfig, UrPorts};
 use hil_sim::depth_camera::{default_rig, rig_calibration, SharedScene, SimCameraDevice};
 use hil_sim::gripper::{GripperSim, SimServer};
-use hil_sim::scene::{Primitive, Scene, HOME_Q};
+use hil_sim::scene::{Scene, HOME_Q};
 use hil_sim::ur_controller::{self, UrSimConfig, UrSimHandle};
 use nalgebra::{Isometry3, Translation3, Vector3};
 
+use crate::task::world::TaskWorld;
 use crate::task::TaskInstance;
-
-/// Grasp distance: the object is caught when its centre is this close to the TCP as the
-/// fingers close (m).
-const GRASP_RADIUS: f64 = 0.03;
 
 /// Control cycles without data before the driver stops a motion, in the simulated cell.
 const SIM_LOST_CYCLES: u32 = 25;
 
-/// The simulated world's truth for the task: the object and whether it is held.
+/// The simulated world's truth for the task: the bodies, which one is held, and their
+/// solids in the rendered scene.
 pub struct SimWorld {
     scene: Scene,
-    object_index: usize,
+    /// Per body, per part: the part's index in the scene.
+    part_index: Vec<Vec<usize>>,
     /// The task being run.
     pub task: TaskInstance,
-    held: Option<Isometry3<f64>>,
+    truth: TaskWorld,
     shared: SharedScene,
     gripper: GripperSim,
     tcp_offset: f64,
 }
 
 impl SimWorld {
-    /// Where the object is now.
+    /// Where the task's main object is now (pick fruit: the fruit).
     pub fn object_pose(&self) -> Isometry3<f64> {
-        self.scene.objects[self.object_index].base_from_object
+        let i = self
+            .task
+            .bodies
+            .iter()
+            .position(|b| b.grasp.is_some())
+            .unwrap_or(0);
+        self.truth.poses()[i]
     }
 
-    /// True while the gripper holds the object.
+    /// Every body's pose now (the order of the task's bodies).
+    pub fn body_poses(&self) -> &[Isometry3<f64>] {
+        self.truth.poses()
+    }
+
+    /// True while the gripper holds an object.
     pub fn holds_object(&self) -> bool {
-        self.held.is_some()
+        self.truth.held().is_some()
     }
 
     /// The gripper emulator (fault injection in tests).
@@ -60,7 +70,7 @@ impl SimWorld {
 
     /// The task's success test on the world's state.
     pub fn success(&self) -> bool {
-        self.task.success(&self.object_pose(), self.holds_object())
+        self.truth.success()
     }
 
     fn tcp(&self, q: &Joints) -> Isometry3<f64> {
@@ -72,36 +82,38 @@ impl SimWorld {
     /// emulator's fingers stop on it (gOBJ = 2).
     pub fn before_close(&mut self, q: &Joints) {
         let tcp = self.tcp(q);
-        let d = (tcp.translation.vector - self.object_pose().translation.vector).norm();
-        if d <= GRASP_RADIUS {
-            let crate::task::TaskKind::PickFruit(f) = self.task.kind;
-            self.gripper.set_object(Some(2.0 * f.radius()));
-        } else {
-            self.gripper.set_object(None);
-        }
+        let width = self.truth.before_close(&tcp);
+        self.gripper.set_object(width);
     }
 
-    /// After a gripper motion: a closed gripper with its fingers on the object carries it;
-    /// opening releases it onto the table.
+    /// After a gripper motion: a closed gripper with its fingers on an object carries it;
+    /// opening releases it, and it comes to rest where the task says (the table, or the
+    /// target of a place task).
     pub fn after_gripper(&mut self, q: &Joints, holding: bool) {
         let tcp = self.tcp(q);
-        if holding && self.held.is_none() {
-            self.held = Some(tcp.inverse() * self.object_pose());
-        } else if !holding && self.held.is_some() {
-            self.held = None;
+        let was_held = self.truth.held().is_some();
+        self.truth.after_gripper(&tcp, holding);
+        if was_held && self.truth.held().is_none() {
             self.gripper.set_object(None);
-            let mut p = self.object_pose();
-            let crate::task::TaskKind::PickFruit(f) = self.task.kind;
-            p.translation.vector.z = self.task.table_height + f.radius();
-            self.scene.objects[self.object_index].base_from_object = p;
+        }
+        self.place_bodies();
+    }
+
+    fn place_bodies(&mut self) {
+        for (b, parts) in self.part_index.iter().enumerate() {
+            let pose = self.truth.poses()[b];
+            for (k, &i) in parts.iter().enumerate() {
+                self.scene.objects[i].base_from_object =
+                    pose * self.task.bodies[b].parts[k].body_from_part;
+            }
         }
     }
 
     /// Moves the arm (and a held object) in the rendered scene to `q`.
     pub fn update_robot(&mut self, q: &Joints, opening: f64) -> anyhow::Result<()> {
-        if let Some(tcp_from_object) = self.held {
-            self.scene.objects[self.object_index].base_from_object = self.tcp(q) * tcp_from_object;
-        }
+        let tcp = self.tcp(q);
+        self.truth.carry(&tcp);
+        self.place_bodies();
         self.scene.set_robot(q, opening);
         let geometry = self
             .scene
@@ -195,16 +207,20 @@ impl SimCell {
             .context("connecting the gripper driver to the emulator")?;
 
         let mut scene = Scene::table_only();
-        let crate::task::TaskKind::PickFruit(fruit) = task.kind;
-        scene.add_object(
-            &task.kind.name(),
-            task.base_from_object,
-            Primitive::Sphere {
-                radius: fruit.radius(),
-            },
-            fruit.colour(),
-        );
-        let object_index = scene.objects.len() - 1;
+        let mut part_index = Vec::with_capacity(task.bodies.len());
+        for body in &task.bodies {
+            let mut parts = Vec::with_capacity(body.parts.len());
+            for (k, part) in body.parts.iter().enumerate() {
+                scene.add_object(
+                    &format!("{} part {k}", body.name),
+                    body.base_from_body * part.body_from_part,
+                    part.shape,
+                    part.colour,
+                );
+                parts.push(scene.objects.len() - 1);
+            }
+            part_index.push(parts);
+        }
         scene.set_robot(&HOME_Q, 0.085);
         let shared: SharedScene = Arc::new(RwLock::new(
             scene.build().context("building the simulated scene")?,
@@ -220,9 +236,9 @@ impl SimCell {
             .collect();
         let world = SimWorld {
             scene,
-            object_index,
+            part_index,
+            truth: TaskWorld::new(task.clone()),
             task,
-            held: None,
             shared,
             gripper: gripper_sim,
             tcp_offset,

@@ -143,7 +143,8 @@ pub fn robot_capsules(q: &Joints, opening: f64) -> Vec<Capsule> {
             radius: ARM_RADII[i],
         });
     }
-    // Robotiq 2F-85 in the flange frame (z out of the flange): body, then two fingers.
+    // Robotiq 2F-85 in the flange frame (z out of the flange): body, then two fingers, closing
+    // along the flange x as in the planner's URDF and closing volume.
     let flange = frames[6];
     let at = |x: f64, y: f64, z: f64| flange.transform_point(&Point3::new(x, y, z));
     out.push(Capsule {
@@ -154,8 +155,8 @@ pub fn robot_capsules(q: &Joints, opening: f64) -> Vec<Capsule> {
     let half = opening.clamp(0.0, 0.085) / 2.0 + 0.01;
     for s in [-1.0, 1.0] {
         out.push(Capsule {
-            a: at(0.0, s * half, 0.13),
-            b: at(0.0, s * half, 0.16),
+            a: at(s * half, 0.0, 0.13),
+            b: at(s * half, 0.0, 0.16),
             radius: 0.012,
         });
     }

@@ -4,6 +4,7 @@ pub mod bench;
 pub mod bench_ur;
 pub mod check;
 pub mod config;
+pub mod demos;
 pub mod gripper;
 pub mod inspect;
 pub mod perceive;

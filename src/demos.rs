@@ -1,0 +1,541 @@
+//! Demonstration datasets: the scripted expert's episodes in the simulated cell, recorded per
+//! keyframe step as the policy will see them — the fused cloud (the simulated cameras through
+//! the real perception pipeline), the joints, the gripper state, the expert's keyframe and
+//! the task's language instruction.
+//!
+//! On disk: one safetensors shard per episode (`<task>-<variation>/seed_<seed>.safetensors`)
+//! and `index.json` listing every episode tried. Shards and the index are written to a
+//! temporary file and renamed, so an interrupted collection never leaves a half-written
+//! file under its final name; on restart, episodes already in the index are skipped.
+//!
+//! Tensors of a shard with S steps and P points per cloud: `cloud_xyz` f32 [S, P, 3] (base
+//! frame, m), `cloud_rgb` u8 [S, P, 3], `joints` f64 [S, 6], `gripper_width` f64 [S],
+//! `gripper_open` u8 [S] (before the step), `keyframe_pose` f64 [S, 7] (x, y, z, qx, qy, qz,
+//! qw of the TCP in the base frame), `keyframe_open` u8 [S], `keyframe_ignore_collisions`
+//! u8 [S]. Its metadata holds the task, variation, instruction, seed and format.
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+use std::time::Instant;
+
+use cell_types::config::CellConfig;
+use cell_types::{Keyframe, Transform};
+use nalgebra::{Quaternion, UnitQuaternion, Vector3};
+use safetensors::tensor::TensorView;
+use safetensors::{Dtype, SafeTensors};
+use serde::{Deserialize, Serialize};
+
+use crate::episode::{run_sim_episode, KeyframeSource, Observation, Outcome, ScriptedExpert};
+use crate::recording::EpisodeRecorder;
+use crate::sim_cell::SimCell;
+use crate::task::{TaskInstance, TaskKind};
+
+/// The format written into every shard and the index.
+pub const FORMAT: &str = "equact-demos/1";
+
+/// Why a dataset could not be written or read.
+#[derive(Debug, thiserror::Error)]
+pub enum DemosError {
+    /// A file or directory could not be read or written.
+    #[error("{path}: {source}; check the path and its permissions")]
+    Io {
+        /// The path.
+        path: PathBuf,
+        /// The I/O error.
+        source: std::io::Error,
+    },
+    /// The index is not a dataset index of this format.
+    #[error("{path} is not an equact demos index ({why}); point --out at a new directory or fix the file")]
+    BadIndex {
+        /// The index path.
+        path: PathBuf,
+        /// What is wrong.
+        why: String,
+    },
+    /// A shard is unreadable or misshapen.
+    #[error("demo shard {path}: {why}; delete it and its index entry to record it again")]
+    BadShard {
+        /// The shard path.
+        path: PathBuf,
+        /// What is wrong.
+        why: String,
+    },
+    /// The simulated cell could not run the episode.
+    #[error("episode {task} seed {seed}: {why}")]
+    Episode {
+        /// The task variation.
+        task: String,
+        /// The seed.
+        seed: u64,
+        /// What went wrong.
+        why: String,
+    },
+}
+
+/// One recorded keyframe step.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DemoStep {
+    /// The fused, sampled cloud (base frame, m).
+    pub cloud_xyz: Vec<[f32; 3]>,
+    /// Its colours (zeros where the cameras gave none).
+    pub cloud_rgb: Vec<[u8; 3]>,
+    /// The arm's joints before the step (rad).
+    pub joints: [f64; 6],
+    /// The gripper's opening before the step (m).
+    pub gripper_width: f64,
+    /// The gripper was open before the step.
+    pub gripper_open: bool,
+    /// The expert's keyframe for this step.
+    pub keyframe: Keyframe,
+}
+
+/// One episode of a dataset, as the index lists it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct IndexEntry {
+    /// `task/variation`.
+    pub task: String,
+    /// The language instruction.
+    pub instruction: String,
+    /// The episode's seed.
+    pub seed: u64,
+    /// How the episode ended (`success`, `plan_failed`, ...).
+    pub outcome: String,
+    /// Keyframe steps recorded.
+    pub steps: usize,
+    /// The shard, relative to the dataset directory; `None` when the episode failed (failed
+    /// episodes are not demonstrations, but are listed so a restart does not retry them).
+    pub file: Option<String>,
+}
+
+/// The dataset's index file (`index.json`).
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct Index {
+    /// [`FORMAT`].
+    pub format: String,
+    /// Every episode tried, in the order they finished.
+    pub episodes: Vec<IndexEntry>,
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> DemosError + '_ {
+    move |source| DemosError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// Writes `bytes` to `path` through a temporary file and a rename.
+fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), DemosError> {
+    let tmp = path.with_extension("partial");
+    fs::write(&tmp, bytes).map_err(io(&tmp))?;
+    fs::rename(&tmp, path).map_err(io(path))
+}
+
+impl Index {
+    /// Reads `dir/index.json`, or an empty index when there is none yet.
+    pub fn load(dir: &Path) -> Result<Self, DemosError> {
+        let path = dir.join("index.json");
+        if !path.exists() {
+            return Ok(Self {
+                format: FORMAT.into(),
+                episodes: Vec::new(),
+            });
+        }
+        let text = fs::read_to_string(&path).map_err(io(&path))?;
+        let index: Index = serde_json::from_str(&text).map_err(|e| DemosError::BadIndex {
+            path: path.clone(),
+            why: e.to_string(),
+        })?;
+        if index.format != FORMAT {
+            return Err(DemosError::BadIndex {
+                path,
+                why: format!("format `{}`, expected `{FORMAT}`", index.format),
+            });
+        }
+        Ok(index)
+    }
+
+    /// Writes `dir/index.json` atomically.
+    pub fn save(&self, dir: &Path) -> Result<(), DemosError> {
+        let path = dir.join("index.json");
+        let text = serde_json::to_string_pretty(self).map_err(|e| DemosError::BadIndex {
+            path: path.clone(),
+            why: e.to_string(),
+        })?;
+        write_atomic(&path, text.as_bytes())
+    }
+
+    /// The entry of `task` (`task/variation`) and `seed`, if it was tried.
+    pub fn find(&self, task: &str, seed: u64) -> Option<&IndexEntry> {
+        self.episodes
+            .iter()
+            .find(|e| e.task == task && e.seed == seed)
+    }
+}
+
+/// The shard path of an episode, relative to the dataset directory.
+pub fn shard_name(kind: TaskKind, seed: u64) -> String {
+    format!(
+        "{}-{}/seed_{seed:06}.safetensors",
+        kind.task_name(),
+        kind.variation_name()
+    )
+}
+
+fn bytes_f64(v: &[f64]) -> Vec<u8> {
+    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+}
+
+/// Serialises an episode's steps into a safetensors shard.
+pub fn shard_bytes(kind: TaskKind, seed: u64, steps: &[DemoStep]) -> Result<Vec<u8>, String> {
+    let s = steps.len();
+    let p = steps.iter().map(|x| x.cloud_xyz.len()).max().unwrap_or(0);
+    let mut xyz = Vec::with_capacity(s * p * 12);
+    let mut rgb = Vec::with_capacity(s * p * 3);
+    for st in steps {
+        for i in 0..p {
+            // Clouds are sampled to one size; a shorter one repeats its last point.
+            let k = i.min(st.cloud_xyz.len().saturating_sub(1));
+            let pt = st.cloud_xyz.get(k).copied().unwrap_or([0.0; 3]);
+            xyz.extend(pt.iter().flat_map(|v| v.to_le_bytes()));
+            rgb.extend(st.cloud_rgb.get(k).copied().unwrap_or([0; 3]));
+        }
+    }
+    let joints: Vec<f64> = steps.iter().flat_map(|x| x.joints).collect();
+    let width: Vec<f64> = steps.iter().map(|x| x.gripper_width).collect();
+    let open: Vec<u8> = steps.iter().map(|x| u8::from(x.gripper_open)).collect();
+    let pose: Vec<f64> = steps
+        .iter()
+        .flat_map(|x| {
+            let t = x.keyframe.base_from_tcp.translation();
+            let q = x.keyframe.base_from_tcp.rotation();
+            [t.x, t.y, t.z, q.i, q.j, q.k, q.w]
+        })
+        .collect();
+    let kf_open: Vec<u8> = steps
+        .iter()
+        .map(|x| u8::from(x.keyframe.gripper_open))
+        .collect();
+    let kf_ignore: Vec<u8> = steps
+        .iter()
+        .map(|x| u8::from(x.keyframe.ignore_collisions))
+        .collect();
+    let (joints, width, pose) = (bytes_f64(&joints), bytes_f64(&width), bytes_f64(&pose));
+    fn view(dtype: Dtype, shape: Vec<usize>, data: &[u8]) -> Result<TensorView<'_>, String> {
+        TensorView::new(dtype, shape, data).map_err(|e| format!("{e}"))
+    }
+    let tensors = vec![
+        ("cloud_xyz", view(Dtype::F32, vec![s, p, 3], &xyz)?),
+        ("cloud_rgb", view(Dtype::U8, vec![s, p, 3], &rgb)?),
+        ("joints", view(Dtype::F64, vec![s, 6], &joints)?),
+        ("gripper_width", view(Dtype::F64, vec![s], &width)?),
+        ("gripper_open", view(Dtype::U8, vec![s], &open)?),
+        ("keyframe_pose", view(Dtype::F64, vec![s, 7], &pose)?),
+        ("keyframe_open", view(Dtype::U8, vec![s], &kf_open)?),
+        (
+            "keyframe_ignore_collisions",
+            view(Dtype::U8, vec![s], &kf_ignore)?,
+        ),
+    ];
+    let meta: std::collections::HashMap<String, String> = [
+        ("format", FORMAT.to_string()),
+        ("task", kind.task_name().to_string()),
+        ("variation", kind.variation_name().to_string()),
+        ("instruction", kind.instruction()),
+        ("seed", seed.to_string()),
+    ]
+    .into_iter()
+    .map(|(k, v)| (k.to_string(), v))
+    .collect();
+    safetensors::serialize(tensors, Some(meta)).map_err(|e| format!("{e}"))
+}
+
+/// A demonstration episode read back from its shard.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DemoEpisode {
+    /// The shard's metadata (task, variation, instruction, seed, format).
+    pub metadata: BTreeMap<String, String>,
+    /// Points per cloud.
+    pub points: usize,
+    /// The steps.
+    pub steps: Vec<DemoStep>,
+}
+
+/// Reads a shard written by [`shard_bytes`], checking every tensor's type and shape.
+pub fn read_shard(path: &Path) -> Result<DemoEpisode, DemosError> {
+    let bad = |why: String| DemosError::BadShard {
+        path: path.to_path_buf(),
+        why,
+    };
+    let bytes = fs::read(path).map_err(io(path))?;
+    let (_, header) = SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
+    let metadata: BTreeMap<String, String> = header
+        .metadata()
+        .clone()
+        .unwrap_or_default()
+        .into_iter()
+        .collect();
+    if metadata.get("format").map(String::as_str) != Some(FORMAT) {
+        return Err(bad(format!(
+            "format {:?}, expected {FORMAT}",
+            metadata.get("format")
+        )));
+    }
+    let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(e.to_string()))?;
+    let get =
+        |name: &str, dtype: Dtype, tail: &[usize]| -> Result<(Vec<usize>, Vec<u8>), DemosError> {
+            let t = st
+                .tensor(name)
+                .map_err(|e| bad(format!("tensor {name}: {e}")))?;
+            let shape = t.shape();
+            // A 0 in `tail` stands for any size (the point count).
+            let fits = shape.len() == tail.len() + 1
+                && shape[1..].iter().zip(tail).all(|(a, b)| *b == 0 || a == b);
+            if t.dtype() != dtype || !fits {
+                return Err(bad(format!(
+                    "tensor {name} is {:?} {shape:?}, expected {dtype:?} [S, {tail:?}]",
+                    t.dtype()
+                )));
+            }
+            Ok((t.shape().to_vec(), t.data().to_vec()))
+        };
+    let f64s = |b: &[u8]| -> Vec<f64> {
+        b.chunks_exact(8)
+            .map(|c| f64::from_le_bytes([c[0], c[1], c[2], c[3], c[4], c[5], c[6], c[7]]))
+            .collect()
+    };
+    let (xshape, xyz) = get("cloud_xyz", Dtype::F32, &[0, 3])?;
+    let (s, p) = (xshape[0], xshape[1]);
+    let (_, rgb) = get("cloud_rgb", Dtype::U8, &[0, 3])?;
+    let (_, joints) = get("joints", Dtype::F64, &[6])?;
+    let (_, width) = get("gripper_width", Dtype::F64, &[])?;
+    let (_, open) = get("gripper_open", Dtype::U8, &[])?;
+    let (_, pose) = get("keyframe_pose", Dtype::F64, &[7])?;
+    let (_, kf_open) = get("keyframe_open", Dtype::U8, &[])?;
+    let (_, kf_ignore) = get("keyframe_ignore_collisions", Dtype::U8, &[])?;
+    let (joints, width, pose) = (f64s(&joints), f64s(&width), f64s(&pose));
+    let sizes = [
+        (rgb.len(), s * p * 3),
+        (joints.len(), s * 6),
+        (width.len(), s),
+        (open.len(), s),
+        (pose.len(), s * 7),
+        (kf_open.len(), s),
+        (kf_ignore.len(), s),
+    ];
+    if sizes.iter().any(|(a, b)| a != b) {
+        return Err(bad(format!(
+            "tensor sizes {sizes:?} disagree with {s} steps of {p} points"
+        )));
+    }
+    let mut steps = Vec::with_capacity(s);
+    for i in 0..s {
+        let cloud_xyz = (0..p)
+            .map(|k| {
+                let o = (i * p + k) * 12;
+                let f = |j: usize| {
+                    f32::from_le_bytes([xyz[o + j], xyz[o + j + 1], xyz[o + j + 2], xyz[o + j + 3]])
+                };
+                [f(0), f(4), f(8)]
+            })
+            .collect();
+        let cloud_rgb = (0..p)
+            .map(|k| {
+                let o = (i * p + k) * 3;
+                [rgb[o], rgb[o + 1], rgb[o + 2]]
+            })
+            .collect();
+        let q = &pose[i * 7..i * 7 + 7];
+        let rotation = UnitQuaternion::from_quaternion(Quaternion::new(q[6], q[3], q[4], q[5]));
+        let mut j = [0.0; 6];
+        j.copy_from_slice(&joints[i * 6..i * 6 + 6]);
+        steps.push(DemoStep {
+            cloud_xyz,
+            cloud_rgb,
+            joints: j,
+            gripper_width: width[i],
+            gripper_open: open[i] != 0,
+            keyframe: Keyframe {
+                base_from_tcp: Transform::from_parts(Vector3::new(q[0], q[1], q[2]), rotation),
+                gripper_open: kf_open[i] != 0,
+                ignore_collisions: kf_ignore[i] != 0,
+            },
+        });
+    }
+    Ok(DemoEpisode {
+        metadata,
+        points: p,
+        steps,
+    })
+}
+
+/// The expert, recording what it saw and what it emitted at every step.
+struct RecordingExpert {
+    inner: ScriptedExpert,
+    steps: Vec<DemoStep>,
+}
+
+impl KeyframeSource for RecordingExpert {
+    fn next_keyframe(&mut self, obs: &Observation<'_>) -> anyhow::Result<Option<Keyframe>> {
+        let k = self.inner.next_keyframe(obs)?;
+        if let Some(keyframe) = k {
+            let rgb = obs.cloud.rgb.as_ref();
+            self.steps.push(DemoStep {
+                cloud_xyz: obs.cloud.points.iter().map(|p| [p.x, p.y, p.z]).collect(),
+                cloud_rgb: (0..obs.cloud.points.len())
+                    .map(|i| rgb.and_then(|c| c.get(i).copied()).unwrap_or([0; 3]))
+                    .collect(),
+                joints: obs.joints.position,
+                // The episode loop's own test of an open gripper.
+                gripper_open: obs.gripper.width_m > 0.08,
+                gripper_width: obs.gripper.width_m,
+                keyframe,
+            });
+        }
+        Ok(k)
+    }
+
+    fn name(&self) -> &str {
+        "expert"
+    }
+}
+
+/// What [`collect`] did.
+#[derive(Clone, Debug, Default, PartialEq, Eq)]
+pub struct CollectSummary {
+    /// Episodes recorded now.
+    pub recorded: usize,
+    /// Episodes skipped because the index already had them.
+    pub skipped: usize,
+    /// Episodes that ended without success now (listed in the index without a shard).
+    pub failed: usize,
+}
+
+/// Records `episodes` expert episodes (seeds `first_seed..`) of every kind in `kinds` into
+/// the dataset at `out`, skipping those its index already lists. Progress goes to stdout.
+pub fn collect(
+    cfg: &CellConfig,
+    kinds: &[TaskKind],
+    episodes: u64,
+    first_seed: u64,
+    out: &Path,
+    interrupt: &Arc<AtomicBool>,
+) -> Result<CollectSummary, DemosError> {
+    fs::create_dir_all(out).map_err(io(out))?;
+    let mut index = Index::load(out)?;
+    let total = kinds.len() as u64 * episodes;
+    let mut summary = CollectSummary::default();
+    let started = Instant::now();
+    let mut done_now = 0u64;
+    let mut n = 0u64;
+    for &kind in kinds {
+        let dir = out.join(format!("{}-{}", kind.task_name(), kind.variation_name()));
+        fs::create_dir_all(&dir).map_err(io(&dir))?;
+        for seed in first_seed..first_seed + episodes {
+            n += 1;
+            if interrupt.load(std::sync::atomic::Ordering::SeqCst) {
+                return Ok(summary);
+            }
+            let name = kind.name();
+            if let Some(e) = index.find(&name, seed) {
+                let shard_ok = e.file.as_ref().is_none_or(|f| out.join(f).exists());
+                if shard_ok {
+                    summary.skipped += 1;
+                    println!(
+                        "[{n}/{total}] {name} seed {seed}: already recorded ({})",
+                        e.outcome
+                    );
+                    continue;
+                }
+                // Listed but its shard is gone: record it again.
+                index
+                    .episodes
+                    .retain(|x| !(x.task == name && x.seed == seed));
+            }
+            let t0 = Instant::now();
+            let (outcome, steps) = record_episode(cfg, kind, seed, out, interrupt)?;
+            let file = if outcome == Outcome::Success {
+                let rel = shard_name(kind, seed);
+                let bytes =
+                    shard_bytes(kind, seed, &steps).map_err(|why| DemosError::BadShard {
+                        path: out.join(&rel),
+                        why,
+                    })?;
+                write_atomic(&out.join(&rel), &bytes)?;
+                summary.recorded += 1;
+                Some(rel)
+            } else {
+                summary.failed += 1;
+                None
+            };
+            if outcome == Outcome::Interrupted {
+                // Not a result: leave it out of the index so a restart records it.
+                return Ok(summary);
+            }
+            index.episodes.push(IndexEntry {
+                task: name.clone(),
+                instruction: kind.instruction(),
+                seed,
+                outcome: outcome.label().into(),
+                steps: steps.len(),
+                file,
+            });
+            index.save(out)?;
+            done_now += 1;
+            let per = started.elapsed().as_secs_f64() / done_now as f64;
+            println!(
+                "[{n}/{total}] {name} seed {seed}: {} in {} steps, {:.1} s (about {:.0} s left)",
+                outcome.label(),
+                steps.len(),
+                t0.elapsed().as_secs_f64(),
+                per * (total - n) as f64
+            );
+        }
+    }
+    Ok(summary)
+}
+
+/// Runs one expert episode in a fresh simulated cell and returns its outcome and steps.
+fn record_episode(
+    cfg: &CellConfig,
+    kind: TaskKind,
+    seed: u64,
+    out: &Path,
+    interrupt: &Arc<AtomicBool>,
+) -> Result<(Outcome, Vec<DemoStep>), DemosError> {
+    let err = |why: String| DemosError::Episode {
+        task: kind.name(),
+        seed,
+        why,
+    };
+    let clock = Arc::new(cell_types::SystemClock::new());
+    let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
+    let mut cell = SimCell::start(cfg, task.clone(), seed, clock.clone())
+        .map_err(|e| err(format!("{e:#}")))?;
+    // The episode's full MCAP recording (depth images and all) is scratch here.
+    let scratch = out.join(format!(
+        ".scratch-{}-{}-{seed}.mcap",
+        kind.task_name(),
+        kind.variation_name()
+    ));
+    let mut recorder =
+        EpisodeRecorder::create(&scratch, &BTreeMap::new()).map_err(|e| err(format!("{e}")))?;
+    let mut expert = RecordingExpert {
+        inner: ScriptedExpert::new(task.expert_keyframes()),
+        steps: Vec::new(),
+    };
+    let report = run_sim_episode(
+        cfg,
+        &mut cell,
+        &mut expert,
+        &mut recorder,
+        interrupt,
+        clock.as_ref(),
+        seed,
+    );
+    cell.controller.shutdown();
+    let _ = fs::remove_file(&scratch);
+    Ok((report.outcome, expert.steps))
+}

@@ -1,0 +1,423 @@
+//! Simulated tasks: a seeded scene, the scripted expert's keyframes from the true object
+//! poses, and a success test on the outcome (the objects' state), not on the keyframes.
+//!
+//! The paper's four physical tasks, each in its own module with its language variations:
+//! - [`pick_fruit`]: pick up a strawberry, peach or plum and lift it (posed in SE(2), as the
+//!   paper does);
+//! - [`pipe`]: disassemble a pipe: pull off the first link, the second link, or both;
+//! - [`flower`]: pluck the top, middle or bottom flower out of a foam block;
+//! - [`toilet_roll`]: install a large or small toilet roll on its holder's spindle.
+//!
+//! A posed task is a list of rigid [`Body`]s made of scene primitives; [`world::TaskWorld`]
+//! keeps their poses and the grasp attachment (a closed gripper around a body carries it,
+//! opening releases it and the task says where it comes to rest). The fixtures of pipe,
+//! flower and toilet roll are posed by a seeded random SE(3) transform (position, yaw, a
+//! tilt of up to 10° and a lift) and stand on a pedestal down to the table.
+
+pub mod check;
+pub mod flower;
+pub mod pick_fruit;
+pub mod pipe;
+pub mod toilet_roll;
+pub mod world;
+
+use std::f64::consts::PI;
+
+use cell_types::{Base, Keyframe, Tcp, Transform};
+use hil_sim::scene::{Primitive, HOME_Q};
+use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+
+pub use flower::FlowerLevel;
+pub use pick_fruit::{Fruit, GRASP_HEIGHT_ABOVE_CENTRE, LIFT_SUCCESS_HEIGHT};
+pub use pipe::PipePart;
+pub use toilet_roll::RollSize;
+
+/// Why a task name could not be used.
+#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
+pub enum TaskError {
+    /// The task is not one of the simulated tasks.
+    #[error(
+        "unknown task `{0}`: the simulated cell has pick_fruit, disassemble_pipe, pluck_flower \
+         and install_toilet_roll (`equact run --task T/VARIATION`; see TaskKind::all)"
+    )]
+    UnknownTask(String),
+    /// The variation is not one of the task's.
+    #[error("unknown {task} variation `{variation}`: use one of {choices}")]
+    UnknownVariation {
+        /// The task.
+        task: &'static str,
+        /// The variation asked for.
+        variation: String,
+        /// The task's variations.
+        choices: &'static str,
+    },
+}
+
+/// A task the simulated cell can pose and judge, with its language variation.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Hash)]
+pub enum TaskKind {
+    /// Pick a fruit from the table and lift it.
+    PickFruit(Fruit),
+    /// Pull links off a pipe assembly.
+    DisassemblePipe(PipePart),
+    /// Pluck one flower out of a foam block.
+    PluckFlower(FlowerLevel),
+    /// Put a toilet roll on its holder's spindle.
+    InstallToiletRoll(RollSize),
+}
+
+impl TaskKind {
+    /// Every task variation the simulated cell has, in a fixed order.
+    pub fn all() -> Vec<TaskKind> {
+        let mut v = Vec::new();
+        v.extend(Fruit::ALL.map(TaskKind::PickFruit));
+        v.extend(PipePart::ALL.map(TaskKind::DisassemblePipe));
+        v.extend(FlowerLevel::ALL.map(TaskKind::PluckFlower));
+        v.extend(RollSize::ALL.map(TaskKind::InstallToiletRoll));
+        v
+    }
+
+    /// The variations of the task named `task` (all four tasks' names), or `None`.
+    pub fn variations_of(task: &str) -> Option<Vec<TaskKind>> {
+        let v: Vec<TaskKind> = Self::all()
+            .into_iter()
+            .filter(|k| k.task_name() == task)
+            .collect();
+        (!v.is_empty()).then_some(v)
+    }
+
+    /// Parses a task name as the CLI takes it (`pick_fruit`, `pick_fruit/peach`,
+    /// `disassemble_pipe/all`, ...). Without a variation, the task's first one.
+    pub fn parse(name: &str) -> Result<Self, TaskError> {
+        let (task, variant) = match name.split_once('/') {
+            Some((t, v)) => (t, Some(v)),
+            None => (name, None),
+        };
+        let variations =
+            Self::variations_of(task).ok_or_else(|| TaskError::UnknownTask(task.to_string()))?;
+        let Some(variant) = variant else {
+            return variations
+                .first()
+                .copied()
+                .ok_or_else(|| TaskError::UnknownTask(task.to_string()));
+        };
+        variations
+            .iter()
+            .copied()
+            .find(|k| k.variation_name() == variant)
+            .ok_or_else(|| {
+                let (task, choices) = match variations[0] {
+                    TaskKind::PickFruit(_) => ("pick_fruit", "strawberry, peach, plum"),
+                    TaskKind::DisassemblePipe(_) => {
+                        ("disassemble_pipe", "first_link, second_link, all")
+                    }
+                    TaskKind::PluckFlower(_) => ("pluck_flower", "top, middle, bottom"),
+                    TaskKind::InstallToiletRoll(_) => ("install_toilet_roll", "large, small"),
+                };
+                TaskError::UnknownVariation {
+                    task,
+                    variation: variant.to_string(),
+                    choices,
+                }
+            })
+    }
+
+    /// The task's name without the variation.
+    pub fn task_name(&self) -> &'static str {
+        match self {
+            TaskKind::PickFruit(_) => "pick_fruit",
+            TaskKind::DisassemblePipe(_) => "disassemble_pipe",
+            TaskKind::PluckFlower(_) => "pluck_flower",
+            TaskKind::InstallToiletRoll(_) => "install_toilet_roll",
+        }
+    }
+
+    /// The variation's name.
+    pub fn variation_name(&self) -> &'static str {
+        match self {
+            TaskKind::PickFruit(f) => f.name(),
+            TaskKind::DisassemblePipe(p) => p.name(),
+            TaskKind::PluckFlower(l) => l.name(),
+            TaskKind::InstallToiletRoll(s) => s.name(),
+        }
+    }
+
+    /// The task's name with its variation (`task/variation`).
+    pub fn name(&self) -> String {
+        format!("{}/{}", self.task_name(), self.variation_name())
+    }
+
+    /// The language instruction of this variation.
+    pub fn instruction(&self) -> String {
+        match self {
+            TaskKind::PickFruit(f) => format!("pick up the {}", f.name()),
+            TaskKind::DisassemblePipe(p) => p.instruction().to_string(),
+            TaskKind::PluckFlower(l) => format!("pluck the {} flower", l.name()),
+            TaskKind::InstallToiletRoll(s) => {
+                format!("install the {} toilet roll on the holder", s.name())
+            }
+        }
+    }
+}
+
+/// One solid of a body, in the body's frame.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct BodyPart {
+    /// Its shape.
+    pub shape: Primitive,
+    /// Where it sits in the body frame.
+    pub body_from_part: Isometry3<f64>,
+    /// Its colour for the cameras.
+    pub colour: [u8; 3],
+}
+
+/// Where a body can be grasped.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct GraspSite {
+    /// The point (body frame) the TCP must be within [`world::GRASP_RADIUS`] of.
+    pub point: Vector3<f64>,
+    /// The width the fingers stop at when they close on it (m).
+    pub width: f64,
+}
+
+/// A rigid body of a task's scene: a fixture or an object.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Body {
+    /// A name for the scene and reports.
+    pub name: String,
+    /// Its pose in the base frame as posed.
+    pub base_from_body: Isometry3<f64>,
+    /// Its solids.
+    pub parts: Vec<BodyPart>,
+    /// Where it can be grasped; `None` for fixtures.
+    pub grasp: Option<GraspSite>,
+}
+
+/// A posed instance of a task: where its bodies are.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TaskInstance {
+    /// Which task.
+    pub kind: TaskKind,
+    /// The bodies as posed (fixtures and objects).
+    pub bodies: Vec<Body>,
+    /// The pose of the task's fixture (pick fruit: the fruit's own pose).
+    pub base_from_fixture: Isometry3<f64>,
+    /// Table top height (m).
+    pub table_height: f64,
+}
+
+impl TaskInstance {
+    /// Poses the task with a seeded random transform within the task's ranges (see each
+    /// task's module).
+    pub fn sample(kind: TaskKind, seed: u64, table_height: f64) -> Self {
+        match kind {
+            TaskKind::PickFruit(f) => pick_fruit::sample(f, seed, table_height),
+            TaskKind::DisassemblePipe(p) => pipe::sample(p, seed, table_height),
+            TaskKind::PluckFlower(l) => flower::sample(l, seed, table_height),
+            TaskKind::InstallToiletRoll(s) => toilet_roll::sample(s, seed, table_height),
+        }
+    }
+
+    /// The pose of the task's main object as posed (pick fruit: the fruit).
+    pub fn base_from_object(&self) -> Isometry3<f64> {
+        self.bodies
+            .iter()
+            .find(|b| b.grasp.is_some())
+            .map_or(self.base_from_fixture, |b| b.base_from_body)
+    }
+
+    /// The scripted expert: keyframes from the true body poses.
+    pub fn expert_keyframes(&self) -> Vec<Keyframe> {
+        match self.kind {
+            TaskKind::PickFruit(f) => pick_fruit::expert(self, f),
+            TaskKind::DisassemblePipe(p) => pipe::expert(self, p),
+            TaskKind::PluckFlower(l) => flower::expert(self, l),
+            TaskKind::InstallToiletRoll(_) => toilet_roll::expert(self),
+        }
+    }
+
+    /// The success test on the world's state: the bodies' poses now (same order as
+    /// [`TaskInstance::bodies`]) and which body the gripper holds.
+    pub fn success(&self, poses: &[Isometry3<f64>], held: Option<usize>) -> bool {
+        if poses.len() != self.bodies.len() {
+            return false;
+        }
+        match self.kind {
+            TaskKind::PickFruit(f) => pick_fruit::success(self, f, poses, held),
+            TaskKind::DisassemblePipe(p) => pipe::success(self, p, poses),
+            TaskKind::PluckFlower(l) => flower::success(self, l, poses),
+            TaskKind::InstallToiletRoll(s) => toilet_roll::success(self, s, poses, held),
+        }
+    }
+
+    /// Where body `index`, released by the gripper at `pose`, comes to rest.
+    pub fn released_pose(&self, index: usize, pose: &Isometry3<f64>) -> Isometry3<f64> {
+        match self.kind {
+            TaskKind::PickFruit(f) => pick_fruit::released(self, f, pose),
+            TaskKind::DisassemblePipe(_) => pipe::released(self, pose),
+            TaskKind::PluckFlower(_) => flower::released(self, pose),
+            TaskKind::InstallToiletRoll(s) => toilet_roll::released(self, s, index, pose),
+        }
+    }
+}
+
+/// Samples the SE(3) fixture transform of the non-planar tasks: position in the given x and
+/// y ranges, yaw about the base z in `yaw`, roll and pitch each within ±`tilt_deg`, lifted
+/// 0–3 cm above the table (the pedestal under the fixture reaches the table).
+pub(crate) fn sample_fixture(
+    rng: &mut ChaCha8Rng,
+    x: (f64, f64),
+    y: (f64, f64),
+    yaw: (f64, f64),
+    tilt_deg: f64,
+    table_height: f64,
+) -> Isometry3<f64> {
+    let px = rng.random_range(x.0..x.1);
+    let py = rng.random_range(y.0..y.1);
+    let lift = rng.random_range(0.0..0.03);
+    let yaw = rng.random_range(yaw.0..yaw.1);
+    let t = tilt_deg.to_radians();
+    let roll = rng.random_range(-t..t);
+    let pitch = rng.random_range(-t..t);
+    let rotation = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw)
+        * UnitQuaternion::from_euler_angles(roll, pitch, 0.0);
+    Isometry3::from_parts(Translation3::new(px, py, table_height + lift), rotation)
+}
+
+/// A pedestal under a fixture: a box of `half_x` × `half_y` reaching 0.25 m below the
+/// fixture origin (through the table, which hides the rest).
+pub(crate) fn pedestal(half_x: f64, half_y: f64, centre_x: f64, colour: [u8; 3]) -> BodyPart {
+    BodyPart {
+        shape: Primitive::Box {
+            half_extents: [half_x, half_y, 0.125],
+        },
+        body_from_part: Isometry3::translation(centre_x, 0.0, -0.125),
+        colour,
+    }
+}
+
+/// The home TCP's x axis (the fingers' closing direction) in the base frame.
+fn home_closing_axis() -> Vector3<f64> {
+    let flange = planner::kinematics::UR5.forward(&HOME_Q);
+    flange.isometry().rotation * Vector3::x()
+}
+
+/// A TCP orientation approaching along `approach` (the TCP z) with the fingers closing
+/// along `closing` (made perpendicular to the approach); of the two equivalent finger
+/// orientations, the one nearer the home pose's, so the wrist does not wind half a turn.
+pub(crate) fn grasp_rotation(approach: Vector3<f64>, closing: Vector3<f64>) -> UnitQuaternion<f64> {
+    let z = approach.normalize();
+    let mut x = closing - z * closing.dot(&z);
+    if x.norm() < 1e-9 {
+        x = z.cross(&Vector3::x());
+        if x.norm() < 1e-9 {
+            x = z.cross(&Vector3::y());
+        }
+    }
+    let mut x = x.normalize();
+    if x.dot(&home_closing_axis()) < 0.0 {
+        x = -x;
+    }
+    let y = z.cross(&x);
+    UnitQuaternion::from_rotation_matrix(&Rotation3::from_matrix_unchecked(Matrix3::from_columns(
+        &[x, y, z],
+    )))
+}
+
+/// A keyframe at TCP position `p` with orientation `r`.
+pub(crate) fn keyframe(p: Vector3<f64>, r: UnitQuaternion<f64>, open: bool) -> Keyframe {
+    let base_from_tcp: Transform<Base, Tcp> = Transform::from_parts(p, r);
+    Keyframe {
+        base_from_tcp,
+        gripper_open: open,
+        ignore_collisions: false,
+    }
+}
+
+/// The pose lying flat on the table that a released elongated body (its long axis along
+/// body x, `radius` its half thickness) falls into: same x, y and heading.
+pub(crate) fn lying_on_table(
+    pose: &Isometry3<f64>,
+    radius: f64,
+    table_height: f64,
+) -> Isometry3<f64> {
+    let axis = pose.rotation * Vector3::x();
+    let heading = axis.y.atan2(axis.x);
+    let heading = if heading.is_finite() { heading } else { 0.0 };
+    Isometry3::from_parts(
+        Translation3::new(
+            pose.translation.vector.x,
+            pose.translation.vector.y,
+            table_height + radius,
+        ),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), heading),
+    )
+}
+
+/// Angle between two unit vectors (rad).
+pub(crate) fn angle_between(a: &Vector3<f64>, b: &Vector3<f64>) -> f64 {
+    a.dot(b).clamp(-1.0, 1.0).acos()
+}
+
+/// A keyframe planned without the observed cloud (the keyframe-policy literature's "ignore
+/// collisions"): short extraction and insertion moves, where the held object's own points
+/// would block the gripper that carries it.
+pub(crate) fn keyframe_through(p: Vector3<f64>, r: UnitQuaternion<f64>, open: bool) -> Keyframe {
+    Keyframe {
+        ignore_collisions: true,
+        ..keyframe(p, r, open)
+    }
+}
+
+/// Half a turn, for the yaw ranges.
+pub(crate) const HALF_TURN: f64 = PI;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_task_name_parses_back_and_bad_names_are_refused() {
+        let all = TaskKind::all();
+        assert_eq!(all.len(), 11);
+        for k in &all {
+            assert_eq!(TaskKind::parse(&k.name()), Ok(*k));
+            assert!(!k.instruction().is_empty());
+        }
+        assert_eq!(
+            TaskKind::parse("pick_fruit"),
+            Ok(TaskKind::PickFruit(Fruit::Strawberry))
+        );
+        assert_eq!(
+            TaskKind::parse("pluck_flower/top"),
+            Ok(TaskKind::PluckFlower(FlowerLevel::Top))
+        );
+        let e = TaskKind::parse("pick_fruit/apple").unwrap_err().to_string();
+        assert!(e.contains("strawberry"), "{e}");
+        let e = TaskKind::parse("juggle").unwrap_err().to_string();
+        assert!(e.contains("unknown task"), "{e}");
+    }
+
+    #[test]
+    fn sampling_is_seeded() {
+        for k in TaskKind::all() {
+            let a = TaskInstance::sample(k, 4, -0.06);
+            let b = TaskInstance::sample(k, 4, -0.06);
+            let c = TaskInstance::sample(k, 5, -0.06);
+            assert_eq!(a, b);
+            assert_ne!(a, c);
+            assert!(!a.expert_keyframes().is_empty());
+        }
+    }
+
+    #[test]
+    fn grasp_rotation_is_a_right_handed_frame_along_the_approach() {
+        let r = grasp_rotation(-Vector3::z(), Vector3::new(1.0, 1.0, 0.3));
+        let z = r * Vector3::z();
+        assert!((z + Vector3::z()).norm() < 1e-9);
+        let x = r * Vector3::x();
+        assert!(x.z.abs() < 1e-9);
+    }
+}

@@ -1,0 +1,255 @@
+//! Install toilet roll: a holder (a spindle on a base, on a pedestal) is posed by a seeded
+//! SE(3) transform (x 0.42–0.60 m, 8–20 cm to one side of the base x axis, any yaw, tilt
+//! ≤ 10°, lift ≤ 3 cm); the roll stands upright on the table on the other side (SE(2):
+//! x 0.40–0.60 m, 8–20 cm to the other side, any yaw). The robot grasps the roll across
+//! its outside, carries it above the spindle, lowers it over the spindle along the
+//! holder's axis and lets go. Variations: a large or a small roll.
+
+use cell_types::Keyframe;
+use hil_sim::scene::Primitive;
+use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::{
+    angle_between, grasp_rotation, keyframe, keyframe_through, pedestal, sample_fixture, Body,
+    BodyPart, GraspSite, TaskInstance, TaskKind, HALF_TURN,
+};
+
+/// Radius of the holder's spindle (m).
+pub const SPINDLE_RADIUS: f64 = 0.012;
+/// Height of the spindle above the holder's seat (m).
+pub const SPINDLE_HEIGHT: f64 = 0.035;
+/// Radius of a roll's hole (m).
+pub const HOLE_RADIUS: f64 = 0.02;
+/// Depth of the grasp TCP below the roll's top (m): the gripper's palm is 1 cm behind the
+/// TCP, so the TCP stays at the top face and the 15 mm fingertips hold the roll's rim.
+const GRASP_BELOW_TOP: f64 = 0.0;
+/// Height of the roll's bottom above the seat where the expert lets go (m).
+const RELEASE_HEIGHT: f64 = 0.012;
+/// A seated roll's centre is this close to its place on the holder (m).
+const SEATED_DISTANCE: f64 = 0.01;
+
+/// The variations of `install_toilet_roll`.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Hash)]
+pub enum RollSize {
+    /// A large roll.
+    Large,
+    /// A small roll.
+    Small,
+}
+
+impl RollSize {
+    /// The variations in order.
+    pub const ALL: [RollSize; 2] = [RollSize::Large, RollSize::Small];
+
+    /// The variation's name.
+    pub fn name(self) -> &'static str {
+        match self {
+            RollSize::Large => "large",
+            RollSize::Small => "small",
+        }
+    }
+
+    /// Outer radius (m); the 2F-85's 85 mm stroke closes across it.
+    pub fn radius(self) -> f64 {
+        match self {
+            RollSize::Large => 0.037,
+            RollSize::Small => 0.03,
+        }
+    }
+
+    /// Half the roll's height (m).
+    pub fn half_height(self) -> f64 {
+        match self {
+            RollSize::Large => 0.03,
+            RollSize::Small => 0.025,
+        }
+    }
+}
+
+/// Poses the holder (body 0) and the roll (body 1).
+pub(crate) fn sample(size: RollSize, seed: u64, table_height: f64) -> TaskInstance {
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let side = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+    let fixture = sample_fixture(
+        &mut rng,
+        (0.42, 0.60),
+        if side > 0.0 {
+            (0.08, 0.20)
+        } else {
+            (-0.20, -0.08)
+        },
+        (-HALF_TURN, HALF_TURN),
+        10.0,
+        table_height,
+    );
+    let holder = Body {
+        name: "roll holder".into(),
+        base_from_body: fixture,
+        parts: vec![
+            pedestal(0.06, 0.06, 0.0, [120, 100, 80]),
+            BodyPart {
+                shape: Primitive::Cylinder {
+                    half_height: SPINDLE_HEIGHT / 2.0,
+                    radius: SPINDLE_RADIUS,
+                },
+                body_from_part: Isometry3::translation(0.0, 0.0, SPINDLE_HEIGHT / 2.0),
+                colour: [200, 200, 210],
+            },
+        ],
+        grasp: None,
+    };
+    let x = rng.random_range(0.40..0.60);
+    let y = -side * rng.random_range(0.08..0.20);
+    let yaw = rng.random_range(-HALF_TURN..HALF_TURN);
+    let h = size.half_height();
+    let roll = Body {
+        name: format!("{} toilet roll", size.name()),
+        base_from_body: Isometry3::from_parts(
+            Translation3::new(x, y, table_height + h),
+            UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+        ),
+        parts: vec![
+            BodyPart {
+                shape: Primitive::Cylinder {
+                    half_height: h,
+                    radius: size.radius(),
+                },
+                body_from_part: Isometry3::identity(),
+                colour: [235, 235, 230],
+            },
+            // The hole, seen from above: a dark disc on the top face.
+            BodyPart {
+                shape: Primitive::Cylinder {
+                    half_height: 0.001,
+                    radius: HOLE_RADIUS,
+                },
+                body_from_part: Isometry3::translation(0.0, 0.0, h),
+                colour: [120, 90, 60],
+            },
+        ],
+        grasp: Some(GraspSite {
+            point: Vector3::new(0.0, 0.0, h - GRASP_BELOW_TOP),
+            width: 2.0 * size.radius(),
+        }),
+    };
+    TaskInstance {
+        kind: TaskKind::InstallToiletRoll(size),
+        bodies: vec![holder, roll],
+        base_from_fixture: fixture,
+        table_height,
+    }
+}
+
+/// Where the roll's centre sits when it is on the holder.
+fn seated_centre(task: &TaskInstance, h: f64) -> Vector3<f64> {
+    (task.base_from_fixture * Point3::new(0.0, 0.0, h)).coords
+}
+
+/// Above the roll (open), around its top (close), lifted, above the spindle along the
+/// holder's axis, lowered over it and let go, back up.
+pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
+    let roll = &task.bodies[1].base_from_body;
+    let h = match task.kind {
+        TaskKind::InstallToiletRoll(s) => s.half_height(),
+        _ => 0.0,
+    };
+    let axis = roll.rotation * Vector3::z();
+    let r = grasp_rotation(-axis, roll.rotation * Vector3::x());
+    let grasp = roll.translation.vector + axis * (h - GRASP_BELOW_TOP);
+    let fz = task.base_from_fixture.rotation * Vector3::z();
+    let r_place = grasp_rotation(-fz, r * Vector3::x());
+    // The TCP when the roll's bottom is `s` above the seat: the roll's centre is h − GRASP_BELOW_TOP
+    // below the TCP along the TCP z.
+    let place = |s: f64| seated_centre(task, h) + fz * (s + h - GRASP_BELOW_TOP);
+    let release = place(RELEASE_HEIGHT);
+    vec![
+        keyframe(grasp + Vector3::z() * 0.10, r, true),
+        keyframe(grasp, r, false),
+        keyframe(grasp + Vector3::z() * 0.15, r, false),
+        keyframe(place(SPINDLE_HEIGHT + 0.03), r_place, false),
+        // Down over the spindle and back up are planned without the cloud: the carried
+        // roll's own points lie where the gripper goes.
+        keyframe_through(release, r_place, true),
+        keyframe_through(release + fz * 0.10, r_place, true),
+    ]
+}
+
+/// The roll is not held and sits on the holder: its centre within 1 cm of its seated place
+/// and its axis within 10° of the spindle's.
+pub(crate) fn success(
+    task: &TaskInstance,
+    size: RollSize,
+    poses: &[Isometry3<f64>],
+    held: Option<usize>,
+) -> bool {
+    let fz = task.base_from_fixture.rotation * Vector3::z();
+    let p = &poses[1];
+    held != Some(1)
+        && (p.translation.vector - seated_centre(task, size.half_height())).norm() < SEATED_DISTANCE
+        && angle_between(&(p.rotation * Vector3::z()), &fz) < 10f64.to_radians()
+}
+
+/// A released roll whose hole is around the spindle (axis within 15°, centre within the
+/// hole's play, bottom between the seat and the spindle's top) slides down onto the seat;
+/// anywhere else it falls onto the table, upright.
+pub(crate) fn released(
+    task: &TaskInstance,
+    size: RollSize,
+    index: usize,
+    pose: &Isometry3<f64>,
+) -> Isometry3<f64> {
+    let h = size.half_height();
+    if index != 1 {
+        return *pose;
+    }
+    let local = task.base_from_fixture.inverse() * pose;
+    let c = local.translation.vector;
+    let axis = local.rotation * Vector3::z();
+    let radial = (c.x * c.x + c.y * c.y).sqrt();
+    let bottom = c.z - h;
+    if angle_between(&axis, &Vector3::z()) < 15f64.to_radians()
+        && radial < HOLE_RADIUS - SPINDLE_RADIUS
+        && (-0.005..SPINDLE_HEIGHT).contains(&bottom)
+    {
+        let x = local.rotation * Vector3::x();
+        let yaw = x.y.atan2(x.x);
+        return task.base_from_fixture
+            * Isometry3::from_parts(
+                Translation3::new(0.0, 0.0, h),
+                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+            );
+    }
+    let x = pose.rotation * Vector3::x();
+    Isometry3::from_parts(
+        Translation3::new(
+            pose.translation.vector.x,
+            pose.translation.vector.y,
+            task.table_height + h,
+        ),
+        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), x.y.atan2(x.x)),
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_roll_let_go_over_the_spindle_seats_and_elsewhere_falls() {
+        let t = TaskInstance::sample(TaskKind::InstallToiletRoll(RollSize::Small), 7, -0.06);
+        let h = RollSize::Small.half_height();
+        let over = t.base_from_fixture * Isometry3::translation(0.002, 0.0, h + 0.01);
+        let seated = t.released_pose(1, &over);
+        let mut poses: Vec<_> = t.bodies.iter().map(|b| b.base_from_body).collect();
+        assert!(!t.success(&poses, None));
+        poses[1] = seated;
+        assert!(t.success(&poses, None));
+        assert!(!t.success(&poses, Some(1)));
+        let beside = t.base_from_fixture * Isometry3::translation(0.03, 0.0, h + 0.01);
+        poses[1] = t.released_pose(1, &beside);
+        assert!(!t.success(&poses, None));
+        assert!((poses[1].translation.vector.z - (-0.06 + h)).abs() < 1e-9);
+    }
+}

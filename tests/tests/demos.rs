@@ -1,0 +1,74 @@
+//! `equact demos collect` as a library call: one expert episode recorded through the
+//! simulated cameras and the real fusion, read back from its safetensors shard (shapes, the
+//! language, keyframes equal to the expert's), and a second run that resumes (skips it).
+#![allow(clippy::unwrap_used, clippy::expect_used)]
+
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use cell_types::config::CellConfig;
+use equact::demos::{collect, read_shard, Index};
+use equact::task::{PipePart, TaskInstance, TaskKind};
+
+#[test]
+fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it() {
+    let cfg = CellConfig::simulated().unwrap();
+    let out = std::env::temp_dir().join(format!("equact-demos-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let kind = TaskKind::DisassemblePipe(PipePart::FirstLink);
+    let stop = Arc::new(AtomicBool::new(false));
+    let s = collect(&cfg, &[kind], 1, 7, &out, &stop).unwrap();
+    assert_eq!((s.recorded, s.skipped, s.failed), (1, 0, 0));
+
+    let index = Index::load(&out).unwrap();
+    assert_eq!(index.episodes.len(), 1);
+    let entry = &index.episodes[0];
+    assert_eq!(entry.task, "disassemble_pipe/first_link");
+    assert_eq!(entry.outcome, "success");
+    let demo = read_shard(&out.join(entry.file.as_ref().unwrap())).unwrap();
+    assert_eq!(demo.metadata["instruction"], kind.instruction());
+    assert_eq!(demo.metadata["seed"], "7");
+
+    let expert = TaskInstance::sample(kind, 7, cfg.workspace.table_height).expert_keyframes();
+    assert_eq!(demo.steps.len(), entry.steps);
+    assert_eq!(demo.steps.len(), expert.len());
+    assert!(demo.points >= 1000, "{} points", demo.points);
+    for (i, (step, k)) in demo.steps.iter().zip(&expert).enumerate() {
+        assert_eq!(step.cloud_xyz.len(), demo.points);
+        assert_eq!(step.cloud_rgb.len(), demo.points);
+        let d = (step.keyframe.base_from_tcp.translation() - k.base_from_tcp.translation()).norm();
+        let a = step
+            .keyframe
+            .base_from_tcp
+            .rotation()
+            .angle_to(&k.base_from_tcp.rotation());
+        assert!(d < 1e-12 && a < 1e-9, "step {i}: {d} m, {a} rad");
+        assert_eq!(step.keyframe.gripper_open, k.gripper_open);
+        assert_eq!(step.keyframe.ignore_collisions, k.ignore_collisions);
+        // Every cloud lies in the workspace the fusion crops to.
+        for p in &step.cloud_xyz {
+            assert!(p[0] >= 0.17 && p[0] <= 0.97 && p[2] >= -0.11, "{p:?}");
+        }
+    }
+    // The gripper state before each step: open until the grasp, closed after it.
+    assert!(demo.steps[0].gripper_open && demo.steps[1].gripper_open);
+    assert!(!demo.steps[2].gripper_open);
+    assert!(demo.steps[2].gripper_width < 0.05);
+
+    // A rerun skips the finished episode and leaves its shard untouched.
+    let shard = out.join(entry.file.as_ref().unwrap());
+    let before = std::fs::metadata(&shard).unwrap().modified().unwrap();
+    let s = collect(&cfg, &[kind], 1, 7, &out, &stop).unwrap();
+    assert_eq!((s.recorded, s.skipped), (0, 1));
+    assert_eq!(
+        std::fs::metadata(&shard).unwrap().modified().unwrap(),
+        before
+    );
+    let leftovers: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".partial") || n.starts_with(".scratch"))
+        .collect();
+    assert!(leftovers.is_empty(), "{leftovers:?}");
+    let _ = std::fs::remove_dir_all(&out);
+}
