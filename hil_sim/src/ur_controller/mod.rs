@@ -78,7 +78,7 @@ pub struct UrSimConfig {
     pub flange_from_tcp: Transform<Flange, Tcp>,
     /// Table top height in the base frame (m); links below it raise a protective stop.
     pub floor_z: Option<f64>,
-    /// Lockstep: after each cycle, wait (up to one real period) for a client's input
+    /// Lockstep: after each cycle, wait (one real period; 100 ms while a client streams) for its input
     /// package before the next. With a [`cell_types::ManualClock`] shared by the simulator
     /// and the driver, the pair then runs as fast as the round trip allows, faster than
     /// real time, and each cycle still sees the driver's answer to the previous one.
@@ -299,6 +299,7 @@ impl Shared {
     fn control_loop(&self) {
         let period = Duration::from_secs_f64(self.config.period());
         let mut next = self.clock.now();
+        let mut streaming = false;
         while !self.stopping() {
             next += period;
             self.clock.sleep_until(next);
@@ -342,15 +343,28 @@ impl Shared {
             });
             if self.config.lockstep {
                 // Real-time wait on purpose: without a streaming client the simulator keeps
-                // real-time pace instead of spinning its simulated clock away.
+                // real-time pace instead of spinning its simulated clock away. While a
+                // client streams (its last input came within the wait), it gets more
+                // patience, so that a client starved of CPU for a few periods on a loaded
+                // machine still answers every cycle.
+                let patience = if streaming {
+                    LOCKSTEP_STREAMING_PATIENCE.max(period)
+                } else {
+                    period
+                };
                 let g = lock(&self.inputs_seen);
-                let _ = self
+                let (g, waited) = self
                     .input_arrived
-                    .wait_timeout_while(g, period, |n| *n == seen_before);
+                    .wait_timeout_while(g, patience, |n| *n == seen_before)
+                    .unwrap_or_else(|e| e.into_inner());
+                streaming = !waited.timed_out() && *g != seen_before;
             }
         }
     }
 }
+
+/// Lockstep: the longest real-time wait for a streaming client's input before the next cycle.
+const LOCKSTEP_STREAMING_PATIENCE: Duration = Duration::from_millis(100);
 
 /// A running simulated controller; dropping it stops every thread and closes every socket.
 pub struct UrSimHandle {
