@@ -3,8 +3,8 @@
 //! Modules: [`camera`] (the D455 camera model, issue 7 item 1), [`fusion`] (the fused point
 //! cloud, issue 7 item 3), [`view`] (PLY export and point splats, issue 7 item 5), and the
 //! camera-to-robot calibration of issue 8: [`board`] (the target on the flange), [`capture`]
-//! (captures and the resumable captures folder), [`simulate`] (synthetic captures with
-//! known truth), [`geometry`] (PnP, closed-form hand-eye), [`solve`] (the joint bundle
+//! (captures and the resumable captures folder), [`simulate`](mod@simulate) (synthetic captures with
+//! known truth), [`geometry`] (PnP, closed-form hand-eye), [`solve`](mod@solve) (the joint bundle
 //! adjustment) and [`report`] (report, `calibration.toml`).
 //!
 //! The calibration API, as the CLI uses it:
