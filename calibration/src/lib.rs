@@ -4,8 +4,8 @@
 //! cloud, issue 7 item 3), [`view`] (PLY export and point splats, issue 7 item 5), and the
 //! camera-to-robot calibration of issue 8: [`board`] (the target on the flange), [`capture`]
 //! (captures and the resumable captures folder), [`detect`] (chessboard corners in IR
-//! images), [`simulate`] (synthetic captures with known truth), [`geometry`] (PnP,
-//! closed-form hand-eye), [`solve`] (the joint bundle adjustment) and [`report`] (report,
+//! images), [`simulate`](mod@simulate) (synthetic captures with known truth), [`geometry`] (PnP,
+//! closed-form hand-eye), [`solve`](mod@solve) (the joint bundle adjustment) and [`report`] (report,
 //! overlap check, `calibration.toml`).
 //!
 //! The calibration API, as the CLI uses it:
