@@ -57,6 +57,6 @@ pub use capture::{
 };
 pub use error::CalibrationError;
 pub use fusion::{CameraCalibration, CellCalibration, FusionParams, FusionPipeline};
-pub use report::{overlap_check, read_calibration_toml, OverlapPair, Report};
+pub use report::{overlap_check, overlay_image, read_calibration_toml, OverlapPair, Report};
 pub use simulate::{load_truth, simulate, SimConfig, SimNoise, Truth};
 pub use solve::{solve, Solution, SolveOptions};

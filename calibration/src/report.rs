@@ -13,7 +13,8 @@ use std::path::Path;
 use cell_types::{Board, Flange, Transform};
 use serde::{Deserialize, Serialize};
 
-use cell_types::CameraFrame;
+use cell_types::{CameraFrame, FrameId, Image, PointCloud, Rgb};
+use nalgebra::Point3;
 
 use crate::capture::write_atomic;
 use crate::error::CalibrationError;
@@ -85,6 +86,48 @@ pub struct OverlapPair {
     pub rms_mm: f64,
     /// Mean signed point-to-plane distance (mm): a calibration error shows as an offset.
     pub mean_mm: f64,
+}
+
+/// Colours of the overlay picture, by camera order: red, green, blue, then yellow, cyan,
+/// magenta.
+pub const CAMERA_COLOURS: [Rgb; 6] = [
+    [230, 60, 50],
+    [60, 200, 80],
+    [70, 110, 240],
+    [230, 210, 60],
+    [60, 210, 220],
+    [210, 80, 210],
+];
+
+/// The report's picture: every camera's points inside `region`, deprojected with the
+/// calibration of `pipe` and coloured by camera ([`CAMERA_COLOURS`]), rendered from `eye`
+/// towards `target` through `view` (PNG encoding is the caller's). Misaligned cameras show
+/// as doubled, differently coloured surfaces.
+pub fn overlay_image(
+    pipe: &FusionPipeline,
+    frames: &[CameraFrame],
+    region: &Bounds,
+    view: &crate::camera::Intrinsics,
+    eye: Point3<f64>,
+    target: Point3<f64>,
+) -> Result<Image<Rgb>, CalibrationError> {
+    let mut points = Vec::new();
+    let mut colours = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        let (pts, _) = pipe.camera_points(f)?;
+        let colour = CAMERA_COLOURS[i % CAMERA_COLOURS.len()];
+        for p in pts.xyz.into_iter().filter(|p| region.contains(p)) {
+            points.push(p);
+            colours.push(colour);
+        }
+    }
+    // One colour per point by construction, so the cloud is always consistent.
+    let cloud = PointCloud {
+        frame: FrameId::Base,
+        points,
+        rgb: Some(colours),
+    };
+    Ok(crate::view::splat(&cloud, view, eye, target, 1))
 }
 
 /// The cross-camera overlap check: each camera's depth frame deprojected with the

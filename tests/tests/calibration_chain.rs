@@ -8,11 +8,13 @@
 use std::time::Duration;
 
 use calibration::fusion::{Bounds, FusionParams, FusionPipeline};
+use calibration::report::CAMERA_COLOURS;
 use calibration::simulate::{simulate_set, SimCamera, SimConfig};
 use calibration::solve::{solve, SolveOptions};
-use calibration::{overlap_check, CellCalibration};
+use calibration::{overlap_check, overlay_image, CellCalibration, DepthMode, Intrinsics};
 use hil_sim::depth_camera::{default_rig, render_rig, rig_calibration};
 use hil_sim::scene::Scene;
+use nalgebra::Point3;
 
 #[test]
 fn calibrated_cameras_agree_in_their_overlap_like_the_true_ones() {
@@ -58,6 +60,27 @@ fn calibrated_cameras_agree_in_their_overlap_like_the_true_ones() {
     let mut report = sol.report();
     report.overlap = ours.clone();
     println!("{report}");
+    // The picture: the three clouds overlaid, coloured by camera, all three visible.
+    let pipe = FusionPipeline::new(sol.calibration(), FusionParams::default()).unwrap();
+    let img = overlay_image(
+        &pipe,
+        &frames,
+        &region,
+        &Intrinsics::d455_depth(DepthMode::Vga640x480),
+        Point3::new(0.9, 0.45, 0.45),
+        Point3::new(0.55, 0.18, -0.02),
+    )
+    .unwrap();
+    if let Ok(path) = std::env::var("CALIB_OVERLAY_PPM") {
+        // For a look: CALIB_OVERLAY_PPM=/tmp/overlay.ppm cargo test ... calibration_chain
+        let mut out = format!("P6 {} {} 255\n", img.width, img.height).into_bytes();
+        out.extend(img.data.iter().flatten());
+        std::fs::write(path, out).unwrap();
+    }
+    for colour in &CAMERA_COLOURS[..3] {
+        let n = img.data.iter().filter(|p| *p == colour).count();
+        assert!(n > 500, "{colour:?}: {n} pixels");
+    }
     for (o, t) in ours.iter().zip(&truth_pairs) {
         assert_eq!((o.a, o.b), (t.a, t.b));
         println!(
