@@ -25,6 +25,8 @@ enum Command {
     Gripper(cmd::gripper::GripperArgs),
     /// Render (or capture) the three depth cameras and write the fused cloud as PLY and PNG.
     Perceive(cmd::perceive::PerceiveArgs),
+    /// Calibrate the cameras to the robot: simulate captures, solve a captures folder.
+    Calibrate(cmd::calibrate::CalibrateArgs),
     /// Dry-run check of a real cell: controller, safety, gripper, calibration, workspace.
     Check(cmd::check::CheckArgs),
     /// Check a cell configuration file and print the checked configuration.
@@ -70,6 +72,7 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Sim(args) => cmd::sim::run(args),
         Command::Gripper(args) => cmd::gripper::run(args),
         Command::Perceive(args) => cmd::perceive::run(args),
+        Command::Calibrate(args) => cmd::calibrate::run(args),
         Command::Check(args) => cmd::check::run(args),
         Command::Config(args) => cmd::config::run(args),
         Command::Inspect(args) => cmd::inspect::run(args),

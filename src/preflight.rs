@@ -274,26 +274,42 @@ fn check_calibration(cfg: &CellConfig, config_dir: &Path) -> Check {
         );
     }
     let path = config_dir.join(&cfg.calibration.file);
-    let text = match std::fs::read_to_string(&path) {
-        Ok(t) => t,
+    let calibration = match calibration::read_calibration_toml(&path) {
+        Ok(c) => c,
         Err(e) => {
             return Check::fail(
                 "calibration",
-                format!("{}: {e}", path.display()),
-                "calibrate the cameras (`equact calibrate`) or fix calibration.file",
+                e.to_string(),
+                "calibrate the cameras (`equact calibrate solve`) or fix calibration.file",
             )
         }
     };
-    let missing: Vec<&str> = cfg
+    // Cameras are numbered by their order in the config's [[cameras]] list.
+    let missing: Vec<String> = cfg
         .cameras
         .iter()
-        .map(|c| c.name.as_str())
-        .filter(|name| !text.contains(&format!("\"{name}\"")))
+        .enumerate()
+        .filter(|(i, _)| !calibration.cameras.iter().any(|c| usize::from(c.id) == *i))
+        .map(|(i, c)| format!("{i} ({})", c.name))
         .collect();
+    let known: Vec<u8> = (0..cfg.cameras.len())
+        .filter_map(|i| u8::try_from(i).ok())
+        .collect();
+    if let Err(e) = calibration.validate_against(&known) {
+        return Check::fail(
+            "calibration",
+            format!("{}: {e}", path.display()),
+            "recalibrate with the cameras the config lists, in its order",
+        );
+    }
     if missing.is_empty() {
         Check::pass(
             "calibration",
-            format!("{} names every configured camera", path.display()),
+            format!(
+                "{}: a pose for each of the {} cameras",
+                path.display(),
+                cfg.cameras.len()
+            ),
         )
     } else {
         Check::fail(

@@ -22,12 +22,13 @@
 
 use std::collections::{HashMap, VecDeque};
 
-use cell_types::Image;
+use cell_types::{CameraFrame, Image};
 use nalgebra::{Isometry3, Matrix2, Point2, Point3, Vector2};
 
 use crate::board::BoardConfig;
+use crate::camera::raw_depth_to_m;
 use crate::camera::Intrinsics;
-use crate::capture::Corner;
+use crate::capture::{CameraView, Corner, DepthSample};
 use crate::error::CalibrationError;
 
 /// Grey levels of a rendered board image.
@@ -607,6 +608,44 @@ pub fn detect_chessboard(
     }
 }
 
+/// One camera's view of the board from a captured frame (what `equact calibrate capture`
+/// records per camera): the corners detected in the left IR image, and the depth image's
+/// value at each corner's pixel (skipping holes) for the depth residual.
+pub fn view_from_frame(
+    frame: &CameraFrame,
+    board: &BoardConfig,
+    params: &DetectParams,
+) -> Result<CameraView, CalibrationError> {
+    let ir = frame
+        .ir
+        .as_ref()
+        .ok_or_else(|| CalibrationError::BoardNotFound {
+            why: format!(
+                "camera {} delivered no IR image (enable the left IR stream)",
+                frame.camera
+            ),
+        })?;
+    let corners = detect_chessboard(ir, board, params)?;
+    let depth = &frame.depth;
+    let board_depth = corners
+        .iter()
+        .filter_map(|c| {
+            let (u, v) = (c.u.round(), c.v.round());
+            if u < 0.0 || v < 0.0 {
+                return None;
+            }
+            let raw = *depth.raw.get(u as u32, v as u32)?;
+            let depth_m = raw_depth_to_m(raw, depth.depth_scale)?;
+            Some(DepthSample { u, v, depth_m })
+        })
+        .collect();
+    Ok(CameraView {
+        camera: frame.camera,
+        corners,
+        board_depth,
+    })
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -672,6 +711,49 @@ mod tests {
                 "pose {n}: rms {rms} worst {worst}"
             );
         }
+    }
+
+    #[test]
+    fn a_view_from_a_frame_has_corners_and_depth_at_them() {
+        let k = Intrinsics::d455_depth(DepthMode::Wvga848x480);
+        let b = board();
+        let truth = pose([0.3, -0.2, 0.5], 0.9, &b);
+        let ir = render_board_ir(&k, &truth, &b, &IrLevels::default());
+        // Depth of the board plane at every pixel (0 off the board), in millimetres.
+        let n = truth.rotation * nalgebra::Vector3::z();
+        let t = truth.translation.vector;
+        let mut raw = Image::filled(k.width, k.height, 0u16);
+        for v in 0..k.height {
+            for u in 0..k.width {
+                let ray = k
+                    .pixel_ray(Point2::new(f64::from(u), f64::from(v)))
+                    .unwrap();
+                let z = n.dot(&t) / n.dot(&ray);
+                raw.data[(v * k.width + u) as usize] = crate::camera::m_to_raw_depth(z);
+            }
+        }
+        raw.data[0] = 0;
+        let frame = CameraFrame {
+            camera: 2,
+            timestamp: std::time::Duration::ZERO,
+            depth: cell_types::DepthImage {
+                raw,
+                depth_scale: 0.001,
+            },
+            ir: Some(ir),
+            colour: None,
+        };
+        let view = view_from_frame(&frame, &b, &DetectParams::default()).unwrap();
+        assert_eq!(view.camera, 2);
+        assert_eq!(view.corners.len(), 70);
+        assert_eq!(view.board_depth.len(), 70);
+        for d in &view.board_depth {
+            let ray = k.pixel_ray(Point2::new(d.u, d.v)).unwrap();
+            assert!((d.depth_m - n.dot(&t) / n.dot(&ray)).abs() <= 0.0005 + 1e-9);
+        }
+        let no_ir = CameraFrame { ir: None, ..frame };
+        let err = view_from_frame(&no_ir, &b, &DetectParams::default()).unwrap_err();
+        assert!(err.to_string().contains("no IR image"), "{err}");
     }
 
     #[test]

@@ -3,9 +3,10 @@
 //! Modules: [`camera`] (the D455 camera model, issue 7 item 1), [`fusion`] (the fused point
 //! cloud, issue 7 item 3), [`view`] (PLY export and point splats, issue 7 item 5), and the
 //! camera-to-robot calibration of issue 8: [`board`] (the target on the flange), [`capture`]
-//! (captures and the resumable captures folder), [`simulate`](mod@simulate) (synthetic captures with
-//! known truth), [`geometry`] (PnP, closed-form hand-eye), [`solve`](mod@solve) (the joint bundle
-//! adjustment) and [`report`] (report, `calibration.toml`).
+//! (captures and the resumable captures folder), [`detect`] (chessboard corners in IR
+//! images), [`simulate`](mod@simulate) (synthetic captures with known truth), [`geometry`] (PnP,
+//! closed-form hand-eye), [`solve`](mod@solve) (the joint bundle adjustment) and [`report`] (report,
+//! overlap check, `calibration.toml`).
 //!
 //! The calibration API, as the CLI uses it:
 //! ```no_run
@@ -19,6 +20,12 @@
 //! solution.write_calibration_toml(&dir.join("calibration.toml"))?;
 //! # Ok(()) }
 //! ```
+//! A real capture (`equact calibrate capture`) opens a [`CaptureFolder`] with a
+//! [`Session`] (resuming where it stopped: [`CaptureFolder::missing`]), and per robot pose
+//! writes a [`Capture`] of the joint state, the flange pose and
+//! [`detect::view_from_frame`] of each camera's frame. Before solving, the CLI checks the
+//! joint files against the planner's FK with [`CaptureSet::check_joints`] (this crate may
+//! not depend on the planner).
 //!
 //! Libraries: `nalgebra` (the workspace's matrix library) for geometry; no image-processing
 //! library is needed because the fusion works on depth images pixel by pixel. The bundle
@@ -50,6 +57,6 @@ pub use capture::{
 };
 pub use error::CalibrationError;
 pub use fusion::{CameraCalibration, CellCalibration, FusionParams, FusionPipeline};
-pub use report::{read_calibration_toml, Report};
+pub use report::{overlap_check, overlay_image, read_calibration_toml, OverlapPair, Report};
 pub use simulate::{load_truth, simulate, SimConfig, SimNoise, Truth};
 pub use solve::{solve, Solution, SolveOptions};

@@ -13,9 +13,12 @@ use std::path::Path;
 use cell_types::{Board, Flange, Transform};
 use serde::{Deserialize, Serialize};
 
+use cell_types::{CameraFrame, FrameId, Image, PointCloud, Rgb};
+use nalgebra::Point3;
+
 use crate::capture::write_atomic;
 use crate::error::CalibrationError;
-use crate::fusion::{CameraCalibration, CellCalibration};
+use crate::fusion::{overlap_residual, Bounds, CameraCalibration, CellCalibration, FusionPipeline};
 use crate::solve::{DepthResidual, RejectedView, Solution};
 
 /// The format tag of `calibration.toml`.
@@ -65,6 +68,103 @@ pub struct Report {
     pub corner_sigma_px: f64,
     /// RMS flange-pose corrections (mm, deg), when the robot prior is on.
     pub robot_correction_rms: Option<(f64, f64)>,
+    /// Cross-camera overlap check, when frames of a scene were given ([`overlap_check`]).
+    #[serde(default)]
+    pub overlap: Vec<OverlapPair>,
+}
+
+/// How well camera `a`'s points lie on camera `b`'s surfaces in a region both see.
+#[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct OverlapPair {
+    /// The camera whose points are checked.
+    pub a: u8,
+    /// The camera whose surfaces they are checked against.
+    pub b: u8,
+    /// Points compared.
+    pub points: usize,
+    /// RMS point-to-plane distance (mm).
+    pub rms_mm: f64,
+    /// Mean signed point-to-plane distance (mm): a calibration error shows as an offset.
+    pub mean_mm: f64,
+}
+
+/// Colours of the overlay picture, by camera order: red, green, blue, then yellow, cyan,
+/// magenta.
+pub const CAMERA_COLOURS: [Rgb; 6] = [
+    [230, 60, 50],
+    [60, 200, 80],
+    [70, 110, 240],
+    [230, 210, 60],
+    [60, 210, 220],
+    [210, 80, 210],
+];
+
+/// The report's picture: every camera's points inside `region`, deprojected with the
+/// calibration of `pipe` and coloured by camera ([`CAMERA_COLOURS`]), rendered from `eye`
+/// towards `target` through `view` (PNG encoding is the caller's). Misaligned cameras show
+/// as doubled, differently coloured surfaces.
+pub fn overlay_image(
+    pipe: &FusionPipeline,
+    frames: &[CameraFrame],
+    region: &Bounds,
+    view: &crate::camera::Intrinsics,
+    eye: Point3<f64>,
+    target: Point3<f64>,
+) -> Result<Image<Rgb>, CalibrationError> {
+    let mut points = Vec::new();
+    let mut colours = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        let (pts, _) = pipe.camera_points(f)?;
+        let colour = CAMERA_COLOURS[i % CAMERA_COLOURS.len()];
+        for p in pts.xyz.into_iter().filter(|p| region.contains(p)) {
+            points.push(p);
+            colours.push(colour);
+        }
+    }
+    // One colour per point by construction, so the cloud is always consistent.
+    let cloud = PointCloud {
+        frame: FrameId::Base,
+        points,
+        rgb: Some(colours),
+    };
+    Ok(crate::view::splat(&cloud, view, eye, target, 1))
+}
+
+/// The cross-camera overlap check: each camera's depth frame deprojected with the
+/// calibration of `pipe`, cropped to `region` (a part of the scene all cameras see, best a
+/// multi-plane object; a flat table alone cannot reveal a shift along it), then the
+/// point-to-plane residual of every ordered pair within `radius` (m).
+pub fn overlap_check(
+    pipe: &FusionPipeline,
+    frames: &[CameraFrame],
+    region: &Bounds,
+    radius: f64,
+) -> Result<Vec<OverlapPair>, CalibrationError> {
+    let mut clouds = Vec::with_capacity(frames.len());
+    for f in frames {
+        let (pts, _) = pipe.camera_points(f)?;
+        let inside: Vec<_> = pts.xyz.into_iter().filter(|p| region.contains(p)).collect();
+        clouds.push((f.camera, inside));
+    }
+    let mut out = Vec::new();
+    for (a, pa) in &clouds {
+        for (b, pb) in &clouds {
+            if a == b {
+                continue;
+            }
+            let (rms, mean, n) = overlap_residual(pa, pb, radius);
+            if n > 0 {
+                out.push(OverlapPair {
+                    a: *a,
+                    b: *b,
+                    points: n,
+                    rms_mm: rms * 1e3,
+                    mean_mm: mean * 1e3,
+                });
+            }
+        }
+    }
+    Ok(out)
 }
 
 impl Solution {
@@ -98,6 +198,7 @@ impl Solution {
             variance_factor: self.variance_factor,
             corner_sigma_px: self.options.corner_sigma_px,
             robot_correction_rms: self.robot_correction_rms,
+            overlap: Vec::new(),
         }
     }
 

@@ -2,6 +2,7 @@
 
 pub mod bench;
 pub mod bench_ur;
+pub mod calibrate;
 pub mod check;
 pub mod config;
 pub mod demos;

@@ -40,12 +40,16 @@ fn preflight_of_a_loopback_cell() {
     cfg.gripper.host = "127.0.0.1".into();
     cfg.gripper.port = server.addr().unwrap().port();
     cfg.calibration.file = "calibration.toml".into();
-    let names: Vec<String> = cfg
-        .cameras
-        .iter()
-        .map(|c| format!("[[cameras]]\nname = \"{}\"\n", c.name))
-        .collect();
-    std::fs::write(dir.join("calibration.toml"), names.concat()).unwrap();
+    // A real calibration file: simulated exact captures of the cell, solved.
+    let mut sim = calibration::SimConfig::default_cell();
+    sim.noise = calibration::SimNoise::none();
+    let captures = dir.join("captures");
+    calibration::simulate(&sim, 3, &captures).unwrap();
+    let set = calibration::load_captures(&captures).unwrap();
+    calibration::solve(&set, &calibration::SolveOptions::default())
+        .unwrap()
+        .write_calibration_toml(&dir.join("calibration.toml"))
+        .unwrap();
 
     // A ready cell: every hardware check passes; only the camera backend is missing.
     cfg.workspace.min = [0.25, -0.3, -0.05];
@@ -92,14 +96,15 @@ fn preflight_of_a_loopback_cell() {
     // A box beyond the UR5's 0.85 m reach is a warning naming the corners, not a failure.
     let c = find(&checks, "workspace");
     assert!(c.passed && c.warning && c.detail.contains("1.60"), "{c:?}");
-    std::fs::write(
-        dir.join("calibration.toml"),
-        "[[cameras]]\nname = \"front\"\n",
-    )
-    .unwrap();
-    let checks = run_checks(&cfg, &dir, clock);
+    // A camera the calibration does not know.
+    let mut extra = cfg.clone();
+    let mut fourth = extra.cameras[0].clone();
+    fourth.name = "top".into();
+    fourth.serial = "sim-top".into();
+    extra.cameras.push(fourth);
+    let checks = run_checks(&extra, &dir, clock);
     let c = find(&checks, "calibration");
-    assert!(!c.passed && c.detail.contains("left_shoulder"), "{c:?}");
+    assert!(!c.passed && c.detail.contains("3 (top)"), "{c:?}");
 
     // Nothing moved: the controller never ran a program.
     assert_eq!(controller.snapshot().runtime_state(), 1);

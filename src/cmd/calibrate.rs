@@ -1,0 +1,125 @@
+//! `equact calibrate ...`: camera-to-robot calibration (`calibration` crate): simulated
+//! captures with known truth, and the joint bundle adjustment over a captures folder.
+
+use std::path::PathBuf;
+
+use anyhow::Context;
+use calibration::simulate::{load_truth, simulate, SimConfig, SimNoise};
+use calibration::solve::{solve, SolveOptions};
+use clap::{Args, Subcommand, ValueEnum};
+
+/// Arguments of `equact calibrate`.
+#[derive(Args, Debug)]
+pub struct CalibrateArgs {
+    /// What to do.
+    #[command(subcommand)]
+    pub command: CalibrateCommand,
+}
+
+/// Noise of simulated captures.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+pub enum NoiseChoice {
+    /// Exact corners and robot poses.
+    None,
+    /// 0.5 px corners, robot 0.5 mm / 0.05°.
+    Realistic,
+    /// Corners detected in rendered IR images (grey-level noise), realistic robot noise.
+    Ir,
+}
+
+/// Subcommands of `equact calibrate`.
+#[derive(Subcommand, Debug)]
+pub enum CalibrateCommand {
+    /// Write simulated captures of the simulated cell (with `truth.json`) into a folder;
+    /// an interrupted run resumes.
+    Simulate {
+        /// The captures folder.
+        #[arg(long, default_value = "captures")]
+        out: PathBuf,
+        /// Seed of the robot poses and the noise.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Number of robot poses.
+        #[arg(long, default_value_t = 30)]
+        poses: usize,
+        /// Noise model.
+        #[arg(long, value_enum, default_value_t = NoiseChoice::Realistic)]
+        noise: NoiseChoice,
+    },
+    /// Solve a captures folder: per-camera base_from_camera and flange_from_board in one
+    /// bundle adjustment; prints the report and writes calibration.toml.
+    Solve {
+        /// The captures folder.
+        #[arg(long, default_value = "captures")]
+        captures: PathBuf,
+        /// Where to write the calibration.
+        #[arg(long, default_value = "calibration.toml")]
+        out: PathBuf,
+        /// Print the report as JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+/// Runs `equact calibrate`.
+pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
+    match args.command {
+        CalibrateCommand::Simulate {
+            out,
+            seed,
+            poses,
+            noise,
+        } => {
+            let mut cfg = SimConfig::default_cell();
+            cfg.poses = poses;
+            match noise {
+                NoiseChoice::None => cfg.noise = SimNoise::none(),
+                NoiseChoice::Realistic => cfg.noise = SimNoise::realistic(),
+                NoiseChoice::Ir => {
+                    cfg.noise = SimNoise::realistic();
+                    cfg.ir_noise = Some(2.0);
+                }
+            }
+            let (set, _) = simulate(&cfg, seed, &out)
+                .with_context(|| format!("simulating captures into {}", out.display()))?;
+            println!(
+                "{} poses with {} camera views in {} (truth in truth.json)",
+                set.captures.len(),
+                set.captures.iter().map(|c| c.views.len()).sum::<usize>(),
+                out.display()
+            );
+            Ok(())
+        }
+        CalibrateCommand::Solve {
+            captures,
+            out,
+            json,
+        } => {
+            let set = calibration::capture::load_captures(&captures)?;
+            eprintln!(
+                "solving {} poses from {} ...",
+                set.captures.len(),
+                captures.display()
+            );
+            let solution = solve(&set, &SolveOptions::default())?;
+            let report = solution.report();
+            if json {
+                println!("{}", report.to_json());
+            } else {
+                println!("{report}");
+            }
+            if let Ok(truth) = load_truth(&captures) {
+                for (id, m, rad) in solution.errors_to(&truth) {
+                    eprintln!(
+                        "camera {id}: {:.3} mm, {:.4} deg from the simulated truth",
+                        m * 1e3,
+                        rad.to_degrees()
+                    );
+                }
+            }
+            solution.write_calibration_toml(&out)?;
+            eprintln!("wrote {}", out.display());
+            Ok(())
+        }
+    }
+}
