@@ -6,6 +6,7 @@
 //! encoding, `ctrlc` to turn Ctrl-C into a controlled stop.
 
 pub mod demos;
+pub mod calibrate_capture;
 pub mod episode;
 pub mod plot;
 pub mod preflight;

@@ -46,6 +46,25 @@ pub enum CalibrateCommand {
         #[arg(long, value_enum, default_value_t = NoiseChoice::Realistic)]
         noise: NoiseChoice,
     },
+    /// Move the arm through planned board poses and capture the board in every camera
+    /// (the built-in simulated cell; resumes an interrupted run).
+    Capture {
+        /// The cell configuration; the built-in simulated cell when omitted.
+        #[arg(long)]
+        config: Option<PathBuf>,
+        /// The captures folder.
+        #[arg(long, default_value = "captures")]
+        out: PathBuf,
+        /// Seed of the pose plan.
+        #[arg(long, default_value_t = 0)]
+        seed: u64,
+        /// Number of poses.
+        #[arg(long, default_value_t = 30)]
+        poses: usize,
+        /// Capture at most this many new poses in this run.
+        #[arg(long)]
+        limit: Option<usize>,
+    },
     /// Solve a captures folder: per-camera base_from_camera and flange_from_board in one
     /// bundle adjustment; prints the report and writes calibration.toml.
     Solve {
@@ -86,6 +105,44 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
                 "{} poses with {} camera views in {} (truth in truth.json)",
                 set.captures.len(),
                 set.captures.iter().map(|c| c.views.len()).sum::<usize>(),
+                out.display()
+            );
+            Ok(())
+        }
+        CalibrateCommand::Capture {
+            config,
+            out,
+            seed,
+            poses,
+            limit,
+        } => {
+            let cfg = super::config::load(config.as_ref())?;
+            if cfg.robot.backend == cell_types::config::RobotBackend::Ur {
+                anyhow::bail!(
+                    "capturing on a real cell needs the RealSense IR stream, which this build \
+                     does not have; the captures folder format (calibration::capture) is ready for \
+                     it. Run without --config for the simulated cell"
+                );
+            }
+            let run = equact::calibrate_capture::capture_in_sim(
+                &cfg,
+                &out,
+                seed,
+                poses,
+                limit,
+                2.0,
+                std::sync::Arc::new(cell_types::SystemClock::new()),
+                &mut |line| eprintln!("{line}"),
+            )?;
+            for (i, why) in &run.skipped {
+                eprintln!("pose {i} skipped: {why}");
+            }
+            println!(
+                "{} new poses captured, {} kept from before, {} of {} planned; next: equact calibrate solve --captures {}",
+                run.captured,
+                run.resumed,
+                run.captured + run.resumed,
+                run.planned,
                 out.display()
             );
             Ok(())

@@ -65,7 +65,8 @@ pub struct UrConfig {
     pub watchdog_cycles: u32,
     /// stopj deceleration used on every stop (rad/s²).
     pub stop_decel: f64,
-    /// Largest tracking error (rad) between the last commanded and the measured joints.
+    /// Largest tracking error (rad): measured joints against the nearest sample streamed
+    /// within the servo filter's lag (lookahead + 3 cycles).
     pub tracking_bound: f64,
     /// Control cycles without a state package before the motion is stopped.
     pub lost_cycles: u32,
@@ -283,6 +284,9 @@ impl Arm for UrArm {
         let job = Job {
             samples: trajectory.samples().to_vec(),
             tracking_bound: self.config.tracking_bound,
+            // servoj follows its target through a lookahead filter: the arm trails the
+            // stream by up to the lookahead time plus a few cycles of transport.
+            lag_samples: (self.config.lookahead / period).ceil() as usize + 3,
             lost_cycles: self.config.lost_cycles,
             goal_tolerance: self.config.goal_tolerance,
             settle_cycles,

@@ -112,6 +112,8 @@ impl StateLog {
 pub(crate) struct Job {
     pub samples: Vec<TrajectorySample>,
     pub tracking_bound: f64,
+    /// How many samples the arm may trail the stream (the servo filter's lag).
+    pub lag_samples: usize,
     pub lost_cycles: u32,
     pub goal_tolerance: f64,
     pub settle_cycles: u32,
@@ -534,8 +536,7 @@ impl Streamer {
             job.cycles.push(cycle);
         }
         let q = state.joints.position;
-        let last_cmd =
-            job.samples[self.index.saturating_sub(1).min(job.samples.len() - 1)].position;
+        let last = self.index.saturating_sub(1).min(job.samples.len() - 1);
         let cause = if state.safety_mode == SafetyMode::ProtectiveStop {
             Some((StoppedBy::Controller, StopCause::ProtectiveStop))
         } else if state.safety_mode.is_emergency_stop() {
@@ -558,9 +559,17 @@ impl Streamer {
         } else if job.stop.requested() {
             Some((StoppedBy::Caller, StopCause::Requested))
         } else {
-            let (joint, error) = (0..JOINT_COUNT)
-                .map(|j| (j, (q[j] - last_cmd[j]).abs()))
-                .fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a });
+            // Tracking error: the distance to the nearest of the samples sent within the
+            // servo filter's lag (the arm trails the stream by design). A stalled or blocked
+            // arm falls behind that window and the error grows past the bound.
+            let (joint, error) = (last.saturating_sub(job.lag_samples)..=last)
+                .map(|i| {
+                    let cmd = &job.samples[i].position;
+                    (0..JOINT_COUNT)
+                        .map(|j| (j, (q[j] - cmd[j]).abs()))
+                        .fold((0, 0.0), |a, b| if b.1 > a.1 { b } else { a })
+                })
+                .fold((0, f64::INFINITY), |a, b| if b.1 < a.1 { b } else { a });
             self.max_err = self.max_err.max(error);
             (error > job.tracking_bound).then_some((
                 StoppedBy::Driver,

@@ -1,0 +1,187 @@
+//! `equact calibrate capture` in the simulated cell: the capture loop a real calibration
+//! runs, against the loopback simulator. Plans diverse board poses (the `calibration`
+//! crate's pose sampler, each candidate checked for IK reachability and collisions by the
+//! planner), drives the arm there through the real UR driver, reads back the joints it
+//! reached, renders and detects the flange board in each camera's IR image and writes one
+//! capture per pose into a resumable captures folder. Each pose is written atomically: an
+//! interrupted run loses nothing and `--resume`s where it stopped.
+
+use std::path::Path;
+use std::sync::Arc;
+
+use anyhow::Context;
+use calibration::capture::{Capture, CameraView, CaptureFolder};
+use calibration::detect::{detect_chessboard, render_board_ir, DetectParams, IrLevels};
+use calibration::simulate::{simulate_set_with, PoseCheck, SimConfig};
+use cell_types::config::CellConfig;
+use cell_types::{Clock, Joints, Transform};
+use firmware_iface::arm::{Arm, ExecutionOutcome};
+use planner::{Obstacle, World};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::StandardNormal;
+
+use crate::episode::planner_from_config;
+use crate::sim_cell::SimCell;
+use crate::task::{TaskInstance, TaskKind};
+
+/// What one capture run did.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CaptureRun {
+    /// Poses planned.
+    pub planned: usize,
+    /// Poses already in the folder (skipped).
+    pub resumed: usize,
+    /// Poses captured in this run.
+    pub captured: usize,
+    /// Poses the arm could not reach (plan or execution failed), with why.
+    pub skipped: Vec<(usize, String)>,
+}
+
+/// Runs the capture loop in the simulated cell: `poses` board poses from `seed`, at most
+/// `limit` new ones in this run (None: all), into `dir`. IR images get Gaussian grey-level
+/// noise `ir_sigma`.
+pub fn capture_in_sim(
+    cfg: &CellConfig,
+    dir: &Path,
+    seed: u64,
+    poses: usize,
+    limit: Option<usize>,
+    ir_sigma: f64,
+    clock: Arc<dyn Clock>,
+    progress: &mut dyn FnMut(&str),
+) -> anyhow::Result<CaptureRun> {
+    let planner = planner_from_config(cfg)?;
+    let world = World::empty().with_obstacle(Obstacle::HalfSpace {
+        name: "table".into(),
+        normal: nalgebra::Unit::new_normalize(nalgebra::Vector3::z()),
+        offset: cfg.workspace.table_height,
+    });
+    let home: Joints = hil_sim::scene::HOME_Q;
+    let flange_from_tcp = planner
+        .model
+        .fk_flange(&home)
+        .map(|f| f.inverse() * planner.model.fk_tcp(&home))
+        .context("the robot model has no flange link")?;
+
+    // Plan the poses: reachable, collision-free, joints nearest home.
+    let mut sim = SimConfig::default_cell();
+    sim.poses = poses;
+    let mut checker = planner::checker::Checker::new(&planner.model, &world, 0.01);
+    let (plan, _) = simulate_set_with(&sim, seed, &mut |base_from_flange| {
+        let base_from_tcp = Transform::from_isometry(base_from_flange.isometry() * flange_from_tcp.isometry());
+        let Ok(solutions) = planner.model.ik_near(&base_from_tcp, &home) else {
+            return PoseCheck::Reject;
+        };
+        solutions
+            .into_iter()
+            .filter(|q| checker.is_free(q))
+            .min_by(|a, b| {
+                cell_types::joints::max_abs_diff(a, &home)
+                    .total_cmp(&cell_types::joints::max_abs_diff(b, &home))
+            })
+            .map_or(PoseCheck::Reject, |q| PoseCheck::Accept(Some(q)))
+    })
+    .context("planning the calibration poses")?;
+
+    let mut folder = CaptureFolder::create_or_resume(dir, &sim.session())?;
+    let todo = folder.missing(plan.captures.len());
+    let mut run = CaptureRun {
+        planned: plan.captures.len(),
+        resumed: plan.captures.len() - todo.len(),
+        captured: 0,
+        skipped: Vec::new(),
+    };
+    progress(&format!(
+        "{} poses planned, {} already captured in {}",
+        run.planned,
+        run.resumed,
+        dir.display()
+    ));
+    if todo.is_empty() {
+        return Ok(run);
+    }
+
+    let task = TaskInstance::sample(
+        TaskKind::parse("pick_fruit/strawberry").map_err(anyhow::Error::msg)?,
+        seed,
+        cfg.workspace.table_height,
+    );
+    let mut cell = SimCell::start(cfg, task, seed, clock)?;
+    let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x1a_b0a2d);
+    let result = (|| -> anyhow::Result<()> {
+        for (n, index) in todo.iter().enumerate() {
+            if limit.is_some_and(|l| run.captured >= l) {
+                break;
+            }
+            let Some(goal) = plan.captures.get(*index).and_then(|c| c.joints) else {
+                run.skipped.push((*index, "no joints planned".into()));
+                continue;
+            };
+            let start = cell.arm.state()?.joints.position;
+            let motion = match planner.plan_to_joints(&start, &goal, &world) {
+                Ok(m) => m,
+                Err(e) => {
+                    run.skipped.push((*index, format!("no plan: {e}")));
+                    continue;
+                }
+            };
+            match cell.arm.execute(&motion.trajectory)? {
+                ExecutionOutcome::Completed { .. } => {}
+                ExecutionOutcome::Stopped { by, cause, .. } => {
+                    anyhow::bail!("pose {index}: the arm stopped ({by:?}: {cause:?}); the poses captured so far are kept, rerun to resume");
+                }
+            }
+            // What the robot reports, not what was planned, goes into the capture.
+            let q = cell.arm.state()?.joints.position;
+            let base_from_flange = planner
+                .model
+                .fk_flange(&q)
+                .context("the robot model has no flange link")?;
+            let mut views = Vec::new();
+            for cam in &sim.cameras {
+                let camera_from_board = cam.base_from_camera.isometry().inverse()
+                    * base_from_flange.isometry()
+                    * sim.flange_from_board.isometry();
+                let mut img = render_board_ir(
+                    &cam.intrinsics,
+                    &camera_from_board,
+                    &sim.board,
+                    &IrLevels::default(),
+                );
+                for p in &mut img.data {
+                    let g: f64 = rng.sample(StandardNormal);
+                    *p = (f64::from(*p) + ir_sigma * g).round().clamp(0.0, 255.0) as u8;
+                }
+                // A camera that does not find the board records no view, as on the real cell.
+                if let Ok(corners) = detect_chessboard(&img, &sim.board, &DetectParams::default())
+                {
+                    views.push(CameraView {
+                        camera: cam.id,
+                        corners,
+                        board_depth: Vec::new(),
+                    });
+                }
+            }
+            let seen = views.len();
+            folder.write(&Capture {
+                index: *index,
+                joints: Some(q),
+                base_from_flange,
+                views,
+            })?;
+            run.captured += 1;
+            progress(&format!(
+                "pose {:>2} ({}/{}): {seen} of {} cameras found the board",
+                index,
+                n + 1,
+                todo.len(),
+                sim.cameras.len()
+            ));
+        }
+        Ok(())
+    })();
+    let _ = cell.arm.stop();
+    cell.controller.shutdown();
+    result.map(|()| run)
+}
