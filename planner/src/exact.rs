@@ -864,6 +864,99 @@ mod timing_probe {
 
     #[test]
     #[ignore = "timing probe, run by hand"]
+    fn probe_mbm_trajectories() {
+        use crate::mbm::WorldMode;
+        use crate::planner::{Planner, PlannerConfig};
+        use crate::timing::PlannerLimits;
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let planner = Planner::new(
+            mbm_robot().unwrap(),
+            PlannerLimits::default(),
+            PlannerConfig::default(),
+        )
+        .unwrap();
+        for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+            let (mut cpu_us, mut checks, mut per) = (Vec::new(), Vec::new(), Vec::new());
+            for ps in file.problems.values() {
+                for p in ps.iter().filter(|p| p.valid).step_by(7) {
+                    let (s, g) = p.start_goal().unwrap();
+                    let world = match mode {
+                        WorldMode::Primitives => p
+                            .obstacles()
+                            .into_iter()
+                            .fold(World::empty(), World::with_obstacle),
+                        WorldMode::Cloud => World::from_cloud(
+                            &p.surface_cloud(0.01).unwrap(),
+                            &CloudParams::default(),
+                        )
+                        .unwrap(),
+                    };
+                    let Ok(m) = planner.plan_to_joints(&s, &g, &world) else {
+                        continue;
+                    };
+                    let mut best = u64::MAX;
+                    let mut n = 0;
+                    for _ in 0..5 {
+                        let mut c =
+                            ExactChecker::new(&planner.exact, &planner.model.chain, &world, 0.01);
+                        let t = Instant::now();
+                        validate_exact(&m.trajectory, &mut c).unwrap();
+                        best = best.min(t.elapsed().as_nanos() as u64);
+                        n = c.checks;
+                    }
+                    cpu_us.push(best as f64 / 1e3);
+                    checks.push(n as f64);
+                    per.push(best as f64 / n as f64);
+                }
+            }
+            let k = cpu_us.len();
+            eprintln!(
+                "{mode:?}: {k} trajectories; exact re-check best-of-5 wall median/p95 {:?} us, checks {:?}, ns per check {:?}",
+                crate::mbm::median_p95(&mut cpu_us),
+                crate::mbm::median_p95(&mut checks),
+                crate::mbm::median_p95(&mut per)
+            );
+        }
+    }
+
+    /// All valid MBM problems in both modes; counts failures, those of the exact re-check
+    /// separately (about 2 minutes).
+    #[test]
+    #[ignore = "all MBM problems, run by hand"]
+    fn probe_all_mbm_problems() {
+        use crate::mbm::{run_problem, WorldMode};
+        use crate::planner::{Planner, PlannerConfig};
+        use crate::timing::PlannerLimits;
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let planner = Planner::new(
+            mbm_robot().unwrap(),
+            PlannerLimits::default(),
+            PlannerConfig::default(),
+        )
+        .unwrap();
+        for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+            let (mut n, mut failed, mut exact_ms) = (0, Vec::new(), Vec::new());
+            for (scene, ps) in &file.problems {
+                for p in ps.iter().filter(|p| p.valid) {
+                    let r = run_problem(&planner, scene, p, mode);
+                    n += 1;
+                    if r.solved {
+                        exact_ms.push(r.exact_s * 1e3);
+                    } else {
+                        failed.push(format!("{scene} #{}: {:?}", p.index, r.error));
+                    }
+                }
+            }
+            eprintln!(
+                "{mode:?}: {} of {n} solved; exact re-check median/p95 {:?} ms; failures: {failed:#?}",
+                n - failed.len(),
+                crate::mbm::median_p95(&mut exact_ms)
+            );
+        }
+    }
+
+    #[test]
+    #[ignore = "timing probe, run by hand"]
     fn probe() {
         let model = mbm_robot().unwrap();
         let exact = ExactModel::new(&model, 0.0).unwrap();

@@ -1,6 +1,8 @@
 //! Keyframe to validated trajectory (issue 3 items 3–8): goal selection over the IK
 //! solutions, keyframe semantics (gripper closing volume, "ignore collisions"), path search,
-//! shortcutting, jerk-limited timing and the final dense re-check of the sampled trajectory.
+//! shortcutting, jerk-limited timing and the final dense re-checks of the sampled trajectory:
+//! with the sphere model, then with the exact parry shapes ([`crate::exact`]) against the same
+//! world (keyframe semantics applied).
 
 use crate::checker::{lerp, Checker};
 use crate::error::PlanError;
@@ -52,7 +54,8 @@ pub struct PlannerConfig {
     pub rrt: RrtParams,
     /// Largest motion of any robot point between two checks during the search (m).
     pub check_resolution: f64,
-    /// Largest motion of any robot point between two checks in the final re-check (m).
+    /// Largest motion of any robot point (the TCP included) between two checks in the final
+    /// re-checks, sphere and exact (m).
     pub validate_resolution: f64,
     /// Joint weights for choosing the IK solution closest to the start.
     pub goal_weights: Joints,
