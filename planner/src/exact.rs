@@ -955,6 +955,112 @@ mod timing_probe {
         }
     }
 
+    /// The MBM problems whose trajectories failed the dense re-checks while the timing left
+    /// the checked path (6-DoF Ruckig falling back to time synchronization).
+    #[test]
+    #[ignore = "MBM experiment, run by hand"]
+    fn probe_former_dense_recheck_failures() {
+        use crate::mbm::{run_problem, WorldMode};
+        use crate::planner::{Planner, PlannerConfig};
+        use crate::timing::PlannerLimits;
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let planner = Planner::new(
+            mbm_robot().unwrap(),
+            PlannerLimits::default(),
+            PlannerConfig::default(),
+        )
+        .unwrap();
+        for (scene, index) in [
+            ("bookshelf_small", 53),
+            ("cage", 25),
+            ("table_under_pick", 30),
+            ("table_under_pick", 50),
+        ] {
+            let p = file.problems[scene]
+                .iter()
+                .find(|p| p.index == index)
+                .unwrap();
+            for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+                let r = run_problem(&planner, scene, p, mode);
+                eprintln!(
+                    "{scene} #{index} {mode:?}: solved {} {:?}",
+                    r.solved, r.error
+                );
+            }
+        }
+    }
+
+    /// Does the timed trajectory leave the checked path on the failing problems?
+    #[test]
+    #[ignore = "MBM experiment, run by hand"]
+    fn probe_path_deviation_on_failures() {
+        use crate::checker::Checker;
+        use crate::rrt::{plan_path, shortcut, RrtParams};
+        use crate::timing::{time_path, PlannerLimits};
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let model = mbm_robot().unwrap();
+        let params = RrtParams::default();
+        for (scene, index) in [
+            ("bookshelf_small", 53),
+            ("table_under_pick", 30),
+            ("cage", 25),
+        ] {
+            let p = file.problems[scene]
+                .iter()
+                .find(|p| p.index == index)
+                .unwrap();
+            let world = p
+                .obstacles()
+                .into_iter()
+                .fold(World::empty(), World::with_obstacle);
+            let (s, g) = p.start_goal().unwrap();
+            let mut c = Checker::new(&model, &world, 0.02);
+            let mut path = plan_path(&s, &g, &model.limits, &mut c, &params)
+                .unwrap()
+                .path;
+            shortcut(&mut path, &mut c, params.shortcut_attempts, params.seed);
+            let traj = time_path(&path, &PlannerLimits::default()).unwrap();
+            // Distance (rad, max-norm) of each sample from the nearest path segment.
+            let dev = |q: &Joints| {
+                path.windows(2)
+                    .map(|w| {
+                        let d: Vec<f64> = (0..6).map(|j| w[1][j] - w[0][j]).collect();
+                        let dd: f64 = d.iter().map(|x| x * x).sum();
+                        let t = if dd > 0.0 {
+                            ((0..6).map(|j| (q[j] - w[0][j]) * d[j]).sum::<f64>() / dd)
+                                .clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        };
+                        (0..6)
+                            .map(|j| (q[j] - (w[0][j] + t * d[j])).abs())
+                            .fold(0.0, f64::max)
+                    })
+                    .fold(f64::INFINITY, f64::min)
+            };
+            let (mut worst, mut at) = (0.0f64, 0.0);
+            for x in traj.samples() {
+                let d = dev(&x.position);
+                if d > worst {
+                    worst = d;
+                    at = x.t;
+                }
+            }
+            let mut dense = Checker::new(&model, &world, 0.01);
+            let r = crate::planner::validate_dense(&traj, &mut dense);
+            let mut fine = Checker::new(&model, &world, 0.001);
+            let seg = path
+                .windows(2)
+                .map(|w| fine.first_contact_on(&w[0], &w[1]))
+                .find(|c| c.is_some());
+            eprintln!(
+                "{scene} #{index}: {} waypoints, duration {:.3} s, max deviation {worst:.2e} rad at t = {at:.3}; dense: {r:?}; path at 1 mm: {seg:?}",
+                path.len(),
+                traj.duration()
+            );
+        }
+    }
+
     #[test]
     #[ignore = "timing probe, run by hand"]
     fn probe() {
