@@ -858,8 +858,10 @@ mod tests {
 #[cfg(test)]
 mod timing_probe {
     use super::*;
+    use crate::checker::Checker;
     use crate::mbm::{mbm_robot, MbmFile, MBM_PROBLEMS_PATH};
     use crate::world::CloudParams;
+    use cell_types::{FrameId, PointCloud};
     use std::time::Instant;
 
     #[test]
@@ -1059,6 +1061,71 @@ mod timing_probe {
                 traj.duration()
             );
         }
+    }
+
+    /// The UR5 + 2F-85 (cylinders and boxes) against a 1 cm wall cloud and the table, at
+    /// random configurations: exact vs sphere check cost.
+    #[test]
+    #[ignore = "timing probe, run by hand"]
+    fn probe_ur5_cylinders() {
+        use rand::{Rng, SeedableRng};
+        let model = RobotModel::ur5().unwrap();
+        let exact = ExactModel::new(&model, 0.0).unwrap();
+        let mut pts = Vec::new();
+        for i in 0..=100 {
+            for k in 0..=80 {
+                pts.push(Point3::new(-0.5 + i as f32 * 0.01, 0.45, k as f32 * 0.01));
+            }
+        }
+        let cloud = PointCloud::new(FrameId::Base, pts, None).unwrap();
+        let world = World::from_cloud(&cloud, &CloudParams::default())
+            .unwrap()
+            .with_obstacle(Obstacle::HalfSpace {
+                name: "table".into(),
+                normal: Vector3::z_axis(),
+                offset: -0.01,
+            });
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        let qs: Vec<Joints> = (0..2000)
+            .map(|_| std::array::from_fn(|_| rng.random_range(-3.1..3.1)))
+            .collect();
+        let mut ec = ExactChecker::new(&exact, &model.chain, &world, 0.01);
+        let mut sc = Checker::new(&model, &world, 0.01);
+        let (mut te, mut ts, mut he, mut hs) = (f64::INFINITY, f64::INFINITY, 0, 0);
+        for _ in 0..5 {
+            let t = Instant::now();
+            he = qs
+                .iter()
+                .filter(|q| ec.contact(q).unwrap().is_some())
+                .count();
+            te = te.min(t.elapsed().as_secs_f64() / qs.len() as f64 * 1e6);
+            let t = Instant::now();
+            hs = qs.iter().filter(|q| sc.contact(q).is_some()).count();
+            ts = ts.min(t.elapsed().as_secs_f64() / qs.len() as f64 * 1e6);
+        }
+        eprintln!(
+            "UR5 exact {te:.2} us/config ({he} hits), spheres {ts:.2} us/config ({hs} hits), of {}",
+            qs.len()
+        );
+        // Sphere-free configurations: every link and pair is examined (no early exit).
+        let free: Vec<Joints> = qs
+            .iter()
+            .copied()
+            .filter(|q| sc.contact(q).is_none())
+            .collect();
+        let (mut te, mut ts) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..5 {
+            let t = Instant::now();
+            assert!(free.iter().all(|q| ec.contact(q).unwrap().is_none()));
+            te = te.min(t.elapsed().as_secs_f64() / free.len() as f64 * 1e6);
+            let t = Instant::now();
+            assert!(free.iter().all(|q| sc.contact(q).is_none()));
+            ts = ts.min(t.elapsed().as_secs_f64() / free.len() as f64 * 1e6);
+        }
+        eprintln!(
+            "UR5 free configurations ({}): exact {te:.2} us, spheres {ts:.2} us",
+            free.len()
+        );
     }
 
     #[test]
