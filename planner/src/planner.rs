@@ -134,7 +134,8 @@ pub struct Planner {
     pub limits: PlannerLimits,
     /// Search settings.
     pub config: PlannerConfig,
-    /// The robot's exact (parry) shapes for the final re-check.
+    /// The robot's exact (parry) shapes for the final re-check, built by [`Planner::new`] with
+    /// `config.exact_margin` (rebuild it after changing that margin).
     pub exact: ExactModel,
 }
 
