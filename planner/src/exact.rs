@@ -858,9 +858,275 @@ mod tests {
 #[cfg(test)]
 mod timing_probe {
     use super::*;
+    use crate::checker::Checker;
     use crate::mbm::{mbm_robot, MbmFile, MBM_PROBLEMS_PATH};
     use crate::world::CloudParams;
+    use cell_types::{FrameId, PointCloud};
     use std::time::Instant;
+
+    #[test]
+    #[ignore = "timing probe, run by hand"]
+    fn probe_mbm_trajectories() {
+        use crate::mbm::WorldMode;
+        use crate::planner::{Planner, PlannerConfig};
+        use crate::timing::PlannerLimits;
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let planner = Planner::new(
+            mbm_robot().unwrap(),
+            PlannerLimits::default(),
+            PlannerConfig::default(),
+        )
+        .unwrap();
+        for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+            let (mut cpu_us, mut checks, mut per) = (Vec::new(), Vec::new(), Vec::new());
+            for ps in file.problems.values() {
+                for p in ps.iter().filter(|p| p.valid).step_by(7) {
+                    let (s, g) = p.start_goal().unwrap();
+                    let world = match mode {
+                        WorldMode::Primitives => p
+                            .obstacles()
+                            .into_iter()
+                            .fold(World::empty(), World::with_obstacle),
+                        WorldMode::Cloud => World::from_cloud(
+                            &p.surface_cloud(0.01).unwrap(),
+                            &CloudParams::default(),
+                        )
+                        .unwrap(),
+                    };
+                    let Ok(m) = planner.plan_to_joints(&s, &g, &world) else {
+                        continue;
+                    };
+                    let mut best = u64::MAX;
+                    let mut n = 0;
+                    for _ in 0..5 {
+                        let mut c =
+                            ExactChecker::new(&planner.exact, &planner.model.chain, &world, 0.01);
+                        let t = Instant::now();
+                        validate_exact(&m.trajectory, &mut c).unwrap();
+                        best = best.min(t.elapsed().as_nanos() as u64);
+                        n = c.checks;
+                    }
+                    cpu_us.push(best as f64 / 1e3);
+                    checks.push(n as f64);
+                    per.push(best as f64 / n as f64);
+                }
+            }
+            let k = cpu_us.len();
+            eprintln!(
+                "{mode:?}: {k} trajectories; exact re-check best-of-5 wall median/p95 {:?} us, checks {:?}, ns per check {:?}",
+                crate::mbm::median_p95(&mut cpu_us),
+                crate::mbm::median_p95(&mut checks),
+                crate::mbm::median_p95(&mut per)
+            );
+        }
+    }
+
+    /// All valid MBM problems in both modes; counts failures, those of the exact re-check
+    /// separately (about 2 minutes).
+    #[test]
+    #[ignore = "all MBM problems, run by hand"]
+    fn probe_all_mbm_problems() {
+        use crate::mbm::{run_problem, WorldMode};
+        use crate::planner::{Planner, PlannerConfig};
+        use crate::timing::PlannerLimits;
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let planner = Planner::new(
+            mbm_robot().unwrap(),
+            PlannerLimits::default(),
+            PlannerConfig::default(),
+        )
+        .unwrap();
+        for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+            let (mut n, mut failed, mut exact_ms) = (0, Vec::new(), Vec::new());
+            for (scene, ps) in &file.problems {
+                for p in ps.iter().filter(|p| p.valid) {
+                    let r = run_problem(&planner, scene, p, mode);
+                    n += 1;
+                    if r.solved {
+                        exact_ms.push(r.exact_s * 1e3);
+                    } else {
+                        failed.push(format!("{scene} #{}: {:?}", p.index, r.error));
+                    }
+                }
+            }
+            eprintln!(
+                "{mode:?}: {} of {n} solved; exact re-check median/p95 {:?} ms; failures: {failed:#?}",
+                n - failed.len(),
+                crate::mbm::median_p95(&mut exact_ms)
+            );
+        }
+    }
+
+    /// The MBM problems whose trajectories failed the dense re-checks while the timing left
+    /// the checked path (6-DoF Ruckig falling back to time synchronization).
+    #[test]
+    #[ignore = "MBM experiment, run by hand"]
+    fn probe_former_dense_recheck_failures() {
+        use crate::mbm::{run_problem, WorldMode};
+        use crate::planner::{Planner, PlannerConfig};
+        use crate::timing::PlannerLimits;
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let planner = Planner::new(
+            mbm_robot().unwrap(),
+            PlannerLimits::default(),
+            PlannerConfig::default(),
+        )
+        .unwrap();
+        for (scene, index) in [
+            ("bookshelf_small", 53),
+            ("cage", 25),
+            ("table_under_pick", 30),
+            ("table_under_pick", 50),
+        ] {
+            let p = file.problems[scene]
+                .iter()
+                .find(|p| p.index == index)
+                .unwrap();
+            for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+                let r = run_problem(&planner, scene, p, mode);
+                eprintln!(
+                    "{scene} #{index} {mode:?}: solved {} {:?}",
+                    r.solved, r.error
+                );
+            }
+        }
+    }
+
+    /// Does the timed trajectory leave the checked path on the failing problems?
+    #[test]
+    #[ignore = "MBM experiment, run by hand"]
+    fn probe_path_deviation_on_failures() {
+        use crate::checker::Checker;
+        use crate::rrt::{plan_path, shortcut, RrtParams};
+        use crate::timing::{time_path, PlannerLimits};
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let model = mbm_robot().unwrap();
+        let params = RrtParams::default();
+        for (scene, index) in [
+            ("bookshelf_small", 53),
+            ("table_under_pick", 30),
+            ("cage", 25),
+        ] {
+            let p = file.problems[scene]
+                .iter()
+                .find(|p| p.index == index)
+                .unwrap();
+            let world = p
+                .obstacles()
+                .into_iter()
+                .fold(World::empty(), World::with_obstacle);
+            let (s, g) = p.start_goal().unwrap();
+            let mut c = Checker::new(&model, &world, 0.02);
+            let mut path = plan_path(&s, &g, &model.limits, &mut c, &params)
+                .unwrap()
+                .path;
+            shortcut(&mut path, &mut c, params.shortcut_attempts, params.seed);
+            let traj = time_path(&path, &PlannerLimits::default()).unwrap();
+            // Distance (rad, max-norm) of each sample from the nearest path segment.
+            let dev = |q: &Joints| {
+                path.windows(2)
+                    .map(|w| {
+                        let d: Vec<f64> = (0..6).map(|j| w[1][j] - w[0][j]).collect();
+                        let dd: f64 = d.iter().map(|x| x * x).sum();
+                        let t = if dd > 0.0 {
+                            ((0..6).map(|j| (q[j] - w[0][j]) * d[j]).sum::<f64>() / dd)
+                                .clamp(0.0, 1.0)
+                        } else {
+                            0.0
+                        };
+                        (0..6)
+                            .map(|j| (q[j] - (w[0][j] + t * d[j])).abs())
+                            .fold(0.0, f64::max)
+                    })
+                    .fold(f64::INFINITY, f64::min)
+            };
+            let (mut worst, mut at) = (0.0f64, 0.0);
+            for x in traj.samples() {
+                let d = dev(&x.position);
+                if d > worst {
+                    worst = d;
+                    at = x.t;
+                }
+            }
+            let mut dense = Checker::new(&model, &world, 0.01);
+            let r = crate::planner::validate_dense(&traj, &mut dense);
+            let mut fine = Checker::new(&model, &world, 0.001);
+            let seg = path
+                .windows(2)
+                .map(|w| fine.first_contact_on(&w[0], &w[1]))
+                .find(|c| c.is_some());
+            eprintln!(
+                "{scene} #{index}: {} waypoints, duration {:.3} s, max deviation {worst:.2e} rad at t = {at:.3}; dense: {r:?}; path at 1 mm: {seg:?}",
+                path.len(),
+                traj.duration()
+            );
+        }
+    }
+
+    /// The UR5 + 2F-85 (cylinders and boxes) against a 1 cm wall cloud and the table, at
+    /// random configurations: exact vs sphere check cost.
+    #[test]
+    #[ignore = "timing probe, run by hand"]
+    fn probe_ur5_cylinders() {
+        use rand::{Rng, SeedableRng};
+        let model = RobotModel::ur5().unwrap();
+        let exact = ExactModel::new(&model, 0.0).unwrap();
+        let mut pts = Vec::new();
+        for i in 0..=100 {
+            for k in 0..=80 {
+                pts.push(Point3::new(-0.5 + i as f32 * 0.01, 0.45, k as f32 * 0.01));
+            }
+        }
+        let cloud = PointCloud::new(FrameId::Base, pts, None).unwrap();
+        let world = World::from_cloud(&cloud, &CloudParams::default())
+            .unwrap()
+            .with_obstacle(Obstacle::HalfSpace {
+                name: "table".into(),
+                normal: Vector3::z_axis(),
+                offset: -0.01,
+            });
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(8);
+        let qs: Vec<Joints> = (0..2000)
+            .map(|_| std::array::from_fn(|_| rng.random_range(-3.1..3.1)))
+            .collect();
+        let mut ec = ExactChecker::new(&exact, &model.chain, &world, 0.01);
+        let mut sc = Checker::new(&model, &world, 0.01);
+        let (mut te, mut ts, mut he, mut hs) = (f64::INFINITY, f64::INFINITY, 0, 0);
+        for _ in 0..5 {
+            let t = Instant::now();
+            he = qs
+                .iter()
+                .filter(|q| ec.contact(q).unwrap().is_some())
+                .count();
+            te = te.min(t.elapsed().as_secs_f64() / qs.len() as f64 * 1e6);
+            let t = Instant::now();
+            hs = qs.iter().filter(|q| sc.contact(q).is_some()).count();
+            ts = ts.min(t.elapsed().as_secs_f64() / qs.len() as f64 * 1e6);
+        }
+        eprintln!(
+            "UR5 exact {te:.2} us/config ({he} hits), spheres {ts:.2} us/config ({hs} hits), of {}",
+            qs.len()
+        );
+        // Sphere-free configurations: every link and pair is examined (no early exit).
+        let free: Vec<Joints> = qs
+            .iter()
+            .copied()
+            .filter(|q| sc.contact(q).is_none())
+            .collect();
+        let (mut te, mut ts) = (f64::INFINITY, f64::INFINITY);
+        for _ in 0..5 {
+            let t = Instant::now();
+            assert!(free.iter().all(|q| ec.contact(q).unwrap().is_none()));
+            te = te.min(t.elapsed().as_secs_f64() / free.len() as f64 * 1e6);
+            let t = Instant::now();
+            assert!(free.iter().all(|q| sc.contact(q).is_none()));
+            ts = ts.min(t.elapsed().as_secs_f64() / free.len() as f64 * 1e6);
+        }
+        eprintln!(
+            "UR5 free configurations ({}): exact {te:.2} us, spheres {ts:.2} us",
+            free.len()
+        );
+    }
 
     #[test]
     #[ignore = "timing probe, run by hand"]

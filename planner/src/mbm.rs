@@ -446,7 +446,8 @@ mod tests {
     }
 
     /// A seeded subset of ≥ 70 valid problems (10 per scene) in both modes: all solved, and
-    /// every trajectory passed the limit and dense checks inside `plan_to_joints`.
+    /// every trajectory passed the limit, sphere and exact (parry) dense re-checks inside
+    /// `plan_to_joints`.
     #[test]
     fn seeded_subset_of_mbm_problems_is_solved_in_both_modes() {
         let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();

@@ -1,6 +1,8 @@
 //! Keyframe to validated trajectory (issue 3 items 3–8): goal selection over the IK
 //! solutions, keyframe semantics (gripper closing volume, "ignore collisions"), path search,
-//! shortcutting, jerk-limited timing and the final dense re-check of the sampled trajectory.
+//! shortcutting, jerk-limited timing and the final dense re-checks of the sampled trajectory:
+//! with the sphere model, then with the exact parry shapes ([`crate::exact`]) against the same
+//! world (keyframe semantics applied).
 
 use crate::checker::{lerp, Checker};
 use crate::error::PlanError;
@@ -52,7 +54,8 @@ pub struct PlannerConfig {
     pub rrt: RrtParams,
     /// Largest motion of any robot point between two checks during the search (m).
     pub check_resolution: f64,
-    /// Largest motion of any robot point between two checks in the final re-check (m).
+    /// Largest motion of any robot point (the TCP included) between two checks in the final
+    /// re-checks, sphere and exact (m).
     pub validate_resolution: f64,
     /// Joint weights for choosing the IK solution closest to the start.
     pub goal_weights: Joints,
@@ -61,6 +64,9 @@ pub struct PlannerConfig {
     /// Clearance (m) the exact re-check demands between the link shapes and the world; 0: the
     /// shapes must not touch (the sphere cover is conservative only for 0).
     pub exact_margin: f64,
+    /// Also re-check the trajectory densely with the spheres before the exact re-check (the
+    /// spheres cover the shapes, so this only adds false alarms and time; kept on by default).
+    pub sphere_recheck: bool,
 }
 
 impl Default for PlannerConfig {
@@ -72,6 +78,7 @@ impl Default for PlannerConfig {
             goal_weights: [3.0, 3.0, 2.0, 1.0, 1.0, 1.0],
             closing_volume: ClosingVolume::default(),
             exact_margin: 0.0,
+            sphere_recheck: true,
         }
     }
 }
@@ -127,7 +134,8 @@ pub struct Planner {
     pub limits: PlannerLimits,
     /// Search settings.
     pub config: PlannerConfig,
-    /// The robot's exact (parry) shapes for the final re-check.
+    /// The robot's exact (parry) shapes for the final re-check, built by [`Planner::new`] with
+    /// `config.exact_margin` (rebuild it after changing that margin).
     pub exact: ExactModel,
 }
 
@@ -300,7 +308,9 @@ impl Planner {
         let t = Instant::now();
         validate_limits(&trajectory, &self.model.limits, &self.limits)?;
         let mut dense = Checker::new(&self.model, world, self.config.validate_resolution);
-        validate_dense(&trajectory, &mut dense)?;
+        if self.config.sphere_recheck {
+            validate_dense(&trajectory, &mut dense)?;
+        }
         stats.validate_s = t.elapsed().as_secs_f64();
         // The same world the search used (keyframe semantics applied), with the exact shapes.
         let t = Instant::now();
