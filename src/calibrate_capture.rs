@@ -10,9 +10,9 @@ use std::path::Path;
 use std::sync::Arc;
 
 use anyhow::Context;
-use calibration::capture::{Capture, CameraView, CaptureFolder};
+use calibration::capture::{CameraView, Capture, CaptureFolder};
 use calibration::detect::{detect_chessboard, render_board_ir, DetectParams, IrLevels};
-use calibration::simulate::{simulate_set_with, PoseCheck, SimConfig};
+use calibration::simulate::{simulate_set_with, PoseCheck, SimConfig, Truth};
 use cell_types::config::CellConfig;
 use cell_types::{Clock, Joints, Transform};
 use firmware_iface::arm::{Arm, ExecutionOutcome};
@@ -38,19 +38,33 @@ pub struct CaptureRun {
     pub skipped: Vec<(usize, String)>,
 }
 
-/// Runs the capture loop in the simulated cell: `poses` board poses from `seed`, at most
-/// `limit` new ones in this run (None: all), into `dir`. IR images get Gaussian grey-level
-/// noise `ir_sigma`.
+/// What to capture.
+#[derive(Copy, Clone, Debug, PartialEq)]
+pub struct CapturePlan {
+    /// Seed of the pose plan (and the image noise).
+    pub seed: u64,
+    /// Number of board poses planned.
+    pub poses: usize,
+    /// At most this many new poses in this run (None: all).
+    pub limit: Option<usize>,
+    /// Gaussian grey-level noise of the rendered IR images.
+    pub ir_sigma: f64,
+}
+
+/// Runs the capture loop of `plan` in the simulated cell into the captures folder `dir`.
 pub fn capture_in_sim(
     cfg: &CellConfig,
     dir: &Path,
-    seed: u64,
-    poses: usize,
-    limit: Option<usize>,
-    ir_sigma: f64,
+    plan: CapturePlan,
     clock: Arc<dyn Clock>,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<CaptureRun> {
+    let CapturePlan {
+        seed,
+        poses,
+        limit,
+        ir_sigma,
+    } = plan;
     let planner = planner_from_config(cfg)?;
     let world = World::empty().with_obstacle(Obstacle::HalfSpace {
         name: "table".into(),
@@ -68,8 +82,9 @@ pub fn capture_in_sim(
     let mut sim = SimConfig::default_cell();
     sim.poses = poses;
     let mut checker = planner::checker::Checker::new(&planner.model, &world, 0.01);
-    let (plan, _) = simulate_set_with(&sim, seed, &mut |base_from_flange| {
-        let base_from_tcp = Transform::from_isometry(base_from_flange.isometry() * flange_from_tcp.isometry());
+    let (planned, _) = simulate_set_with(&sim, seed, &mut |base_from_flange| {
+        let base_from_tcp =
+            Transform::from_isometry(base_from_flange.isometry() * flange_from_tcp.isometry());
         let Ok(solutions) = planner.model.ik_near(&base_from_tcp, &home) else {
             return PoseCheck::Reject;
         };
@@ -85,10 +100,22 @@ pub fn capture_in_sim(
     .context("planning the calibration poses")?;
 
     let mut folder = CaptureFolder::create_or_resume(dir, &sim.session())?;
-    let todo = folder.missing(plan.captures.len());
+    // The simulated cameras' true poses, so that `equact calibrate solve` can report its
+    // error (the flange poses come from the captures themselves).
+    let truth = Truth {
+        seed,
+        config: sim.clone(),
+        base_from_flange: Vec::new(),
+    };
+    let truth_path = dir.join(calibration::simulate::TRUTH_FILE);
+    calibration::capture::write_atomic(
+        &truth_path,
+        &serde_json::to_vec_pretty(&truth).context("encoding truth.json")?,
+    )?;
+    let todo = folder.missing(planned.captures.len());
     let mut run = CaptureRun {
-        planned: plan.captures.len(),
-        resumed: plan.captures.len() - todo.len(),
+        planned: planned.captures.len(),
+        resumed: planned.captures.len() - todo.len(),
         captured: 0,
         skipped: Vec::new(),
     };
@@ -114,7 +141,7 @@ pub fn capture_in_sim(
             if limit.is_some_and(|l| run.captured >= l) {
                 break;
             }
-            let Some(goal) = plan.captures.get(*index).and_then(|c| c.joints) else {
+            let Some(goal) = planned.captures.get(*index).and_then(|c| c.joints) else {
                 run.skipped.push((*index, "no joints planned".into()));
                 continue;
             };
@@ -154,8 +181,7 @@ pub fn capture_in_sim(
                     *p = (f64::from(*p) + ir_sigma * g).round().clamp(0.0, 255.0) as u8;
                 }
                 // A camera that does not find the board records no view, as on the real cell.
-                if let Ok(corners) = detect_chessboard(&img, &sim.board, &DetectParams::default())
-                {
+                if let Ok(corners) = detect_chessboard(&img, &sim.board, &DetectParams::default()) {
                     views.push(CameraView {
                         camera: cam.id,
                         corners,

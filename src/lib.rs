@@ -5,8 +5,8 @@
 //! a single small C library is built), `serde_json` + `base64` for Foxglove's JSON message
 //! encoding, `ctrlc` to turn Ctrl-C into a controlled stop.
 
-pub mod demos;
 pub mod calibrate_capture;
+pub mod demos;
 pub mod episode;
 pub mod plot;
 pub mod preflight;

@@ -127,10 +127,12 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             let run = equact::calibrate_capture::capture_in_sim(
                 &cfg,
                 &out,
-                seed,
-                poses,
-                limit,
-                2.0,
+                equact::calibrate_capture::CapturePlan {
+                    seed,
+                    poses,
+                    limit,
+                    ir_sigma: 2.0,
+                },
                 std::sync::Arc::new(cell_types::SystemClock::new()),
                 &mut |line| eprintln!("{line}"),
             )?;
