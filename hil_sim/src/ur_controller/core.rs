@@ -449,6 +449,15 @@ impl Core {
             return;
         }
         if seq > 0 && seq != p.last {
+            // Targets stream one per cycle; when the client's packages bunch up (a loaded
+            // host), several arrive within one cycle and only the newest is read. The target
+            // then moved `steps` samples: its velocity is the jump over that many cycles, not
+            // over one (which would double the feed-forward and run the arm ahead).
+            let steps = if p.last > 0 {
+                f64::from(seq.wrapping_sub(p.last).clamp(1, 10))
+            } else {
+                1.0
+            };
             p.last = seq;
             p.stale = 0;
             let mut target = [0.0; JOINT_COUNT];
@@ -459,7 +468,7 @@ impl Core {
                 Motion::Servo { target, .. } => target,
                 _ => self.q,
             };
-            let ff = std::array::from_fn(|i| (target[i] - prev[i]) / p.params.cycle);
+            let ff = std::array::from_fn(|i| (target[i] - prev[i]) / (steps * p.params.cycle));
             p.target = target;
             self.motion = Motion::Servo { target, ff };
             self.registers.output_int[ACK_REGISTER] = seq;
