@@ -132,6 +132,48 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     s as f32
 }
 
+/// Rows processed together by [`axpy_rows`]: each weight row is loaded once per block.
+const ROW_BLOCK: usize = 8;
+
+/// `y[r, :] += Σ_i x[r, i] · wt[i, :]` for every row r of `x` `[rows, inp]`, with `wt`
+/// `[inp, out]` and `y` `[rows, out]`. Rows go in blocks of 8 so each weight row is read once
+/// per block (the matrices of the wide layers exceed the caches); the inner loop is a plain
+/// f32 multiply-add over `out` (vectorised); zero inputs are skipped (the sparse field radial
+/// basis). Accumulates in f32 in input order.
+pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
+    if inp == 0 || out == 0 {
+        return;
+    }
+    for (xb, yb) in x.chunks(ROW_BLOCK * inp).zip(y.chunks_mut(ROW_BLOCK * out)) {
+        for (i, w) in wt.chunks_exact(out).enumerate().take(inp) {
+            for (xr, yr) in xb.chunks_exact(inp).zip(yb.chunks_exact_mut(out)) {
+                let xi = xr[i];
+                if xi == 0.0 {
+                    continue;
+                }
+                for (a, b) in yr.iter_mut().zip(w) {
+                    *a += xi * b;
+                }
+            }
+        }
+    }
+}
+
+/// The transpose of a row-major `[rows, cols]` matrix.
+pub fn transpose(w: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    let mut t = vec![0.0f32; w.len()];
+    for r in 0..rows {
+        for c in 0..cols {
+            t[c * rows + r] = w[r * cols + c];
+        }
+    }
+    t
+}
+
+/// Largest matrix (values) a [`Linear`] keeps a transposed copy of for batched rows (the
+/// FiLM hypernetworks, used one row at a time, stay untransposed).
+const MAX_TRANSPOSED: usize = 1 << 23;
+
 /// A dense layer `y = W x + b` (PyTorch `nn.Linear`, weight `[out, in]`).
 #[derive(Debug, Clone)]
 pub struct Linear {
@@ -140,6 +182,8 @@ pub struct Linear {
     /// Output features.
     pub out: usize,
     w: Vec<f32>,
+    /// `[in, out]`, for batches of rows (None for very large matrices).
+    wt: Option<Vec<f32>>,
     b: Option<Vec<f32>>,
 }
 
@@ -158,7 +202,12 @@ impl Linear {
         } else {
             None
         };
-        Ok(Self { inp, out, w, b })
+        Ok(Self::new(inp, out, w, b))
+    }
+
+    fn new(inp: usize, out: usize, w: Vec<f32>, b: Option<Vec<f32>>) -> Self {
+        let wt = (w.len() <= MAX_TRANSPOSED).then(|| transpose(&w, out, inp));
+        Self { inp, out, w, wt, b }
     }
 
     /// Builds a layer from raw values (weight `[out, inp]`).
@@ -167,7 +216,7 @@ impl Linear {
         if let Some(b) = &b {
             check_len("linear bias", b.len(), &[out])?;
         }
-        Ok(Self { inp, out, w, b })
+        Ok(Self::new(inp, out, w, b))
     }
 
     /// Applies the layer to one row.
@@ -192,6 +241,15 @@ impl Linear {
         }
         let rows = x.len() / self.inp;
         let mut y = vec![0.0; rows * self.out];
+        if let (Some(wt), true) = (&self.wt, rows >= 2) {
+            if let Some(b) = &self.b {
+                for yr in y.chunks_exact_mut(self.out) {
+                    yr.copy_from_slice(b);
+                }
+            }
+            axpy_rows(x, self.inp, wt, self.out, &mut y);
+            return Ok(y);
+        }
         for r in 0..rows {
             self.forward_row(
                 &x[r * self.inp..(r + 1) * self.inp],
@@ -250,7 +308,53 @@ pub struct So3Linear {
     pub cout: usize,
     /// `[(lmax+1), cout, cin]`.
     w: Vec<f32>,
+    /// `[(lmax+1), cin, cout]`.
+    wt: Vec<f32>,
     b: Vec<f32>,
+}
+
+/// Applies per-degree weights `wt` `[(lmax+1), cin, cout]` to `x` `[n, (lmax+1)², cin]`, with
+/// `bias` on the l = 0 row: `[n, (lmax+1)², cout]`.
+fn per_degree_apply(
+    x: &[f32],
+    lmax: usize,
+    cin: usize,
+    cout: usize,
+    wt: &[f32],
+    bias: &[f32],
+) -> Result<Vec<f32>> {
+    let k = num_coefficients(lmax);
+    let n = rows_of("SO3 linear input", x.len(), k * cin)?;
+    let mut y = vec![0.0; n * k * cout];
+    for node in 0..n {
+        let xn = &x[node * k * cin..(node + 1) * k * cin];
+        let yn = &mut y[node * k * cout..(node + 1) * k * cout];
+        yn[..cout].copy_from_slice(bias);
+        for l in 0..=lmax {
+            let (a, b) = (l * l, (l + 1) * (l + 1));
+            axpy_rows(
+                &xn[a * cin..b * cin],
+                cin,
+                &wt[l * cin * cout..(l + 1) * cin * cout],
+                cout,
+                &mut yn[a * cout..b * cout],
+            );
+        }
+    }
+    Ok(y)
+}
+
+/// Transposes each degree's `[cout, cin]` block of `[(lmax+1), cout, cin]`.
+fn transpose_per_degree(w: &[f32], lmax: usize, cout: usize, cin: usize) -> Vec<f32> {
+    let mut t = Vec::with_capacity(w.len());
+    for l in 0..=lmax {
+        t.extend(transpose(
+            &w[l * cout * cin..(l + 1) * cout * cin],
+            cout,
+            cin,
+        ));
+    }
+    t
 }
 
 impl So3Linear {
@@ -258,33 +362,25 @@ impl So3Linear {
     pub fn load(s: &Scope<'_>) -> Result<Self> {
         let shape = s.shape("weight", 3)?;
         let (lmax, cout, cin) = (shape[0].saturating_sub(1), shape[1], shape[2]);
+        let w = s.f32("weight", &shape)?;
         Ok(Self {
             lmax,
             cin,
             cout,
-            w: s.f32("weight", &shape)?,
+            wt: transpose_per_degree(&w, lmax, cout, cin),
+            w,
             b: s.f32("bias", &[cout])?,
         })
     }
 
     /// Applies the layer to `x` `[n, (lmax+1)², cin]`.
     pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
-        let k = num_coefficients(self.lmax);
-        let n = rows_of("SO3 linear input", x.len(), k * self.cin)?;
-        let mut y = vec![0.0; n * k * self.cout];
-        for node in 0..n {
-            for i in 0..k {
-                let l = degree_of(i);
-                let xr = &x[(node * k + i) * self.cin..(node * k + i + 1) * self.cin];
-                let yr = &mut y[(node * k + i) * self.cout..(node * k + i + 1) * self.cout];
-                for (o, yo) in yr.iter_mut().enumerate() {
-                    let w =
-                        &self.w[(l * self.cout + o) * self.cin..(l * self.cout + o + 1) * self.cin];
-                    *yo = dot(w, xr) + if i == 0 { self.b[o] } else { 0.0 };
-                }
-            }
-        }
-        Ok(y)
+        per_degree_apply(x, self.lmax, self.cin, self.cout, &self.wt, &self.b)
+    }
+
+    /// The weights `[(lmax+1), cout, cin]`.
+    pub fn weight(&self) -> &[f32] {
+        &self.w
     }
 }
 
@@ -435,7 +531,13 @@ impl GaussianRbf {
         };
         for (k, o) in out.iter_mut().enumerate().take(self.num_basis) {
             let z = (u - self.mean[k]) / self.std[k];
-            *o = self.weight[k] * (-0.5 * (z * z)).exp() * env * self.normalizer;
+            // exp(−105) is below the smallest f32: skipping it is exact (and keeps the
+            // narrow field-head bases sparse).
+            *o = if z * z > 210.0 {
+                0.0
+            } else {
+                self.weight[k] * (-0.5 * (z * z)).exp() * env * self.normalizer
+            };
         }
     }
 
@@ -577,22 +679,15 @@ impl FilmLinear {
             });
         }
         let per = nodes / b;
-        let mut y = vec![0.0; nodes * k * self.cout];
+        let mut y = Vec::with_capacity(nodes * k * self.cout);
         for batch in 0..b {
             let fw =
                 self.weights(&condition[batch * self.encoder.inp..(batch + 1) * self.encoder.inp])?;
-            for node in batch * per..(batch + 1) * per {
-                for i in 0..k {
-                    let l = degree_of(i);
-                    let xr = &x[(node * k + i) * self.cin..(node * k + i + 1) * self.cin];
-                    let yr = &mut y[(node * k + i) * self.cout..(node * k + i + 1) * self.cout];
-                    for (o, yo) in yr.iter_mut().enumerate() {
-                        let w = &fw.w
-                            [(l * self.cout + o) * self.cin..(l * self.cout + o + 1) * self.cin];
-                        *yo = dot(w, xr) + if i == 0 { fw.b[o] } else { 0.0 };
-                    }
-                }
-            }
+            let wt = transpose_per_degree(&fw.w, self.lmax, self.cout, self.cin);
+            let xb = &x[batch * per * k * self.cin..(batch + 1) * per * k * self.cin];
+            y.extend(per_degree_apply(
+                xb, self.lmax, self.cin, self.cout, &wt, &fw.b,
+            )?);
         }
         Ok(y)
     }
