@@ -162,7 +162,7 @@ impl S2Grid {
         let mut grid = self.to_grid_values(x, n, c)?;
         // SiLU once per grid value, then spread over the coefficients.
         for g in &mut grid {
-            *g = silu(f64::from(*g)) as f32;
+            *g = *g / (1.0 + (-*g).exp());
         }
         let np = self.num_points();
         let mut out = vec![0.0f32; n * nr * c];

@@ -144,50 +144,58 @@ pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
     if inp == 0 || out == 0 {
         return;
     }
-    let zeros = x.iter().filter(|v| **v == 0.0).count();
-    if 2 * zeros > x.len() || out < 8 {
+    // Sparse or dense: judged on the first rows.
+    let probe = &x[..x.len().min(4 * inp)];
+    let zeros = probe.iter().filter(|v| **v == 0.0).count();
+    if 2 * zeros > probe.len() || out < 8 {
         axpy_rows_sparse(x, inp, wt, out, y);
         return;
     }
     const R: usize = 4;
     const T: usize = 8;
+    // Panels of 32 rows: the panel stays in L2 while each 8-column weight tile streams over
+    // it, so the weights are read once per 32 rows.
+    const P: usize = 32;
     let tiles = out / T;
     let mut pad = vec![0.0f32; R * inp];
-    for (xb, yb) in x.chunks(R * inp).zip(y.chunks_mut(R * out)) {
-        let rows = xb.len() / inp;
-        let xb: &[f32] = if rows == R {
-            xb
-        } else {
-            pad[..xb.len()].copy_from_slice(xb);
-            pad[xb.len()..].iter_mut().for_each(|v| *v = 0.0);
-            &pad
-        };
+    for (xp, yp) in x.chunks(P * inp).zip(y.chunks_mut(P * out)) {
         for tile in 0..tiles {
             let o0 = tile * T;
-            let mut acc = [[0.0f32; T]; R];
-            for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
-                let w = &wrow[o0..o0 + T];
-                for (r, a) in acc.iter_mut().enumerate() {
-                    let xi = xb[r * inp + i];
-                    for (al, wl) in a.iter_mut().zip(w) {
-                        *al += xi * wl;
+            for (xb, yb) in xp.chunks(R * inp).zip(yp.chunks_mut(R * out)) {
+                let rows = xb.len() / inp;
+                let xb: &[f32] = if rows == R {
+                    xb
+                } else {
+                    pad[..xb.len()].copy_from_slice(xb);
+                    pad[xb.len()..].iter_mut().for_each(|v| *v = 0.0);
+                    &pad
+                };
+                let mut acc = [[0.0f32; T]; R];
+                for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
+                    let w = &wrow[o0..o0 + T];
+                    for (r, a) in acc.iter_mut().enumerate() {
+                        let xi = xb[r * inp + i];
+                        for (al, wl) in a.iter_mut().zip(w) {
+                            *al += xi * wl;
+                        }
                     }
                 }
-            }
-            for (r, a) in acc.iter().enumerate().take(rows) {
-                for (yl, al) in yb[r * out + o0..r * out + o0 + T].iter_mut().zip(a) {
-                    *yl += al;
+                for (r, a) in acc.iter().enumerate().take(rows) {
+                    for (yl, al) in yb[r * out + o0..r * out + o0 + T].iter_mut().zip(a) {
+                        *yl += al;
+                    }
                 }
             }
         }
         // Remaining outputs (out not a multiple of 8).
+        let rows = xp.len() / inp;
         for o in tiles * T..out {
             for r in 0..rows {
                 let mut a = 0.0f32;
                 for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
-                    a += xb[r * inp + i] * wrow[o];
+                    a += xp[r * inp + i] * wrow[o];
                 }
-                yb[r * out + o] += a;
+                yp[r * out + o] += a;
             }
         }
     }
@@ -581,14 +589,19 @@ impl GaussianRbf {
             };
             1.0 - step
         };
-        for (k, o) in out.iter_mut().enumerate().take(self.num_basis) {
-            let z = (u - self.mean[k]) / self.std[k];
-            // exp(−105) is below the smallest f32: skipping it is exact (and keeps the
-            // narrow field-head bases sparse).
-            *o = if z * z > 210.0 {
+        // z² for every basis first (vectorised), then the exponentials that do not
+        // underflow: exp(−105) is below the smallest f32, so skipping those is exact (and
+        // keeps the narrow field-head bases sparse).
+        let out = &mut out[..self.num_basis];
+        for ((o, m), sd) in out.iter_mut().zip(&self.mean).zip(&self.std) {
+            let z = (u - m) / sd;
+            *o = z * z;
+        }
+        for (o, w) in out.iter_mut().zip(&self.weight) {
+            *o = if *o > 210.0 {
                 0.0
             } else {
-                self.weight[k] * (-0.5 * (z * z)).exp() * env * self.normalizer
+                w * (-0.5 * *o).exp() * env * self.normalizer
             };
         }
     }
