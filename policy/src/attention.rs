@@ -234,10 +234,47 @@ impl GraphAttention {
                 max_supported: cfg.lmax,
             });
         }
-        // Messages `concat(x_src[src], x_dst[dst])` along channels.
+        let row = k * cfg.num_heads * cfg.value_channels;
+        let mut agg = vec![0.0f32; nd * row];
+        let nb = edges.attr.len().checked_div(ne).unwrap_or(0);
+        // Whole destination groups at a time keep the buffers small; the softmax is per
+        // destination, so this is exact.
+        for r in destination_chunks(&edges.dst, EDGE_CHUNK) {
+            let wig = edges.wigners.slice(r.clone());
+            self.forward_edges(
+                x_src,
+                x_dst,
+                (ns, nd),
+                (&edges.src[r.clone()], &edges.dst[r.clone()]),
+                &wig,
+                &edges.attr[r.start * nb..r.end * nb],
+                &mut agg,
+            )?;
+        }
+        self.proj.forward(&agg)
+    }
+
+    /// The message, attention and aggregation of one chunk of edges (whole destination
+    /// groups), added into `agg` `[Nd, K, heads·value]`.
+    #[allow(clippy::too_many_arguments)]
+    fn forward_edges(
+        &self,
+        x_src: &[f32],
+        x_dst: &[f32],
+        (ns, nd): (usize, usize),
+        (src, dst): (&[usize], &[usize]),
+        wigners: &EdgeWigners,
+        attr: &[f32],
+        agg: &mut [f32],
+    ) -> Result<()> {
+        let cfg = &self.cfg;
+        let k = num_coefficients(cfg.lmax);
+        let c = cfg.sphere_channels;
+        let ne = src.len();
+        // Messages concat(x_src[src], x_dst[dst]) along channels.
         let mut msg = vec![0.0f32; ne * k * 2 * c];
         for e in 0..ne {
-            let (s, d) = (edges.src[e], edges.dst[e]);
+            let (s, d) = (src[e], dst[e]);
             if s >= ns || d >= nd {
                 return Err(PolicyError::IndexOutOfRange {
                     name: "edge_src/edge_dst".into(),
@@ -251,9 +288,9 @@ impl GraphAttention {
                 m[c..].copy_from_slice(&x_dst[(d * k + i) * c..(d * k + i + 1) * c]);
             }
         }
-        let x_rot = edges.wigners.rotate(&self.map, &msg, 2 * c)?;
+        let x_rot = wigners.rotate(&self.map, &msg, 2 * c)?;
         drop(msg);
-        let (h, extra) = self.conv1.forward(&x_rot, Some(&edges.attr))?;
+        let (h, extra) = self.conv1.forward(&x_rot, Some(attr))?;
         let n_alpha = cfg.num_heads * cfg.alpha_channels;
         let n_extra = n_alpha + cfg.hidden_channels;
         let mut alpha_in = Vec::with_capacity(ne * n_alpha);
@@ -281,7 +318,7 @@ impl GraphAttention {
                     .sum();
             }
         }
-        let alpha = grouped_softmax(&logit, &edges.dst, nd, heads);
+        let alpha = grouped_softmax(&logit, dst, nd, heads);
 
         // Weight each head's values, rotate back, sum at the destinations.
         let nr = self.map.len();
@@ -297,11 +334,10 @@ impl GraphAttention {
                 }
             }
         }
-        let back = edges.wigners.rotate_back(&self.map, &v, heads * vc)?;
+        let back = wigners.rotate_back(&self.map, &v, heads * vc)?;
         let row = k * heads * vc;
-        let mut agg = vec![0.0f32; nd * row];
         for e in 0..ne {
-            let d = edges.dst[e];
+            let d = dst[e];
             for (a, b) in agg[d * row..(d + 1) * row]
                 .iter_mut()
                 .zip(&back[e * row..(e + 1) * row])
@@ -309,8 +345,28 @@ impl GraphAttention {
                 *a += b;
             }
         }
-        self.proj.forward(&agg)
+        Ok(())
     }
+}
+
+/// Edges per chunk of the attention (whole destination groups are never split).
+const EDGE_CHUNK: usize = 4096;
+
+/// Ranges of about `chunk` edges that end at destination changes; one range over all edges
+/// when the edges are not grouped by destination.
+pub fn destination_chunks(dst: &[usize], chunk: usize) -> Vec<std::ops::Range<usize>> {
+    if dst.windows(2).any(|w| w[1] < w[0]) || dst.is_empty() {
+        return std::iter::once(0..dst.len()).collect();
+    }
+    let mut out = Vec::new();
+    let mut start = 0;
+    for e in 1..=dst.len() {
+        if e == dst.len() || (e - start >= chunk && dst[e] != dst[e - 1]) {
+            out.push(start..e);
+            start = e;
+        }
+    }
+    out
 }
 
 /// Softmax of `logit` `[E, heads]` over the edges sharing a destination (max subtracted,

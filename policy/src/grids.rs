@@ -69,6 +69,10 @@ pub struct S2Grid {
     pub to_grid: Vec<f64>,
     /// [lat, long, n_reduced], row-major.
     pub from_grid: Vec<f64>,
+    /// `to_grid` in f32 (the activation's fast path).
+    to_grid32: Vec<f32>,
+    /// `from_grid` in f32.
+    from_grid32: Vec<f32>,
 }
 
 impl S2Grid {
@@ -121,6 +125,8 @@ impl S2Grid {
             lat,
             long,
             reduced,
+            to_grid32: to_grid.iter().map(|v| *v as f32).collect(),
+            from_grid32: from_grid.iter().map(|v| *v as f32).collect(),
             to_grid,
             from_grid,
         })
@@ -131,20 +137,18 @@ impl S2Grid {
         self.lat * self.long
     }
 
-    /// `grid[z, p, c] = sum_i to_grid[p, i] x[z, i, c]` for x of shape [n, n_reduced, c].
+    /// `grid[z, p, c] = sum_i to_grid[p, i] x[z, i, c]` for x of shape [n, n_reduced, c]
+    /// (f32, vectorised over channels).
     pub fn to_grid_values(&self, x: &[f32], n: usize, c: usize) -> Result<Vec<f32>> {
         let nr = self.reduced.len();
         check_len("S2 grid input", x.len(), &[n, nr, c])?;
         let np = self.num_points();
         let mut out = vec![0.0f32; n * np * c];
-        for z in 0..n {
-            for p in 0..np {
-                let o = &mut out[(z * np + p) * c..(z * np + p + 1) * c];
-                for i in 0..nr {
-                    let w = self.to_grid[p * nr + i];
-                    let xi = &x[(z * nr + i) * c..(z * nr + i + 1) * c];
+        for (xz, oz) in x.chunks_exact(nr * c).zip(out.chunks_exact_mut(np * c)) {
+            for (o, t) in oz.chunks_exact_mut(c).zip(self.to_grid32.chunks_exact(nr)) {
+                for (w, xi) in t.iter().zip(xz.chunks_exact(c)) {
                     for (oc, xc) in o.iter_mut().zip(xi) {
-                        *oc += (w * f64::from(*xc)) as f32;
+                        *oc += w * xc;
                     }
                 }
             }
@@ -155,27 +159,23 @@ impl S2Grid {
     /// The S2 activation of the reference: from_grid(SiLU(to_grid(x))), x of shape [n, n_reduced, c].
     pub fn activate(&self, x: &[f32], n: usize, c: usize) -> Result<Vec<f32>> {
         let nr = self.reduced.len();
-        let grid = self.to_grid_values(x, n, c)?;
+        let mut grid = self.to_grid_values(x, n, c)?;
+        // SiLU once per grid value, then spread over the coefficients.
+        for g in &mut grid {
+            *g = *g / (1.0 + (-*g).exp());
+        }
         let np = self.num_points();
-        let mut out = vec![0.0f64; n * nr * c];
-        let mut act = vec![0.0f64; c];
-        for z in 0..n {
-            for p in 0..np {
-                let g = &grid[(z * np + p) * c..(z * np + p + 1) * c];
-                // SiLU once per grid value, then spread over the coefficients.
-                for (a, gc) in act.iter_mut().zip(g) {
-                    *a = silu(f64::from(*gc));
-                }
-                for i in 0..nr {
-                    let w = self.from_grid[p * nr + i];
-                    let o = &mut out[(z * nr + i) * c..(z * nr + i + 1) * c];
-                    for (oc, a) in o.iter_mut().zip(&act) {
-                        *oc += w * a;
+        let mut out = vec![0.0f32; n * nr * c];
+        for (gz, oz) in grid.chunks_exact(np * c).zip(out.chunks_exact_mut(nr * c)) {
+            for (a, f) in gz.chunks_exact(c).zip(self.from_grid32.chunks_exact(nr)) {
+                for (w, o) in f.iter().zip(oz.chunks_exact_mut(c)) {
+                    for (oc, ac) in o.iter_mut().zip(a) {
+                        *oc += w * ac;
                     }
                 }
             }
         }
-        Ok(out.into_iter().map(|v| v as f32).collect())
+        Ok(out)
     }
 }
 

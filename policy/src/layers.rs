@@ -132,6 +132,108 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     s as f32
 }
 
+/// Rows processed together by the sparse path of [`axpy_rows`].
+const ROW_BLOCK: usize = 8;
+
+/// `y[r, :] += Σ_i x[r, i] · wt[i, :]` for every row r of `x` `[rows, inp]`, with `wt`
+/// `[inp, out]` and `y` `[rows, out]`, in f32, summing in input order. Dense inputs go
+/// through a register-tiled kernel (4 rows × 8 outputs held in registers over the whole
+/// input); mostly-zero inputs (the narrow field radial basis) through a kernel that skips
+/// the zeros.
+pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
+    if inp == 0 || out == 0 {
+        return;
+    }
+    // Sparse or dense: judged on the first rows.
+    let probe = &x[..x.len().min(4 * inp)];
+    let zeros = probe.iter().filter(|v| **v == 0.0).count();
+    if 2 * zeros > probe.len() || out < 8 {
+        axpy_rows_sparse(x, inp, wt, out, y);
+        return;
+    }
+    const R: usize = 4;
+    const T: usize = 8;
+    // Panels of 32 rows: the panel stays in L2 while each 8-column weight tile streams over
+    // it, so the weights are read once per 32 rows.
+    const P: usize = 32;
+    let tiles = out / T;
+    let mut pad = vec![0.0f32; R * inp];
+    for (xp, yp) in x.chunks(P * inp).zip(y.chunks_mut(P * out)) {
+        for tile in 0..tiles {
+            let o0 = tile * T;
+            for (xb, yb) in xp.chunks(R * inp).zip(yp.chunks_mut(R * out)) {
+                let rows = xb.len() / inp;
+                let xb: &[f32] = if rows == R {
+                    xb
+                } else {
+                    pad[..xb.len()].copy_from_slice(xb);
+                    pad[xb.len()..].iter_mut().for_each(|v| *v = 0.0);
+                    &pad
+                };
+                let mut acc = [[0.0f32; T]; R];
+                for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
+                    let w = &wrow[o0..o0 + T];
+                    for (r, a) in acc.iter_mut().enumerate() {
+                        let xi = xb[r * inp + i];
+                        for (al, wl) in a.iter_mut().zip(w) {
+                            *al += xi * wl;
+                        }
+                    }
+                }
+                for (r, a) in acc.iter().enumerate().take(rows) {
+                    for (yl, al) in yb[r * out + o0..r * out + o0 + T].iter_mut().zip(a) {
+                        *yl += al;
+                    }
+                }
+            }
+        }
+        // Remaining outputs (out not a multiple of 8).
+        let rows = xp.len() / inp;
+        for o in tiles * T..out {
+            for r in 0..rows {
+                let mut a = 0.0f32;
+                for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
+                    a += xp[r * inp + i] * wrow[o];
+                }
+                yp[r * out + o] += a;
+            }
+        }
+    }
+}
+
+/// [`axpy_rows`] skipping zero inputs, rows in blocks of 8 so each weight row is read once
+/// per block.
+fn axpy_rows_sparse(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
+    for (xb, yb) in x.chunks(ROW_BLOCK * inp).zip(y.chunks_mut(ROW_BLOCK * out)) {
+        for (i, w) in wt.chunks_exact(out).enumerate().take(inp) {
+            for (xr, yr) in xb.chunks_exact(inp).zip(yb.chunks_exact_mut(out)) {
+                let xi = xr[i];
+                if xi == 0.0 {
+                    continue;
+                }
+                for (a, b) in yr.iter_mut().zip(w) {
+                    *a += xi * b;
+                }
+            }
+        }
+    }
+}
+
+/// The transpose of a row-major `[rows, cols]` matrix.
+pub fn transpose(w: &[f32], rows: usize, cols: usize) -> Vec<f32> {
+    let mut t = vec![0.0f32; w.len()];
+    for r in 0..rows {
+        for c in 0..cols {
+            t[c * rows + r] = w[r * cols + c];
+        }
+    }
+    t
+}
+
+/// Largest matrix (values) a [`Linear`] keeps a transposed copy of for batched rows (the
+/// FiLM hypernetworks, used one row at a time, stay untransposed).
+const MAX_TRANSPOSED: usize = 1 << 23;
+
 /// A dense layer `y = W x + b` (PyTorch `nn.Linear`, weight `[out, in]`).
 #[derive(Debug, Clone)]
 pub struct Linear {
@@ -140,6 +242,8 @@ pub struct Linear {
     /// Output features.
     pub out: usize,
     w: Vec<f32>,
+    /// `[in, out]`, for batches of rows (None for very large matrices).
+    wt: Option<Vec<f32>>,
     b: Option<Vec<f32>>,
 }
 
@@ -158,7 +262,12 @@ impl Linear {
         } else {
             None
         };
-        Ok(Self { inp, out, w, b })
+        Ok(Self::new(inp, out, w, b))
+    }
+
+    fn new(inp: usize, out: usize, w: Vec<f32>, b: Option<Vec<f32>>) -> Self {
+        let wt = (w.len() <= MAX_TRANSPOSED).then(|| transpose(&w, out, inp));
+        Self { inp, out, w, wt, b }
     }
 
     /// Builds a layer from raw values (weight `[out, inp]`).
@@ -167,7 +276,7 @@ impl Linear {
         if let Some(b) = &b {
             check_len("linear bias", b.len(), &[out])?;
         }
-        Ok(Self { inp, out, w, b })
+        Ok(Self::new(inp, out, w, b))
     }
 
     /// Applies the layer to one row.
@@ -192,6 +301,15 @@ impl Linear {
         }
         let rows = x.len() / self.inp;
         let mut y = vec![0.0; rows * self.out];
+        if let (Some(wt), true) = (&self.wt, rows >= 2) {
+            if let Some(b) = &self.b {
+                for yr in y.chunks_exact_mut(self.out) {
+                    yr.copy_from_slice(b);
+                }
+            }
+            axpy_rows(x, self.inp, wt, self.out, &mut y);
+            return Ok(y);
+        }
         for r in 0..rows {
             self.forward_row(
                 &x[r * self.inp..(r + 1) * self.inp],
@@ -250,7 +368,53 @@ pub struct So3Linear {
     pub cout: usize,
     /// `[(lmax+1), cout, cin]`.
     w: Vec<f32>,
+    /// `[(lmax+1), cin, cout]`.
+    wt: Vec<f32>,
     b: Vec<f32>,
+}
+
+/// Applies per-degree weights `wt` `[(lmax+1), cin, cout]` to `x` `[n, (lmax+1)², cin]`, with
+/// `bias` on the l = 0 row: `[n, (lmax+1)², cout]`.
+fn per_degree_apply(
+    x: &[f32],
+    lmax: usize,
+    cin: usize,
+    cout: usize,
+    wt: &[f32],
+    bias: &[f32],
+) -> Result<Vec<f32>> {
+    let k = num_coefficients(lmax);
+    let n = rows_of("SO3 linear input", x.len(), k * cin)?;
+    let mut y = vec![0.0; n * k * cout];
+    for node in 0..n {
+        let xn = &x[node * k * cin..(node + 1) * k * cin];
+        let yn = &mut y[node * k * cout..(node + 1) * k * cout];
+        yn[..cout].copy_from_slice(bias);
+        for l in 0..=lmax {
+            let (a, b) = (l * l, (l + 1) * (l + 1));
+            axpy_rows(
+                &xn[a * cin..b * cin],
+                cin,
+                &wt[l * cin * cout..(l + 1) * cin * cout],
+                cout,
+                &mut yn[a * cout..b * cout],
+            );
+        }
+    }
+    Ok(y)
+}
+
+/// Transposes each degree's `[cout, cin]` block of `[(lmax+1), cout, cin]`.
+fn transpose_per_degree(w: &[f32], lmax: usize, cout: usize, cin: usize) -> Vec<f32> {
+    let mut t = Vec::with_capacity(w.len());
+    for l in 0..=lmax {
+        t.extend(transpose(
+            &w[l * cout * cin..(l + 1) * cout * cin],
+            cout,
+            cin,
+        ));
+    }
+    t
 }
 
 impl So3Linear {
@@ -258,33 +422,25 @@ impl So3Linear {
     pub fn load(s: &Scope<'_>) -> Result<Self> {
         let shape = s.shape("weight", 3)?;
         let (lmax, cout, cin) = (shape[0].saturating_sub(1), shape[1], shape[2]);
+        let w = s.f32("weight", &shape)?;
         Ok(Self {
             lmax,
             cin,
             cout,
-            w: s.f32("weight", &shape)?,
+            wt: transpose_per_degree(&w, lmax, cout, cin),
+            w,
             b: s.f32("bias", &[cout])?,
         })
     }
 
     /// Applies the layer to `x` `[n, (lmax+1)², cin]`.
     pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
-        let k = num_coefficients(self.lmax);
-        let n = rows_of("SO3 linear input", x.len(), k * self.cin)?;
-        let mut y = vec![0.0; n * k * self.cout];
-        for node in 0..n {
-            for i in 0..k {
-                let l = degree_of(i);
-                let xr = &x[(node * k + i) * self.cin..(node * k + i + 1) * self.cin];
-                let yr = &mut y[(node * k + i) * self.cout..(node * k + i + 1) * self.cout];
-                for (o, yo) in yr.iter_mut().enumerate() {
-                    let w =
-                        &self.w[(l * self.cout + o) * self.cin..(l * self.cout + o + 1) * self.cin];
-                    *yo = dot(w, xr) + if i == 0 { self.b[o] } else { 0.0 };
-                }
-            }
-        }
-        Ok(y)
+        per_degree_apply(x, self.lmax, self.cin, self.cout, &self.wt, &self.b)
+    }
+
+    /// The weights `[(lmax+1), cout, cin]`.
+    pub fn weight(&self) -> &[f32] {
+        &self.w
     }
 }
 
@@ -433,9 +589,20 @@ impl GaussianRbf {
             };
             1.0 - step
         };
-        for (k, o) in out.iter_mut().enumerate().take(self.num_basis) {
-            let z = (u - self.mean[k]) / self.std[k];
-            *o = self.weight[k] * (-0.5 * (z * z)).exp() * env * self.normalizer;
+        // z² for every basis first (vectorised), then the exponentials that do not
+        // underflow: exp(−105) is below the smallest f32, so skipping those is exact (and
+        // keeps the narrow field-head bases sparse).
+        let out = &mut out[..self.num_basis];
+        for ((o, m), sd) in out.iter_mut().zip(&self.mean).zip(&self.std) {
+            let z = (u - m) / sd;
+            *o = z * z;
+        }
+        for (o, w) in out.iter_mut().zip(&self.weight) {
+            *o = if *o > 210.0 {
+                0.0
+            } else {
+                w * (-0.5 * *o).exp() * env * self.normalizer
+            };
         }
     }
 
@@ -577,22 +744,15 @@ impl FilmLinear {
             });
         }
         let per = nodes / b;
-        let mut y = vec![0.0; nodes * k * self.cout];
+        let mut y = Vec::with_capacity(nodes * k * self.cout);
         for batch in 0..b {
             let fw =
                 self.weights(&condition[batch * self.encoder.inp..(batch + 1) * self.encoder.inp])?;
-            for node in batch * per..(batch + 1) * per {
-                for i in 0..k {
-                    let l = degree_of(i);
-                    let xr = &x[(node * k + i) * self.cin..(node * k + i + 1) * self.cin];
-                    let yr = &mut y[(node * k + i) * self.cout..(node * k + i + 1) * self.cout];
-                    for (o, yo) in yr.iter_mut().enumerate() {
-                        let w = &fw.w
-                            [(l * self.cout + o) * self.cin..(l * self.cout + o + 1) * self.cin];
-                        *yo = dot(w, xr) + if i == 0 { fw.b[o] } else { 0.0 };
-                    }
-                }
-            }
+            let wt = transpose_per_degree(&fw.w, self.lmax, self.cout, self.cin);
+            let xb = &x[batch * per * k * self.cin..(batch + 1) * per * k * self.cin];
+            y.extend(per_degree_apply(
+                xb, self.lmax, self.cin, self.cout, &wt, &fw.b,
+            )?);
         }
         Ok(y)
     }

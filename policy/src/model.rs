@@ -200,7 +200,7 @@ pub struct BlockTrace {
     pub embedding: Vec<f32>,
     /// For up blocks with a skip: the features after the skip was added.
     pub after_skip: Option<Vec<f32>>,
-    /// Wall time of the block (pooling or up-sampling, graph, TransBlock), seconds.
+    /// CPU time of the block (pooling or up-sampling, graph, TransBlock), seconds.
     pub seconds: f64,
 }
 
@@ -217,7 +217,7 @@ pub struct Encoded {
     pub coord: Vec<[f32; 3]>,
     /// Per block: choices and outputs.
     pub blocks: Vec<BlockTrace>,
-    /// Wall time of the instruction encoder, seconds.
+    /// CPU time of the instruction encoder, seconds.
     pub language_seconds: f64,
 }
 
@@ -437,9 +437,9 @@ impl EquFieldUnet {
                 got: vec![rgb.len(), gripper_eps.len()],
             });
         }
-        let t_lang = std::time::Instant::now();
+        let t_lang = crate::predict::CpuTimer::start();
         let condition = self.lang.condition(instruction, 1)?;
-        let language_seconds = t_lang.elapsed().as_secs_f64();
+        let language_seconds = t_lang.elapsed();
         let mut pts = xyz.to_vec();
         let mut feat: Vec<f32> = Vec::with_capacity(n * 3);
         for (i, c) in rgb.iter().enumerate() {
@@ -560,7 +560,7 @@ impl EquFieldUnet {
         mut idx: BlockIndices,
         trace: &mut Vec<BlockTrace>,
     ) -> Result<(Vec<[f32; 3]>, Vec<f32>)> {
-        let t0 = std::time::Instant::now();
+        let t0 = crate::predict::CpuTimer::start();
         let lmax = self.cfg.lmax;
         let k = num_coefficients(lmax);
         let n = coord.len();
@@ -629,7 +629,7 @@ impl EquFieldUnet {
             coord: coord.clone(),
             embedding: y.clone(),
             after_skip: None,
-            seconds: t0.elapsed().as_secs_f64(),
+            seconds: t0.elapsed(),
         });
         Ok((coord, y))
     }

@@ -39,6 +39,37 @@ use crate::rotation_head::{flat_wigner, RotationHead, SO3_COEFFS};
 use crate::so3::WignerCalculator;
 use crate::weights::Weights;
 
+/// The calling thread's CPU time in seconds (Linux `/proc/thread-self/schedstat`), or the
+/// wall time since the first call where that is unavailable. Inference is single-threaded,
+/// so on an idle machine both agree; on a shared one the CPU time is what a free core would
+/// take.
+pub fn thread_seconds() -> f64 {
+    static START: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    std::fs::read_to_string("/proc/thread-self/schedstat")
+        .ok()
+        .and_then(|s| s.split_whitespace().next()?.parse::<u64>().ok())
+        .map_or_else(
+            || START.get_or_init(Instant::now).elapsed().as_secs_f64(),
+            |ns| ns as f64 * 1e-9,
+        )
+}
+
+/// A stopwatch on [`thread_seconds`].
+#[derive(Debug, Clone, Copy)]
+pub struct CpuTimer(f64);
+
+impl CpuTimer {
+    /// Starts the stopwatch.
+    pub fn start() -> Self {
+        Self(thread_seconds())
+    }
+
+    /// Seconds since the start.
+    pub fn elapsed(&self) -> f64 {
+        thread_seconds() - self.0
+    }
+}
+
 /// Tokens of a CLIP-style instruction embedding.
 pub const INSTRUCTION_TOKENS: usize = 53;
 /// Width of a CLIP-style instruction token.
@@ -397,7 +428,7 @@ pub struct PreparedInput {
     pub in_workspace: usize,
 }
 
-/// Wall time of each stage of one prediction (seconds).
+/// CPU time of each stage of one prediction (seconds, see [`thread_seconds`]).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct StageTimings {
     /// Crop, farthest point sampling, permutation.
@@ -416,6 +447,8 @@ pub struct StageTimings {
     pub rotation_search: f64,
     /// Everything.
     pub total: f64,
+    /// Everything, wall-clock (the other fields are thread CPU time, see [`thread_seconds`]).
+    pub wall_total: f64,
 }
 
 impl StageTimings {
@@ -435,6 +468,7 @@ impl StageTimings {
             "rotation_head": self.rotation_head,
             "rotation_search": self.rotation_search,
             "total": self.total,
+            "wall_total": self.wall_total,
         })
     }
 }
@@ -655,7 +689,8 @@ impl Policy {
         gripper: &GripperPose,
         instruction: &InstructionEmbedding,
     ) -> Result<Prediction> {
-        let t_total = Instant::now();
+        let t_total = CpuTimer::start();
+        let wall = Instant::now();
         if instruction.dim() != self.model.language().token_dim() {
             return Err(PolicyError::ShapeMismatch {
                 name: "instruction embedding (token width)".into(),
@@ -664,11 +699,11 @@ impl Policy {
             });
         }
         let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
-        let t = Instant::now();
+        let t = CpuTimer::start();
         let prep = self.prepare(cloud, gripper, &mut rng)?;
-        let input_prep = t.elapsed().as_secs_f64();
+        let input_prep = t.elapsed();
 
-        let t = Instant::now();
+        let t = CpuTimer::start();
         let enc = self.model.encode(
             &prep.xyz,
             &prep.rgb,
@@ -677,10 +712,10 @@ impl Policy {
             instruction.values(),
             &[],
         )?;
-        let encoder = t.elapsed().as_secs_f64();
+        let encoder = t.elapsed();
 
         // Coarse-to-fine translation, sampled in the workspace frame.
-        let t = Instant::now();
+        let t = CpuTimer::start();
         let cfg = &self.cfg;
         let s = cfg.sampling;
         let ws = cfg.base_from_workspace;
@@ -717,25 +752,25 @@ impl Policy {
             }
             levels.push((queries, logits));
         }
-        let translation_head = t.elapsed().as_secs_f64();
+        let translation_head = t.elapsed();
 
-        let t = Instant::now();
+        let t = CpuTimer::start();
         let position = ws * best.0;
         let rot = self.model.heads().rot_query(
             &enc.embedding,
             &enc.coord,
             [position.x as f32, position.y as f32, position.z as f32],
         )?;
-        let rotation_head = t.elapsed().as_secs_f64();
+        let rotation_head = t.elapsed();
 
-        let t = Instant::now();
+        let t = CpuTimer::start();
         let (coarse_i, coarse_logit) = self.coarse_argmax(&rot.so3_coeffs);
         let start = self
             .grid
             .get(coarse_i)
             .map_or(Matrix3::identity(), |g| g.matrix);
         let (rotation, rotation_logit) = self.refine(&rot.so3_coeffs, start, coarse_logit)?;
-        let rotation_search = t.elapsed().as_secs_f64();
+        let rotation_search = t.elapsed();
 
         let open_probability = 1.0 / (1.0 + (-rot.open_logit).exp());
         let base_from_tcp =
@@ -759,7 +794,8 @@ impl Policy {
             translation_head,
             rotation_head,
             rotation_search,
-            total: t_total.elapsed().as_secs_f64(),
+            total: t_total.elapsed(),
+            wall_total: wall.elapsed().as_secs_f64(),
         };
         Ok(Prediction {
             keyframe,

@@ -120,6 +120,16 @@ impl EdgeWigners {
         })
     }
 
+    /// The matrices of the edges in `range` (a copy).
+    pub fn slice(&self, range: std::ops::Range<usize>) -> Self {
+        let k = num_coefficients(self.lmax);
+        Self {
+            lmax: self.lmax,
+            edges: range.len(),
+            d: self.d[range.start * k * k..range.end * k * k].to_vec(),
+        }
+    }
+
     /// Rotates `x` `[E, (lmax+1)², c]` into the edge frames, keeping the reduced rows:
     /// `[E, n_reduced, c]`.
     pub fn rotate(&self, map: &CoefficientMapping, x: &[f32], c: usize) -> Result<Vec<f32>> {
@@ -267,63 +277,68 @@ impl So2Conv {
         };
         let rad_w = self.rad.as_ref().map_or(0, RadialMlp::out);
         let lmax = self.map.lmax;
+        let l1 = lmax + 1;
         let mut y = vec![0.0f32; edges * nr * cout];
         let mut extra = vec![0.0f32; edges * self.extra];
-        let mut v = Vec::new();
-        let mut o = Vec::new();
-        let mut va = Vec::new();
-        let mut vb = Vec::new();
-        let mut oa = Vec::new();
-        let mut ob = Vec::new();
+        // m = 0: all edges' inputs as one matrix [E, l1·cin], one batched linear map.
+        let mut v = vec![0.0f32; edges * l1 * cin];
         for e in 0..edges {
             let xe = &x[e * nr * cin..(e + 1) * nr * cin];
-            let re = rad.as_ref().map(|r| &r[e * rad_w..(e + 1) * rad_w]);
-            let ye = &mut y[e * nr * cout..(e + 1) * nr * cout];
-            // m = 0.
-            v.clear();
+            let ve = &mut v[e * l1 * cin..(e + 1) * l1 * cin];
             for l in 0..=lmax {
                 let p = self.map.position(l, 0);
-                v.extend_from_slice(&xe[p * cin..(p + 1) * cin]);
+                ve[l * cin..(l + 1) * cin].copy_from_slice(&xe[p * cin..(p + 1) * cin]);
             }
-            if let Some(re) = re {
-                for (vi, ri) in v.iter_mut().zip(re) {
+            if let Some(r) = &rad {
+                for (vi, ri) in ve.iter_mut().zip(&r[e * rad_w..e * rad_w + l1 * cin]) {
                     *vi *= ri;
                 }
             }
-            o.resize(self.fc_m0.out, 0.0);
-            self.fc_m0.forward_row(&v, &mut o);
-            extra[e * self.extra..(e + 1) * self.extra].copy_from_slice(&o[..self.extra]);
+        }
+        let o = self.fc_m0.forward(&v)?;
+        let w0 = self.fc_m0.out;
+        for e in 0..edges {
+            let oe = &o[e * w0..(e + 1) * w0];
+            extra[e * self.extra..(e + 1) * self.extra].copy_from_slice(&oe[..self.extra]);
+            let ye = &mut y[e * nr * cout..(e + 1) * nr * cout];
             for l in 0..=lmax {
                 let p = self.map.position(l, 0);
                 ye[p * cout..(p + 1) * cout]
-                    .copy_from_slice(&o[self.extra + l * cout..self.extra + (l + 1) * cout]);
+                    .copy_from_slice(&oe[self.extra + l * cout..self.extra + (l + 1) * cout]);
             }
-            // m > 0.
-            let mut roff = (lmax + 1) * cin;
-            for (mi, fc) in self.fc_m.iter().enumerate() {
-                let m = mi + 1;
-                let nl = lmax + 1 - m;
-                va.clear();
-                vb.clear();
-                for l in m..=lmax {
+        }
+        drop(o);
+        // m > 0: rows 2e (the +m half) and 2e+1 (the −m half) of one matrix per m.
+        let mut roff = l1 * cin;
+        for (mi, fc) in self.fc_m.iter().enumerate() {
+            let m = mi + 1;
+            let nl = l1 - m;
+            let width = nl * cin;
+            let mut v = vec![0.0f32; 2 * edges * width];
+            for e in 0..edges {
+                let xe = &x[e * nr * cin..(e + 1) * nr * cin];
+                let (va, vb) = v[2 * e * width..(2 * e + 2) * width].split_at_mut(width);
+                for (li, l) in (m..=lmax).enumerate() {
                     let pa = self.map.position(l, m as i64);
                     let pb = self.map.position(l, -(m as i64));
-                    va.extend_from_slice(&xe[pa * cin..(pa + 1) * cin]);
-                    vb.extend_from_slice(&xe[pb * cin..(pb + 1) * cin]);
+                    va[li * cin..(li + 1) * cin].copy_from_slice(&xe[pa * cin..(pa + 1) * cin]);
+                    vb[li * cin..(li + 1) * cin].copy_from_slice(&xe[pb * cin..(pb + 1) * cin]);
                 }
-                if let Some(re) = re {
-                    let rw = &re[roff..roff + nl * cin];
+                if let Some(r) = &rad {
+                    let rw = &r[e * rad_w + roff..e * rad_w + roff + width];
                     for ((a, b), r) in va.iter_mut().zip(vb.iter_mut()).zip(rw) {
                         *a *= r;
                         *b *= r;
                     }
                 }
-                roff += nl * cin;
-                oa.resize(fc.out, 0.0);
-                ob.resize(fc.out, 0.0);
-                fc.forward_row(&va, &mut oa);
-                fc.forward_row(&vb, &mut ob);
-                let half = nl * cout;
+            }
+            roff += width;
+            let o = fc.forward(&v)?;
+            let half = nl * cout;
+            for e in 0..edges {
+                let oa = &o[2 * e * fc.out..(2 * e + 1) * fc.out];
+                let ob = &o[(2 * e + 1) * fc.out..(2 * e + 2) * fc.out];
+                let ye = &mut y[e * nr * cout..(e + 1) * nr * cout];
                 for (li, l) in (m..=lmax).enumerate() {
                     let pa = self.map.position(l, m as i64);
                     let pb = self.map.position(l, -(m as i64));

@@ -232,6 +232,7 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
             "translation_samples": physical.sampling.levels * physical.sampling.per_level,
             "rotation_grid_level": physical.rotation.grid_level,
             "threads": 1,
+            "timings": "thread CPU seconds (the machine may be shared; wall_total is wall-clock)",
         }),
     );
     for mode in modes {
@@ -242,9 +243,9 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
         let mut cfg = PolicyConfig::physical().with_mode(mode);
         cfg.n_points = a.points;
         cfg.n_outside_focus = a.points / 4;
-        let t = Instant::now();
+        let t = policy::predict::CpuTimer::start();
         let mut policy = Policy::random(cfg.clone(), 1)?;
-        let build_s = t.elapsed().as_secs_f64();
+        let build_s = t.elapsed();
         let mut runs = Vec::new();
         for i in 0..a.predictions.max(1) {
             policy.seed = a.seed + i as u64;
@@ -289,7 +290,7 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
             .map(|_| [0, 1, 2].map(|i| rng.random_range(b[0][i]..b[1][i]) as f32))
             .collect();
         let motions: Vec<_> = (0..a.repeats).map(|_| random_motion(&mut rng)).collect();
-        let t = Instant::now();
+        let t = policy::predict::CpuTimer::start();
         let errs = if motions.is_empty() {
             Vec::new()
         } else {
@@ -301,7 +302,8 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
                 &motions,
             )?
         };
-        let forward_s = t.elapsed().as_secs_f64() / (motions.len() + 1) as f64;
+        // Thread CPU time of one encode + heads (the machine may be shared).
+        let forward_s = t.elapsed() / (motions.len() + 1) as f64;
         let summary = |k: usize| {
             let mut v: Vec<f64> = errs.iter().map(|e| e[k]).collect();
             let max = v.iter().copied().fold(f64::NAN, f64::max);

@@ -166,8 +166,8 @@ fn predict(a: PredictArgs) -> anyhow::Result<()> {
     let t = &p.timings;
     let unet: f64 = t.blocks.iter().map(|b| b.1).sum();
     println!(
-        "timing: total {:.3} s = input prep {:.3} + encoder {:.3} (language {:.3}, U-net blocks {:.3}) + translation head {:.3} + rotation head {:.3} + rotation search {:.3}",
-        t.total, t.input_prep, t.encoder, t.language, unet, t.translation_head, t.rotation_head, t.rotation_search
+        "timing (thread CPU time; wall {:.3} s): total {:.3} s = input prep {:.3} + encoder {:.3} (language {:.3}, U-net blocks {:.3}) + translation head {:.3} + rotation head {:.3} + rotation search {:.3}",
+        t.wall_total, t.total, t.input_prep, t.encoder, t.language, unet, t.translation_head, t.rotation_head, t.rotation_search
     );
     for (name, s) in &t.blocks {
         println!("  {name:<8} {s:.3} s");
