@@ -10,9 +10,10 @@
 //!
 //! Tensors of a shard with S steps and P points per cloud: `cloud_xyz` f32 `[S, P, 3]` (base
 //! frame, m), `cloud_rgb` u8 `[S, P, 3]`, `joints` f64 `[S, 6]`, `gripper_width` f64 `[S]`,
-//! `gripper_open` u8 `[S]` (before the step), `keyframe_pose` f64 `[S, 7]` (x, y, z, qx, qy, qz,
-//! qw of the TCP in the base frame), `keyframe_open` u8 `[S]`, `keyframe_ignore_collisions`
-//! u8 `[S]`. Its metadata holds the task, variation, instruction, seed and format.
+//! `gripper_open` u8 `[S]` (before the step), `keyframe_pose` f64 `[S, 7]` (x, y, z, qx, qy,
+//! qz, qw of the TCP in the base frame), `keyframe_open` u8 `[S]`,
+//! `keyframe_ignore_collisions` u8 `[S]`. Its metadata holds the task, variation,
+//! instruction, seed and format.
 
 use std::collections::BTreeMap;
 use std::fs;

@@ -32,7 +32,9 @@ pub struct RunArgs {
     /// The cell configuration; the built-in simulated cell when omitted.
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Task and variation, e.g. pick_fruit/peach.
+    /// Task and variation: pick_fruit/{strawberry,peach,plum},
+    /// disassemble_pipe/{first_link,second_link,all}, pluck_flower/{top,middle,bottom},
+    /// install_toilet_roll/{large,small}; without a variation, the first.
     #[arg(long, default_value = "pick_fruit/strawberry")]
     pub task: String,
     /// Language instruction (defaults to the task variation's own).

@@ -151,7 +151,9 @@ pub(crate) fn expert(task: &TaskInstance, level: FlowerLevel) -> Vec<Keyframe> {
     let outward = body.base_from_body.rotation * Vector3::x();
     let r = grasp_rotation(-fz, fz.cross(&outward));
     let grasp = site + fz * 0.01;
-    let pulled = grasp + outward * PULL;
+    // Out along the stem and 2 cm up: a holder tilted towards the robot must not take the
+    // fingers of the bottom flower down to the table.
+    let pulled = grasp + outward * PULL + Vector3::z() * 0.02;
     vec![
         keyframe(site + fz * 0.10, r, true),
         keyframe(grasp, r, false),

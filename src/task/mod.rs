@@ -40,7 +40,7 @@ pub enum TaskError {
     /// The task is not one of the simulated tasks.
     #[error(
         "unknown task `{0}`: the simulated cell has pick_fruit, disassemble_pipe, pluck_flower \
-         and install_toilet_roll (`equact run --task T/VARIATION`; see TaskKind::all)"
+         and install_toilet_roll; name a variation as task/variation, e.g. pluck_flower/top"
     )]
     UnknownTask(String),
     /// The variation is not one of the task's.

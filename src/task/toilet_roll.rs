@@ -23,8 +23,9 @@ pub const SPINDLE_HEIGHT: f64 = 0.035;
 /// Radius of a roll's hole (m).
 pub const HOLE_RADIUS: f64 = 0.02;
 /// Depth of the grasp TCP below the roll's top (m): the gripper's palm is 1 cm behind the
-/// TCP, so the TCP stays at the top face and the 15 mm fingertips hold the roll's rim.
-const GRASP_BELOW_TOP: f64 = 0.0;
+/// TCP, so the TCP stays 5 mm above the top face (the palm 15 mm above it, clear of the
+/// depth noise) and the 15 mm fingertips hold the roll's rim.
+const GRASP_BELOW_TOP: f64 = -0.005;
 /// Height of the roll's bottom above the seat where the expert lets go (m).
 const RELEASE_HEIGHT: f64 = 0.012;
 /// A seated roll's centre is this close to its place on the holder (m).
@@ -54,7 +55,7 @@ impl RollSize {
     /// Outer radius (m); the 2F-85's 85 mm stroke closes across it.
     pub fn radius(self) -> f64 {
         match self {
-            RollSize::Large => 0.037,
+            RollSize::Large => 0.035,
             RollSize::Small => 0.03,
         }
     }
