@@ -3,8 +3,9 @@
 //! crate's pose sampler, each candidate checked for IK reachability and collisions by the
 //! planner), drives the arm there through the real UR driver, reads back the joints it
 //! reached, renders and detects the flange board in each camera's IR image and writes one
-//! capture per pose into a resumable captures folder. Each pose is written atomically: an
-//! interrupted run loses nothing and `--resume`s where it stopped.
+//! capture per pose (`pose_NNNN.json`, and each IR image as `ir_pose_NNNN_cam_K.png`) into a
+//! resumable captures folder. Each pose is written atomically: an interrupted run loses
+//! nothing, and running it again resumes where it stopped.
 
 use std::path::Path;
 use std::sync::Arc;
@@ -180,6 +181,12 @@ pub fn capture_in_sim(
                     let g: f64 = rng.sample(StandardNormal);
                     *p = (f64::from(*p) + ir_sigma * g).round().clamp(0.0, 255.0) as u8;
                 }
+                // The image is kept beside the capture (to re-detect or inspect later).
+                let png = grey_png(&img).context("encoding an IR image")?;
+                calibration::capture::write_atomic(
+                    &dir.join(format!("ir_pose_{index:04}_cam_{}.png", cam.id)),
+                    &png,
+                )?;
                 // A camera that does not find the board records no view, as on the real cell.
                 if let Ok(corners) = detect_chessboard(&img, &sim.board, &DetectParams::default()) {
                     views.push(CameraView {
@@ -210,4 +217,18 @@ pub fn capture_in_sim(
     let _ = cell.arm.stop();
     cell.controller.shutdown();
     result.map(|()| run)
+}
+
+/// An 8-bit grey image as PNG bytes.
+fn grey_png(img: &cell_types::Image<u8>) -> Result<Vec<u8>, png::EncodingError> {
+    let mut out = Vec::new();
+    {
+        let mut enc = png::Encoder::new(&mut out, img.width, img.height);
+        enc.set_color(png::ColorType::Grayscale);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc.write_header()?;
+        w.write_image_data(&img.data)?;
+        w.finish()?;
+    }
+    Ok(out)
 }

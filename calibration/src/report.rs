@@ -338,6 +338,19 @@ impl fmt::Display for Report {
                 r.pose, r.camera, r.why
             )?;
         }
+        if !self.overlap.is_empty() {
+            writeln!(
+                f,
+                "overlap (point-to-plane, camera a's points on camera b's surface):"
+            )?;
+        }
+        for o in &self.overlap {
+            writeln!(
+                f,
+                "  camera {} on {}: RMS {:.2} mm, mean {:+.2} mm over {} points",
+                o.a, o.b, o.rms_mm, o.mean_mm, o.points
+            )?;
+        }
         Ok(())
     }
 }

@@ -161,14 +161,30 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
                 captures.display()
             );
             let solution = solve(&set, &SolveOptions::default())?;
-            let report = solution.report();
+            let mut report = solution.report();
+            let truth = load_truth(&captures).ok();
+            if let Some(truth) = &truth {
+                // Simulated captures: render the simulated cell's cameras at their true poses
+                // and check and draw the calibrated clouds' overlap.
+                let picture = out.with_extension("overlay.png");
+                report.overlap = overlap_picture(&solution, truth, &picture)?;
+                eprintln!(
+                    "wrote {} (the three clouds, coloured by camera)",
+                    picture.display()
+                );
+            } else {
+                eprintln!(
+                    "no overlap check or picture: they need depth frames of the calibrated \
+                     cameras, which this build captures only in the simulated cell"
+                );
+            }
             if json {
                 println!("{}", report.to_json());
             } else {
                 println!("{report}");
             }
-            if let Ok(truth) = load_truth(&captures) {
-                for (id, m, rad) in solution.errors_to(&truth) {
+            if let Some(truth) = &truth {
+                for (id, m, rad) in solution.errors_to(truth) {
                     eprintln!(
                         "camera {id}: {:.3} mm, {:.4} deg from the simulated truth",
                         m * 1e3,
@@ -181,4 +197,40 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             Ok(())
         }
     }
+}
+
+/// Renders the simulated cell's cameras at their true poses, deprojects with the solved
+/// calibration, returns the overlap check and writes the overlay picture to `path`.
+fn overlap_picture(
+    solution: &calibration::Solution,
+    truth: &calibration::Truth,
+    path: &std::path::Path,
+) -> anyhow::Result<Vec<calibration::OverlapPair>> {
+    use calibration::fusion::{Bounds, FusionParams, FusionPipeline};
+    let mut rig = hil_sim::depth_camera::default_rig(0);
+    for c in &mut rig {
+        if let Some(t) = truth.config.cameras.iter().find(|t| t.id == c.id) {
+            c.base_from_camera = t.base_from_camera;
+            c.intrinsics = t.intrinsics;
+        }
+    }
+    let geometry = hil_sim::scene::Scene::default_cell().build()?;
+    let frames = hil_sim::depth_camera::render_rig(&rig, &geometry, 0, std::time::Duration::ZERO)?;
+    // A part of the scene every camera sees, with more than one plane in it.
+    let region = Bounds {
+        min: [0.42, 0.05, -0.12],
+        max: [0.68, 0.31, 0.2],
+    };
+    let pipe = FusionPipeline::new(solution.calibration(), FusionParams::default())?;
+    let overlap = calibration::overlap_check(&pipe, &frames, &region, 0.01)?;
+    let img = calibration::overlay_image(
+        &pipe,
+        &frames,
+        &region,
+        &calibration::Intrinsics::d455_depth(calibration::DepthMode::Vga640x480),
+        nalgebra::Point3::new(0.9, 0.45, 0.45),
+        nalgebra::Point3::new(0.55, 0.18, -0.02),
+    )?;
+    super::perceive::write_png_rgb(path, &img)?;
+    Ok(overlap)
 }

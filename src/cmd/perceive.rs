@@ -42,7 +42,8 @@ fn parse_mode(s: &str) -> anyhow::Result<DepthMode> {
     })
 }
 
-fn write_png_rgb(path: &Path, img: &Image<Rgb>) -> anyhow::Result<()> {
+/// Writes an RGB image as PNG.
+pub fn write_png_rgb(path: &Path, img: &Image<Rgb>) -> anyhow::Result<()> {
     let file = File::create(path).with_context(|| format!("creating {}", path.display()))?;
     let mut enc = png::Encoder::new(BufWriter::new(file), img.width, img.height);
     enc.set_color(png::ColorType::Rgb);

@@ -41,6 +41,16 @@ fn capture_resume_and_solve_in_the_simulated_cell() {
         .filter(|n| n.starts_with("pose_"))
         .collect();
     assert_eq!(kept.len(), 4, "{kept:?}");
+    // Every camera's IR image of every captured pose is kept beside it.
+    let images = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter(|e| {
+            let name = e.as_ref().unwrap().file_name();
+            let name = name.to_string_lossy();
+            name.starts_with("ir_pose_") && name.ends_with(".png")
+        })
+        .count();
+    assert_eq!(images, 4 * 3);
     let before = std::fs::read(dir.join(&kept[0])).unwrap();
 
     // Resumed: the 4 are kept as they were, the rest captured (or skipped with a reason).
