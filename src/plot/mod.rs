@@ -263,6 +263,9 @@ pub fn jerk(samples: &[[Joints; 3]], period: f64) -> Vec<Joints> {
 /// (seconds since the aligned start, max-abs joint error) for every measurement during the
 /// motion.
 pub fn tracking_error(motion: &PlannedMotion, measured: &[(u64, Joints)]) -> Vec<(f64, f64)> {
+    if motion.samples.len() < 2 || motion.period.is_nan() || motion.period <= 0.0 {
+        return Vec::new();
+    }
     let duration = motion.period * (motion.samples.len() - 1) as f64;
     let planned_at = |tau: f64| -> Joints {
         let x = (tau / motion.period).clamp(0.0, (motion.samples.len() - 1) as f64);
@@ -631,6 +634,15 @@ mod tests {
             limits: [[1.0; 6], [2.0; 6], [10.0; 6]],
             tracking_bound: 0.05,
         }
+    }
+
+    #[test]
+    fn a_degenerate_motion_has_no_tracking_error_and_still_draws() {
+        let mut m = cubic_motion(0.008, 1);
+        assert!(tracking_error(&m, &[(m.start_ns, [0.0; 6])]).is_empty());
+        m.samples.clear();
+        let c = motion_figure(&m, &[]);
+        assert_eq!(c.width, 1000);
     }
 
     #[test]
