@@ -114,6 +114,25 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             args.policy
         );
         let mut cell = SimCell::start(&cfg, task.clone(), seed, clock.clone())?;
+        if !cfg.calibration.file.trim().is_empty() {
+            // Fuse with a calibration from `equact calibrate` instead of the simulator's true
+            // camera poses (the file is relative to the config file).
+            let dir = args
+                .config
+                .as_ref()
+                .and_then(|p| p.parent())
+                .map(PathBuf::from)
+                .unwrap_or_default();
+            let path = dir.join(&cfg.calibration.file);
+            let calibration = calibration::read_calibration_toml(&path)
+                .with_context(|| format!("reading the calibration {}", path.display()))?;
+            let known: Vec<u8> = cell.calibration.cameras.iter().map(|c| c.id).collect();
+            calibration
+                .validate_against(&known)
+                .with_context(|| format!("{} does not fit this cell", path.display()))?;
+            cell.calibration = calibration;
+            println!("  cameras calibrated from {}", path.display());
+        }
         if let Ok(mut handles) = stop_handles.lock() {
             handles.clear();
             handles.push(cell.arm.stop_handle());
