@@ -1,5 +1,6 @@
-//! One module per `equact` subcommand.
+//! One module per `equact` subcommand, and `args` for helpers they share.
 
+pub mod args;
 pub mod bench;
 pub mod bench_ur;
 pub mod calibrate;

@@ -1,7 +1,6 @@
 //! `equact plan`: plan one keyframe from a joint configuration against a cloud file and
 //! print the result and its timing.
 
-use anyhow::Context;
 use cell_types::{Base, Keyframe, Tcp, Transform};
 use clap::Args;
 use planner::{CloudParams, Planner, PlannerConfig, PlannerLimits, RobotModel, World};
@@ -33,20 +32,10 @@ pub struct PlanArgs {
     pub json: bool,
 }
 
-fn numbers<const N: usize>(s: &str, what: &str) -> anyhow::Result<[f64; N]> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|x| x.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("--{what} must be {N} comma-separated numbers"))?;
-    v.try_into()
-        .map_err(|v: Vec<f64>| anyhow::anyhow!("--{what} has {} numbers, need {N}", v.len()))
-}
-
 /// Runs `equact plan`.
 pub fn run(args: PlanArgs) -> anyhow::Result<()> {
-    let start = numbers::<6>(&args.start, "start")?;
-    let pose = numbers::<6>(&args.pose, "pose")?;
+    let start = super::args::numbers::<6>(&args.start, "start")?;
+    let pose = super::args::numbers::<6>(&args.pose, "pose")?;
     let (model, period) = if args.ur5e {
         (RobotModel::ur5e()?, 0.002)
     } else {
@@ -60,9 +49,7 @@ pub fn run(args: PlanArgs) -> anyhow::Result<()> {
     let t = Instant::now();
     let world = match &args.cloud {
         Some(path) => {
-            let bytes =
-                std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-            let cloud = planner::cloud_io::read_cloud(&bytes)?;
+            let cloud = super::args::read_cloud_file(path)?;
             World::from_cloud(&cloud, &CloudParams::default())?
         }
         None => World::empty(),

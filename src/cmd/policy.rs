@@ -1,7 +1,6 @@
 //! `equact policy ...`: tools around the EquAct network: fixture parity checks and one
 //! prediction from a cloud file.
 
-use anyhow::Context;
 use cell_types::{Base, Tcp, Transform};
 use clap::{Args, Subcommand, ValueEnum};
 use policy::predict::{GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode};
@@ -92,22 +91,9 @@ pub struct PredictArgs {
     pub json: bool,
 }
 
-fn numbers<const N: usize>(s: &str, what: &str) -> anyhow::Result<[f64; N]> {
-    let v: Vec<f64> = s
-        .split(',')
-        .map(|x| x.trim().parse::<f64>())
-        .collect::<Result<_, _>>()
-        .with_context(|| format!("--{what} must be {N} comma-separated numbers"))?;
-    v.try_into()
-        .map_err(|v: Vec<f64>| anyhow::anyhow!("--{what} has {} numbers, need {N}", v.len()))
-}
-
 fn predict(a: PredictArgs) -> anyhow::Result<()> {
-    let bytes =
-        std::fs::read(&a.cloud).with_context(|| format!("reading {}", a.cloud.display()))?;
-    let cloud = planner::cloud_io::read_cloud(&bytes)
-        .with_context(|| format!("parsing {}", a.cloud.display()))?;
-    let g = numbers::<6>(&a.gripper, "gripper")?;
+    let cloud = super::args::read_cloud_file(&a.cloud)?;
+    let g = super::args::numbers::<6>(&a.gripper, "gripper")?;
     let gripper = GripperPose {
         base_from_tcp: Transform::<Base, Tcp>::from_xyz_rpy([g[0], g[1], g[2]], [g[3], g[4], g[5]]),
         open: !a.closed,
