@@ -543,6 +543,23 @@ impl Chain {
     }
 }
 
+/// Rings of `m` points on the side of a cylinder (or a capsule's cylindrical part) along z.
+fn side_rings(
+    pts: &mut Vec<Point3<f64>>,
+    origin: &Isometry3<f64>,
+    radius: f64,
+    length: f64,
+    m: usize,
+) {
+    for i in 0..=m {
+        let z = -length / 2.0 + length * i as f64 / m as f64;
+        for k in 0..m {
+            let ph = TAU * k as f64 / m as f64;
+            pts.push(origin * Point3::new(radius * ph.cos(), radius * ph.sin(), z));
+        }
+    }
+}
+
 /// Points on the surface of a shape (for checking that spheres cover it), in its link frame.
 pub fn surface_samples(shape: &Shape, n: usize) -> Vec<Point3<f64>> {
     let mut pts = Vec::new();
@@ -564,13 +581,7 @@ pub fn surface_samples(shape: &Shape, n: usize) -> Vec<Point3<f64>> {
             radius,
             length,
         } => {
-            for i in 0..=m {
-                let z = -length / 2.0 + length * i as f64 / m as f64;
-                for k in 0..m {
-                    let ph = TAU * k as f64 / m as f64;
-                    pts.push(origin * Point3::new(radius * ph.cos(), radius * ph.sin(), z));
-                }
-            }
+            side_rings(&mut pts, origin, *radius, *length, m);
             for i in 0..=m {
                 let r = radius * i as f64 / m as f64;
                 for k in 0..m {
@@ -586,13 +597,7 @@ pub fn surface_samples(shape: &Shape, n: usize) -> Vec<Point3<f64>> {
             radius,
             length,
         } => {
-            for i in 0..=m {
-                let z = -length / 2.0 + length * i as f64 / m as f64;
-                for k in 0..m {
-                    let ph = TAU * k as f64 / m as f64;
-                    pts.push(origin * Point3::new(radius * ph.cos(), radius * ph.sin(), z));
-                }
-            }
+            side_rings(&mut pts, origin, *radius, *length, m);
             // The caps: half spheres around the axis ends.
             for i in 0..m {
                 let th = PI / 2.0 * (i as f64 + 0.5) / m as f64;
