@@ -34,6 +34,13 @@ pub struct EdgeSet {
     pub attr: Vec<f32>,
 }
 
+/// Euclidean length of each edge vector.
+fn edge_lengths(vec: &[[f32; 3]]) -> Vec<f32> {
+    vec.iter()
+        .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
+        .collect()
+}
+
 impl EdgeSet {
     /// Builds the edges `src[e] → dst[e]` between two point sets, with the radial basis
     /// `rbf` of their lengths and frames up to degree `lmax`.
@@ -64,20 +71,9 @@ impl EdgeSet {
             };
             vec.push([ps[0] - pd[0], ps[1] - pd[1], ps[2] - pd[2]]);
         }
-        let dist: Vec<f32> = vec
-            .iter()
-            .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
-            .collect();
+        let dist = edge_lengths(&vec);
         let attr = rbf.forward(&dist);
-        let wigners = EdgeWigners::new(calc, lmax, &vec)?;
-        Ok(Self {
-            src,
-            dst,
-            vec,
-            dist,
-            wigners,
-            attr,
-        })
+        Self::assemble(calc, lmax, src, dst, vec, dist, attr)
     }
 
     /// Builds an edge set from given edge vectors and features (e.g. a fixture's).
@@ -92,10 +88,20 @@ impl EdgeSet {
         let e = src.len();
         check_len("edge_dst", dst.len(), &[e])?;
         check_len("edge_vec", vec.len(), &[e])?;
-        let dist = vec
-            .iter()
-            .map(|v| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt())
-            .collect();
+        let dist = edge_lengths(&vec);
+        Self::assemble(calc, lmax, src, dst, vec, dist, attr)
+    }
+
+    /// The edge set with its Wigner matrices computed from the edge vectors.
+    fn assemble(
+        calc: &WignerCalculator,
+        lmax: usize,
+        src: Vec<usize>,
+        dst: Vec<usize>,
+        vec: Vec<[f32; 3]>,
+        dist: Vec<f32>,
+        attr: Vec<f32>,
+    ) -> Result<Self> {
         let wigners = EdgeWigners::new(calc, lmax, &vec)?;
         Ok(Self {
             src,
