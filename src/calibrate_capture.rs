@@ -67,11 +67,7 @@ pub fn capture_in_sim(
         ir_sigma,
     } = plan;
     let planner = planner_from_config(cfg)?;
-    let world = World::empty().with_obstacle(Obstacle::HalfSpace {
-        name: "table".into(),
-        normal: nalgebra::Unit::new_normalize(nalgebra::Vector3::z()),
-        offset: cfg.workspace.table_height,
-    });
+    let world = World::empty().with_obstacle(Obstacle::table(cfg.workspace.table_height));
     let home: Joints = hil_sim::scene::HOME_Q;
     let flange_from_tcp = planner
         .model

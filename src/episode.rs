@@ -16,7 +16,7 @@ use cell_types::config::CellConfig;
 use cell_types::{Clock, GripperState, JointState, Keyframe, PointCloud};
 use firmware_iface::arm::{Arm, ExecutionOutcome};
 use firmware_iface::gripper::Gripper;
-use nalgebra::{Unit, Vector3};
+use nalgebra::Vector3;
 use planner::{CloudParams, Obstacle, Planner, PlannerConfig, PlannerLimits, RobotModel, World};
 use serde_json::json;
 
@@ -300,11 +300,7 @@ fn episode_steps(
             ))
         }
     };
-    let table = Obstacle::HalfSpace {
-        name: "table".into(),
-        normal: Unit::new_normalize(Vector3::z()),
-        offset: cfg.workspace.table_height,
-    };
+    let table = Obstacle::table(cfg.workspace.table_height);
 
     let mut states = Vec::new();
     for step in 0..MAX_KEYFRAMES {
@@ -322,12 +318,9 @@ fn episode_steps(
         record_arm_states(rec, &cell.arm, &mut states)?;
         let t = ns(clock);
         rec.write("/gripper", t, &gripper_message(&gstate))?;
-        let mut transforms = vec![recording::frame_transform(
-            t,
-            "base",
-            "tcp",
-            planner.model.fk_tcp(&q).isometry(),
-        )];
+        // The TCP is already in /tf at the controller rate (record_arm_states): here only
+        // the cameras.
+        let mut transforms = Vec::with_capacity(cell.calibration.cameras.len());
         for c in &cell.calibration.cameras {
             transforms.push(recording::frame_transform(
                 t,

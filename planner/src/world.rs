@@ -63,6 +63,15 @@ pub enum Obstacle {
 }
 
 impl Obstacle {
+    /// The table top: everything below z = `height` in the base frame, named `table`.
+    pub fn table(height: f64) -> Self {
+        Obstacle::HalfSpace {
+            name: "table".into(),
+            normal: Vector3::z_axis(),
+            offset: height,
+        }
+    }
+
     /// The obstacle's name.
     pub fn name(&self) -> &str {
         match self {

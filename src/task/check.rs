@@ -6,7 +6,7 @@
 
 use cell_types::{FrameId, Joints, PointCloud};
 use hil_sim::scene::{robot_capsules, Primitive, HOME_Q};
-use nalgebra::{Isometry3, Point3, Unit, Vector3};
+use nalgebra::{Isometry3, Point3, Vector3};
 use planner::{CloudParams, Obstacle, Planner, World};
 
 use rand::{Rng, SeedableRng};
@@ -169,11 +169,7 @@ pub fn planning_cloud(world: &TaskWorld, q: &Joints, opening: f64, seed: u64) ->
 /// Runs `task`'s expert kinematically from the home pose with `planner`.
 pub fn kinematic_episode(task: &TaskInstance, planner: &Planner) -> KinematicReport {
     let mut world = TaskWorld::new(task.clone());
-    let table = Obstacle::HalfSpace {
-        name: "table".into(),
-        normal: Unit::new_normalize(Vector3::z()),
-        offset: task.table_height,
-    };
+    let table = Obstacle::table(task.table_height);
     let mut q = HOME_Q;
     let mut open = true;
     let mut opening = OPEN_WIDTH;
