@@ -127,12 +127,17 @@ pub struct EpisodeReport {
     pub counts: BTreeMap<&'static str, u64>,
 }
 
-/// Builds the planner the cell's configuration asks for.
-pub fn planner_from_config(cfg: &CellConfig) -> anyhow::Result<Planner> {
-    let model = match cfg.robot.model {
+/// The kinematic and collision model of the configured arm.
+pub fn robot_model(cfg: &CellConfig) -> anyhow::Result<RobotModel> {
+    Ok(match cfg.robot.model {
         cell_types::config::RobotModel::Ur5 => RobotModel::ur5()?,
         cell_types::config::RobotModel::Ur5e => RobotModel::ur5e()?,
-    };
+    })
+}
+
+/// Builds the planner the cell's configuration asks for.
+pub fn planner_from_config(cfg: &CellConfig) -> anyhow::Result<Planner> {
+    let model = robot_model(cfg)?;
     let limits = PlannerLimits {
         max_velocity: cfg.limits.max_velocity,
         max_acceleration: cfg.limits.max_acceleration,

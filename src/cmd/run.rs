@@ -11,16 +11,19 @@ use anyhow::Context;
 use cell_types::config::RobotBackend;
 use cell_types::SystemClock;
 use clap::{Args, ValueEnum};
-use equact::episode::{run_sim_episode, Outcome, ScriptedExpert};
+use equact::episode::{run_sim_episode, KeyframeSource, Outcome, ScriptedExpert};
+use equact::learned::LearnedPolicy;
 use equact::recording::EpisodeRecorder;
 use equact::sim_cell::SimCell;
 use equact::task::{TaskInstance, TaskKind};
 use firmware_iface::arm::Arm;
+use policy::predict::PolicyConfig;
 
 /// Which policy drives the episode.
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum PolicyChoice {
-    /// The trained EquAct network (needs committed weights; not trained yet).
+    /// The EquAct network, with the weights of `--weights` (none are committed yet: the
+    /// training of issue 9 produces them).
     Learned,
     /// The scripted expert, from the simulator's true object poses.
     Expert,
@@ -49,6 +52,42 @@ pub struct RunArgs {
     /// Which policy to run.
     #[arg(long, value_enum, default_value_t = PolicyChoice::Expert)]
     pub policy: PolicyChoice,
+    /// Network weights for `--policy learned` (safetensors, as `equact policy predict` reads).
+    #[arg(long)]
+    pub weights: Option<PathBuf>,
+    /// Instruction embedding for `--policy learned` (safetensors, one F32 tensor 53 x 512).
+    #[arg(long)]
+    pub instruction_embedding: Option<PathBuf>,
+    /// Network size the weights were trained with.
+    #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
+    pub network: NetworkSize,
+}
+
+/// The network sizes `equact run --policy learned` can load.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+pub enum NetworkSize {
+    /// The physical-robot configuration: 2048 points, l_max 3, the reference's widths.
+    Physical,
+    /// The tiny test configuration (128 points, narrow layers).
+    Tiny,
+}
+
+impl NetworkSize {
+    fn config(self) -> PolicyConfig {
+        match self {
+            Self::Physical => PolicyConfig::physical(),
+            Self::Tiny => PolicyConfig::tiny(),
+        }
+    }
+}
+
+impl PolicyChoice {
+    fn label(self) -> &'static str {
+        match self {
+            Self::Learned => "learned",
+            Self::Expert => "expert",
+        }
+    }
 }
 
 /// Runs `equact run`.
@@ -62,13 +101,28 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
              use the simulated cell (no --config) for now"
         );
     }
-    if args.policy == PolicyChoice::Learned {
-        anyhow::bail!(
-            "no trained EquAct weights are committed yet (issue 9); run with --policy expert"
-        );
-    }
+    let learned_files =
+        match args.policy {
+            PolicyChoice::Expert => None,
+            PolicyChoice::Learned => {
+                let Some(weights) = args.weights.clone() else {
+                    anyhow::bail!(
+                        "--policy learned needs --weights FILE: no trained EquAct weights are \
+                     committed yet (issue 9); run with --policy expert, or pass weights"
+                    );
+                };
+                let Some(embedding) = args.instruction_embedding.clone() else {
+                    anyhow::bail!(
+                    "--policy learned needs --instruction-embedding FILE (53 x 512 safetensors \
+                     of the instruction `{}`)",
+                    args.instruction.as_deref().unwrap_or("of the task variation")
+                );
+                };
+                Some((weights, embedding))
+            }
+        };
     let kind = TaskKind::parse(&args.task).map_err(anyhow::Error::msg)?;
-    if let Some(text) = &args.instruction {
+    if let (Some(text), None) = (&args.instruction, &learned_files) {
         if *text != kind.instruction() {
             anyhow::bail!(
                 "the scripted expert follows the task variation, not free text: `{text}` is not \
@@ -95,6 +149,25 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         })
         .context("installing the Ctrl-C handler")?;
     }
+
+    // Load the network once, before any cell starts: a bad file fails fast.
+    let mut learned = match &learned_files {
+        None => None,
+        Some((weights, embedding)) => {
+            println!(
+                "loading the EquAct network ({:?}) from {}",
+                args.network,
+                weights.display()
+            );
+            Some(LearnedPolicy::load(
+                args.network.config(),
+                weights,
+                embedding,
+                &cfg,
+                args.seed,
+            )?)
+        }
+    };
 
     let mut successes = 0;
     let mut failures = Vec::new();
@@ -153,21 +226,32 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let path = cfg.recording_dir().join(format!(
             "{}_{}_seed{seed}_{stamp}.mcap",
             kind.name().replace('/', "-"),
-            "expert"
+            args.policy.label()
         ));
         let mut meta = BTreeMap::new();
         meta.insert("task".into(), kind.name());
         meta.insert("instruction".into(), kind.instruction());
         meta.insert("seed".into(), seed.to_string());
-        meta.insert("policy".into(), format!("{:?}", args.policy));
+        meta.insert("policy".into(), args.policy.label().into());
+        if let Some((w, e)) = &learned_files {
+            meta.insert("weights".into(), w.display().to_string());
+            meta.insert("instruction_embedding".into(), e.display().to_string());
+        }
         meta.insert("equact_version".into(), env!("CARGO_PKG_VERSION").into());
         meta.insert("config".into(), cfg.to_toml_string()?);
         let mut recorder = EpisodeRecorder::create(&path, &meta)?;
         let mut expert = ScriptedExpert::new(task.expert_keyframes());
+        let source: &mut dyn KeyframeSource = match learned.as_mut() {
+            Some(l) => {
+                l.set_seed(seed);
+                l
+            }
+            None => &mut expert,
+        };
         let report = run_sim_episode(
             &cfg,
             &mut cell,
-            &mut expert,
+            source,
             &mut recorder,
             &interrupt,
             clock.as_ref(),
