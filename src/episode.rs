@@ -12,16 +12,19 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use calibration::fusion::{FusionParams, FusionPipeline};
+use calibration::CellCalibration;
 use cell_types::config::CellConfig;
-use cell_types::{Clock, GripperState, JointState, Keyframe, PointCloud};
+use cell_types::{Clock, GripperState, JointState, Joints, Keyframe, PointCloud};
 use firmware_iface::arm::{Arm, ExecutionOutcome};
+use firmware_iface::camera::DepthCamera;
 use firmware_iface::gripper::Gripper;
+use firmware_iface::ur::UrArm;
 use nalgebra::Vector3;
 use planner::{CloudParams, Obstacle, Planner, PlannerConfig, PlannerLimits, RobotModel, World};
 use serde_json::json;
 
 use crate::recording::{self, EpisodeRecorder, LogLevel};
-use crate::sim_cell::SimCell;
+use crate::sim_cell::{SimCell, SimWorld};
 
 /// Most keyframes one episode may take (the keyframe-policy literature's limit).
 pub const MAX_KEYFRAMES: usize = 25;
@@ -72,6 +75,85 @@ impl KeyframeSource for ScriptedExpert {
 
     fn name(&self) -> &str {
         "expert"
+    }
+}
+
+/// What the loop knows about the task besides the cameras: in the simulated cell the
+/// simulator's truth (success test, grasp attachment); on a real cell only the instruction.
+pub trait TaskMonitor {
+    /// The language instruction of the episode.
+    fn instruction(&self) -> String;
+    /// Whether the task is done: `Some` where a success test exists (simulation), `None` on
+    /// a real cell (the operator judges the outcome).
+    fn success(&self) -> Option<bool>;
+    /// The arm moved to `q` with the fingers `opening` apart.
+    fn update_robot(&mut self, _q: &Joints, _opening: f64) -> anyhow::Result<()> {
+        Ok(())
+    }
+    /// The gripper is about to close at `q`.
+    fn before_close(&mut self, _q: &Joints) {}
+    /// The gripper finished moving at `q`; `holding` as the gripper reports.
+    fn after_gripper(&mut self, _q: &Joints, _holding: bool) {}
+}
+
+impl TaskMonitor for SimWorld {
+    fn instruction(&self) -> String {
+        self.task.kind.instruction()
+    }
+    fn success(&self) -> Option<bool> {
+        Some(SimWorld::success(self))
+    }
+    fn update_robot(&mut self, q: &Joints, opening: f64) -> anyhow::Result<()> {
+        SimWorld::update_robot(self, q, opening)
+    }
+    fn before_close(&mut self, q: &Joints) {
+        SimWorld::before_close(self, q);
+    }
+    fn after_gripper(&mut self, q: &Joints, holding: bool) {
+        SimWorld::after_gripper(self, q, holding);
+    }
+}
+
+/// A real cell's task: only the instruction is known; success is the operator's call.
+pub struct OperatorJudged {
+    /// The language instruction.
+    pub instruction: String,
+}
+
+impl TaskMonitor for OperatorJudged {
+    fn instruction(&self) -> String {
+        self.instruction.clone()
+    }
+    fn success(&self) -> Option<bool> {
+        None
+    }
+}
+
+/// The parts of a cell one episode drives, simulated or real: the UR driver, a gripper on
+/// any transport, the depth cameras, their calibration and the task monitor.
+pub struct CellIo<'a> {
+    /// The UR driver (connected to a real controller or the simulated one).
+    pub arm: &'a mut UrArm,
+    /// The gripper driver.
+    pub gripper: &'a mut dyn Gripper,
+    /// The depth cameras.
+    pub cameras: &'a mut [Box<dyn DepthCamera>],
+    /// The cameras' calibration.
+    pub calibration: &'a CellCalibration,
+    /// What is known about the task.
+    pub task: &'a mut dyn TaskMonitor,
+}
+
+impl<'a> CellIo<'a> {
+    /// Borrows the simulated cell's parts.
+    pub fn sim(cell: &'a mut SimCell) -> Self {
+        Self {
+            arm: &mut cell.arm,
+            gripper: &mut cell.gripper,
+            cameras: &mut cell.cameras,
+            calibration: &cell.calibration,
+            task: &mut cell.world,
+        }
     }
 }
 
@@ -228,9 +310,31 @@ pub fn run_sim_episode(
     clock: &dyn Clock,
     seed: u64,
 ) -> EpisodeReport {
+    run_episode(
+        cfg,
+        CellIo::sim(cell),
+        policy,
+        recorder,
+        interrupt,
+        clock,
+        seed,
+    )
+}
+
+/// Runs one episode on any cell (see [`CellIo`]) with `policy`, recording into `recorder`.
+/// `interrupt` is set by Ctrl-C. Never returns with the arm moving.
+pub fn run_episode(
+    cfg: &CellConfig,
+    mut cell: CellIo<'_>,
+    policy: &mut dyn KeyframeSource,
+    recorder: &mut EpisodeRecorder,
+    interrupt: &Arc<AtomicBool>,
+    clock: &dyn Clock,
+    seed: u64,
+) -> EpisodeReport {
     let mut steps = 0;
     let (outcome, detail) = match episode_steps(
-        cfg, cell, policy, recorder, interrupt, clock, seed, &mut steps,
+        cfg, &mut cell, policy, recorder, interrupt, clock, seed, &mut steps,
     ) {
         Ok((o, d)) => (o, d),
         Err(e) => (Outcome::Error, format!("{e:#}")),
@@ -250,7 +354,7 @@ pub fn run_sim_episode(
         }
     }
     // The stop's deceleration and the final rest belong to the recording too.
-    if let Err(e) = record_arm_states(recorder, &cell.arm, &mut Vec::new()) {
+    if let Err(e) = record_arm_states(recorder, cell.arm, &mut Vec::new()) {
         eprintln!("warning: recording the last arm states failed: {e:#}");
     }
     let t = ns(clock);
@@ -273,7 +377,7 @@ pub fn run_sim_episode(
 #[allow(clippy::too_many_arguments)]
 fn episode_steps(
     cfg: &CellConfig,
-    cell: &mut SimCell,
+    cell: &mut CellIo<'_>,
     policy: &mut dyn KeyframeSource,
     rec: &mut EpisodeRecorder,
     interrupt: &Arc<AtomicBool>,
@@ -283,7 +387,7 @@ fn episode_steps(
 ) -> anyhow::Result<(Outcome, String)> {
     let planner = planner_from_config(cfg)?;
     let fusion = FusionPipeline::new(cell.calibration.clone(), fusion_params(cfg, seed))?;
-    let instruction = cell.world.task.kind.instruction();
+    let instruction = cell.task.instruction();
     rec.write(
         "/robot_description",
         ns(clock),
@@ -320,7 +424,7 @@ fn episode_steps(
             Err(e) => return Ok((Outcome::ArmStopped, format!("before keyframe {step}: {e}"))),
         };
         let q = arm_state.joints.position;
-        record_arm_states(rec, &cell.arm, &mut states)?;
+        record_arm_states(rec, cell.arm, &mut states)?;
         let t = ns(clock);
         rec.write("/gripper", t, &gripper_message(&gstate))?;
         // The TCP is already in /tf at the controller rate (record_arm_states): here only
@@ -388,18 +492,18 @@ fn episode_steps(
             instruction: &instruction,
         };
         let Some(keyframe) = policy.next_keyframe(&obs)? else {
-            let done = cell.world.success();
-            return Ok((
-                if done {
-                    Outcome::Success
-                } else {
-                    Outcome::TaskNotDone
-                },
-                format!(
-                    "the {} policy finished after {step} keyframes",
-                    policy.name()
+            let finished = format!(
+                "the {} policy finished after {step} keyframes",
+                policy.name()
+            );
+            return Ok(match cell.task.success() {
+                Some(true) => (Outcome::Success, finished),
+                Some(false) => (Outcome::TaskNotDone, finished),
+                None => (
+                    Outcome::TaskNotDone,
+                    format!("{finished}; no success test on a real cell: judge the outcome"),
                 ),
-            ));
+            });
         };
         let predict_s = t2.elapsed().as_secs_f64();
         rec.write(
@@ -463,7 +567,7 @@ fn episode_steps(
             Err(e) => return Ok((Outcome::ArmStopped, format!("keyframe {step}: {e}"))),
         };
         let exec_s = t4.elapsed().as_secs_f64();
-        record_arm_states(rec, &cell.arm, &mut states)?;
+        record_arm_states(rec, cell.arm, &mut states)?;
         let (final_q, jitter) = match &outcome {
             ExecutionOutcome::Completed {
                 final_state,
@@ -476,7 +580,7 @@ fn episode_steps(
                 last_state,
                 ..
             } => {
-                cell.world
+                cell.task
                     .update_robot(&last_state.joints.position, opening)?;
                 let detail = format!("keyframe {step}: arm stopped by {by:?}: {cause:?}");
                 return Ok((
@@ -489,7 +593,7 @@ fn episode_steps(
                 ));
             }
         };
-        cell.world.update_robot(&final_q, opening)?;
+        cell.task.update_robot(&final_q, opening)?;
 
         // Gripper.
         let t5 = Instant::now();
@@ -498,7 +602,7 @@ fn episode_steps(
             let result = if keyframe.gripper_open {
                 cell.gripper.open()
             } else {
-                cell.world.before_close(&final_q);
+                cell.task.before_close(&final_q);
                 cell.gripper.close()
             };
             gstate = match result {
@@ -510,8 +614,8 @@ fn episode_steps(
                     ))
                 }
             };
-            cell.world.after_gripper(&final_q, gstate.holds_object());
-            cell.world.update_robot(&final_q, gstate.width_m)?;
+            cell.task.after_gripper(&final_q, gstate.holds_object());
+            cell.task.update_robot(&final_q, gstate.width_m)?;
         }
         let gripper_s = t5.elapsed().as_secs_f64();
         *steps = step + 1;
@@ -571,7 +675,7 @@ fn episode_steps(
             exec_s,
             gripper_s,
         );
-        if cell.world.success() {
+        if cell.task.success() == Some(true) {
             return Ok((
                 Outcome::Success,
                 format!("task done after {} keyframes", step + 1),
@@ -580,6 +684,9 @@ fn episode_steps(
     }
     Ok((
         Outcome::TaskNotDone,
-        format!("{MAX_KEYFRAMES} keyframes without finishing the task"),
+        match cell.task.success() {
+            None => format!("{MAX_KEYFRAMES} keyframes; no success test on a real cell"),
+            Some(_) => format!("{MAX_KEYFRAMES} keyframes without finishing the task"),
+        },
     ))
 }

@@ -11,6 +11,7 @@ pub mod episode;
 pub mod learned;
 pub mod plot;
 pub mod preflight;
+pub mod real_cell;
 pub mod recording;
 pub mod sim_cell;
 pub mod task;

@@ -11,8 +11,11 @@ use anyhow::Context;
 use cell_types::config::RobotBackend;
 use cell_types::SystemClock;
 use clap::{Args, ValueEnum};
-use equact::episode::{run_sim_episode, KeyframeSource, Outcome, ScriptedExpert};
+use equact::episode::{
+    run_episode, run_sim_episode, KeyframeSource, OperatorJudged, Outcome, ScriptedExpert,
+};
 use equact::learned::LearnedPolicy;
+use equact::real_cell::RealCell;
 use equact::recording::EpisodeRecorder;
 use equact::sim_cell::SimCell;
 use equact::task::{TaskInstance, TaskKind};
@@ -93,12 +96,12 @@ impl PolicyChoice {
 /// Runs `equact run`.
 pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let cfg = super::config::load(args.config.as_ref())?;
-    if cfg.robot.backend == RobotBackend::Ur {
+    let real = cfg.robot.backend == RobotBackend::Ur;
+    if real && args.policy == PolicyChoice::Expert {
         anyhow::bail!(
-            "running on a real UR controller is not wired into `equact run` yet: the drivers \
-             (firmware_iface::ur::UrArm, RobotiqGripper) work and `equact check --config FILE` \
-             checks the cell without moving it, but there is no RealSense capture backend yet; \
-             use the simulated cell (no --config) for now"
+            "the scripted expert reads the simulator's true object poses, which a real cell \
+             does not have: run a real cell with --policy learned --weights FILE \
+             --instruction-embedding FILE, or use the simulated cell (no --config)"
         );
     }
     let learned_files =
@@ -168,6 +171,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             )?)
         }
     };
+
+    if real {
+        let Some(policy) = learned.as_mut() else {
+            anyhow::bail!("a real cell needs --policy learned");
+        };
+        return run_real(&args, &cfg, kind, policy, &interrupt, &stop_handles);
+    }
 
     let mut successes = 0;
     let mut failures = Vec::new();
@@ -280,6 +290,117 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             format!(" ({})", failures.join(", "))
         }
     );
+    if interrupt.load(Ordering::SeqCst) {
+        anyhow::bail!("interrupted by Ctrl-C; the arm was stopped and the recording finished");
+    }
+    Ok(())
+}
+
+/// Episodes on a real cell: the dry-run checks first (nothing moves unless every check
+/// passes), then the same loop as the simulated cell with the learned policy. There is no
+/// success test on a real cell: each episode ends when the keyframe limit is reached, on a
+/// fault or on Ctrl-C, and the operator judges the outcome.
+fn run_real(
+    args: &RunArgs,
+    cfg: &cell_types::config::CellConfig,
+    kind: TaskKind,
+    policy: &mut LearnedPolicy,
+    interrupt: &Arc<AtomicBool>,
+    stop_handles: &Arc<std::sync::Mutex<Vec<firmware_iface::arm::StopHandle>>>,
+) -> anyhow::Result<()> {
+    let config_dir = args
+        .config
+        .as_ref()
+        .and_then(|p| p.parent())
+        .map(PathBuf::from)
+        .unwrap_or_default();
+    let clock: Arc<dyn cell_types::Clock> = Arc::new(SystemClock::new());
+    println!("checking the cell before anything moves (as `equact check`)...");
+    let checks = equact::preflight::run_checks(cfg, &config_dir, clock.clone());
+    let failed: Vec<_> = checks.iter().filter(|c| !c.passed).collect();
+    for c in &checks {
+        println!(
+            "  {} {:<12} {}",
+            if c.passed { "ok  " } else { "FAIL" },
+            c.name,
+            c.detail
+        );
+    }
+    if !failed.is_empty() {
+        let fixes: Vec<String> = failed
+            .iter()
+            .map(|c| format!("{}: {}", c.name, c.fix))
+            .collect();
+        anyhow::bail!(
+            "{} check(s) failed, nothing was moved; fix: {}",
+            failed.len(),
+            fixes.join("; ")
+        );
+    }
+    let mut cell = RealCell::connect(cfg, &config_dir, clock.clone())?;
+    if let Ok(mut handles) = stop_handles.lock() {
+        handles.clear();
+        handles.push(cell.arm.stop_handle());
+    }
+    let instruction = args
+        .instruction
+        .clone()
+        .unwrap_or_else(|| kind.instruction());
+    for e in 0..args.episodes {
+        if interrupt.load(Ordering::SeqCst) {
+            break;
+        }
+        if e > 0 {
+            println!("reset the scene for episode {}, then press Enter", e + 1);
+            let mut line = String::new();
+            std::io::stdin()
+                .read_line(&mut line)
+                .context("waiting for Enter")?;
+        }
+        let seed = args.seed + u64::from(e);
+        policy.set_seed(seed);
+        println!(
+            "episode {}/{} · real cell {} · \"{instruction}\" · seed {seed}",
+            e + 1,
+            args.episodes,
+            cfg.robot.host
+        );
+        let stamp = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_secs());
+        let path = cfg.recording_dir().join(format!(
+            "real_{}_seed{seed}_{stamp}.mcap",
+            kind.name().replace('/', "-")
+        ));
+        let mut meta = BTreeMap::new();
+        meta.insert("task".into(), kind.name());
+        meta.insert("instruction".into(), instruction.clone());
+        meta.insert("seed".into(), seed.to_string());
+        meta.insert("policy".into(), "learned".into());
+        meta.insert("cell".into(), "real".into());
+        meta.insert("equact_version".into(), env!("CARGO_PKG_VERSION").into());
+        meta.insert("config".into(), cfg.to_toml_string()?);
+        let mut recorder = EpisodeRecorder::create(&path, &meta)?;
+        let mut task = OperatorJudged {
+            instruction: instruction.clone(),
+        };
+        let report = run_episode(
+            cfg,
+            cell.io(&mut task),
+            policy,
+            &mut recorder,
+            interrupt,
+            clock.as_ref(),
+            seed,
+        );
+        println!(
+            "  outcome: {} after {} keyframes ({})",
+            report.outcome.label(),
+            report.steps,
+            report.detail
+        );
+        println!("  recording: {}", report.recording.display());
+    }
     if interrupt.load(Ordering::SeqCst) {
         anyhow::bail!("interrupted by Ctrl-C; the arm was stopped and the recording finished");
     }

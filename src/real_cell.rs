@@ -1,0 +1,153 @@
+//! A real cell, connected from its configuration: the UR driver to the controller, the
+//! Robotiq driver on the configured transport, the configured D455 cameras, and the
+//! calibration file. `equact run --config` drives it through the same episode loop as the
+//! simulated cell ([`crate::episode::CellIo`]).
+
+use std::path::Path;
+use std::sync::Arc;
+
+use anyhow::Context;
+use calibration::CellCalibration;
+use cell_types::config::{CellConfig, GripperTransport};
+use cell_types::Clock;
+use firmware_iface::camera::DepthCamera;
+use firmware_iface::gripper::can::{CanId, CanMapping};
+use firmware_iface::gripper::{Gripper, RobotiqGripper};
+use firmware_iface::ur::UrArm;
+
+use crate::episode::{CellIo, TaskMonitor};
+
+/// The connected parts of a real cell.
+pub struct RealCell {
+    /// The UR driver, connected to the controller.
+    pub arm: UrArm,
+    /// The gripper driver on the configured transport.
+    pub gripper: Box<dyn Gripper + Send>,
+    /// The depth cameras, numbered by their order in the configuration.
+    pub cameras: Vec<Box<dyn DepthCamera>>,
+    /// The cameras' calibration (from `calibration.file`).
+    pub calibration: CellCalibration,
+}
+
+impl RealCell {
+    /// Connects everything the configuration names; `config_dir` resolves a relative
+    /// calibration file. Nothing moves.
+    pub fn connect(
+        cfg: &CellConfig,
+        config_dir: &Path,
+        clock: Arc<dyn Clock>,
+    ) -> anyhow::Result<Self> {
+        let calibration = read_calibration(cfg, config_dir)?;
+        let ur = crate::preflight::ur_config(cfg).map_err(anyhow::Error::msg)?;
+        let arm = UrArm::connect(ur, clock.clone())
+            .with_context(|| format!("connecting to the UR controller at {}", cfg.robot.host))?;
+        let gripper = connect_gripper(cfg, clock)?;
+        let cameras = open_cameras(cfg)?;
+        Ok(Self {
+            arm,
+            gripper,
+            cameras,
+            calibration,
+        })
+    }
+
+    /// Borrows the parts for one episode, with `task` as what is known about the task.
+    pub fn io<'a>(&'a mut self, task: &'a mut dyn TaskMonitor) -> CellIo<'a> {
+        CellIo {
+            arm: &mut self.arm,
+            gripper: self.gripper.as_mut(),
+            cameras: &mut self.cameras,
+            calibration: &self.calibration,
+            task,
+        }
+    }
+}
+
+/// Reads `calibration.file` (relative to `config_dir`) and checks it names exactly the
+/// configured cameras (numbered by their order in `[[cameras]]`).
+pub fn read_calibration(cfg: &CellConfig, config_dir: &Path) -> anyhow::Result<CellCalibration> {
+    if cfg.calibration.file.trim().is_empty() {
+        anyhow::bail!(
+            "the config names no calibration.file: calibrate the cameras (`equact calibrate`) \
+             and name the file in [calibration]"
+        );
+    }
+    let path = config_dir.join(&cfg.calibration.file);
+    let calibration = calibration::read_calibration_toml(&path)
+        .with_context(|| format!("reading the calibration {}", path.display()))?;
+    let known: Vec<u8> = (0..cfg.cameras.len())
+        .filter_map(|i| u8::try_from(i).ok())
+        .collect();
+    calibration
+        .validate_against(&known)
+        .with_context(|| format!("{} does not fit the configured cameras", path.display()))?;
+    let missing: Vec<String> = cfg
+        .cameras
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !calibration.cameras.iter().any(|c| usize::from(c.id) == *i))
+        .map(|(i, c)| format!("{i} ({})", c.name))
+        .collect();
+    if !missing.is_empty() {
+        anyhow::bail!(
+            "{} has no pose for camera(s) {}: recalibrate with every configured camera",
+            path.display(),
+            missing.join(", ")
+        );
+    }
+    Ok(calibration)
+}
+
+/// The CAN identifiers of the configuration (11-bit when they fit, else 29-bit).
+pub fn can_mapping(cfg: &CellConfig) -> Result<CanMapping, String> {
+    let id = |raw: u32| {
+        if raw <= 0x7FF {
+            CanId::standard(raw as u16)
+        } else {
+            CanId::extended(raw)
+        }
+        .map_err(|e| e.to_string())
+    };
+    Ok(CanMapping {
+        command_id: id(cfg.gripper.can_command_id)?,
+        status_id: id(cfg.gripper.can_status_id)?,
+    })
+}
+
+/// Connects the gripper driver on the configured transport (not the simulated one).
+pub fn connect_gripper(
+    cfg: &CellConfig,
+    clock: Arc<dyn Clock>,
+) -> anyhow::Result<Box<dyn Gripper + Send>> {
+    let g = &cfg.gripper;
+    let what = format!("connecting the gripper ({:?})", g.transport);
+    Ok(match g.transport {
+        GripperTransport::Sim => anyhow::bail!(
+            "gripper.transport = \"sim\" names the simulated gripper, which only the built-in \
+             simulated cell has: set the real transport (urcap, modbus_rtu, can_slcan)"
+        ),
+        GripperTransport::Urcap => {
+            Box::new(RobotiqGripper::urcap((g.host.as_str(), g.port), clock).context(what)?)
+        }
+        GripperTransport::ModbusRtu => {
+            Box::new(RobotiqGripper::modbus_rtu(&g.device, clock).context(what)?)
+        }
+        GripperTransport::CanSlcan => {
+            let mapping = can_mapping(cfg).map_err(anyhow::Error::msg)?;
+            Box::new(RobotiqGripper::slcan(&g.device, mapping, clock).context(what)?)
+        }
+        GripperTransport::Socketcan => anyhow::bail!(
+            "SocketCAN is only built with the `socketcan` feature of firmware_iface: use \
+             can_slcan with a serial adapter, or build with --features socketcan"
+        ),
+    })
+}
+
+/// Opens the configured D455 cameras.
+pub fn open_cameras(cfg: &CellConfig) -> anyhow::Result<Vec<Box<dyn DepthCamera>>> {
+    anyhow::bail!(
+        "{} D455 camera(s) configured, but this build has no RealSense capture backend: run in \
+         the simulated cell (no --config) for now",
+        cfg.cameras.len()
+    )
+}
