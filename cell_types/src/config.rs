@@ -228,6 +228,13 @@ pub struct CameraSection {
     /// Intrinsics to use instead of the device's factory calibration.
     #[serde(default)]
     pub intrinsics: Option<IntrinsicsOverride>,
+    /// Roughly where the camera is (base frame, m; a tape measure is enough): the first
+    /// calibration plans board poses the camera can see from it.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub approx_position: Option<[f64; 3]>,
+    /// Roughly the point the camera looks at (base frame, m), with `approx_position`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub approx_look_at: Option<[f64; 3]>,
 }
 
 /// `[calibration]`: where the camera extrinsics come from.
@@ -237,6 +244,21 @@ pub struct CalibrationSection {
     /// Path of `calibration.toml` (relative to the config file); empty in simulation means
     /// the simulator's true camera poses.
     pub file: String,
+    /// The chessboard on the flange (default: 7 x 10 inner corners, 35 mm squares).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub board: Option<BoardSection>,
+}
+
+/// `[calibration.board]`: the printed chessboard mounted on the tool flange.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct BoardSection {
+    /// Inner-corner rows.
+    pub rows: u32,
+    /// Inner-corner columns.
+    pub cols: u32,
+    /// Square size, as printed and measured (mm).
+    pub square_mm: f64,
 }
 
 /// `[recording]`: where episode recordings go.
@@ -474,6 +496,50 @@ impl CellConfig {
                     positive_finite(&format!("cameras[{i}].intrinsics.{key}"), v, false)?;
                 }
             }
+            match (c.approx_position, c.approx_look_at) {
+                (None, None) => {}
+                (Some(p), Some(t)) => {
+                    if !p.iter().chain(t.iter()).all(|v| v.is_finite()) {
+                        return invalid(
+                            &format!("cameras[{i}].approx_position"),
+                            &format!("{p:?} -> {t:?}"),
+                            "approximate camera placement must be finite (m)",
+                        );
+                    }
+                    let d = (0..3).map(|k| (t[k] - p[k]).powi(2)).sum::<f64>().sqrt();
+                    if d < 0.1 {
+                        return invalid(
+                            &format!("cameras[{i}].approx_look_at"),
+                            &format!("{t:?}"),
+                            "the look-at point must be at least 0.1 m from the camera's position",
+                        );
+                    }
+                }
+                _ => {
+                    return invalid(
+                        &format!("cameras[{i}].approx_position"),
+                        "only one of approx_position / approx_look_at",
+                        "give both (base frame, m) or neither",
+                    )
+                }
+            }
+        }
+        if let Some(b) = &self.calibration.board {
+            if b.rows < 3 || b.cols < 3 || b.rows > 64 || b.cols > 64 {
+                return invalid(
+                    "calibration.board",
+                    &format!("{} x {}", b.rows, b.cols),
+                    "a chessboard has 3 to 64 inner corners per side",
+                );
+            }
+            if (b.rows + b.cols) % 2 == 0 {
+                return invalid(
+                    "calibration.board",
+                    &format!("{} x {}", b.rows, b.cols),
+                    "rows + cols must be odd, so that the board's half-turn can be told apart",
+                );
+            }
+            positive_finite("calibration.board.square_mm", b.square_mm, false)?;
         }
         if self.robot.backend == RobotBackend::Ur && self.calibration.file.trim().is_empty() {
             return invalid(
@@ -596,6 +662,32 @@ mod tests {
     fn velocity_above_ur5_limit_is_refused() {
         let text = sim_text().replace("max_velocity = [3.14159,", "max_velocity = [4.0,");
         expect_invalid(&text, "limits.max_velocity[0]");
+    }
+
+    #[test]
+    fn approximate_camera_placement_and_board_are_checked() {
+        let placed = sim_text().replace(
+            "serial = \"sim-left\"",
+            "serial = \"sim-left\"\napprox_position = [0.05, 0.6, 0.75]\napprox_look_at = [0.6, -0.05, -0.05]",
+        );
+        let cfg = CellConfig::from_toml_str(&placed, "test").unwrap();
+        assert_eq!(cfg.cameras[1].approx_look_at, Some([0.6, -0.05, -0.05]));
+        let half = sim_text().replace(
+            "serial = \"sim-left\"",
+            "serial = \"sim-left\"\napprox_position = [0.05, 0.6, 0.75]",
+        );
+        expect_invalid(&half, "cameras[1].approx_position");
+        let same = placed.replace("[0.6, -0.05, -0.05]", "[0.05, 0.6, 0.7]");
+        expect_invalid(&same, "cameras[1].approx_look_at");
+        let board = format!(
+            "{}\n[calibration.board]\nrows = 7\ncols = 9\nsquare_mm = 35.0\n",
+            sim_text()
+        );
+        let p = expect_invalid(&board, "calibration.board");
+        assert!(p.contains("odd"), "{p}");
+        let ok = board.replace("cols = 9", "cols = 10");
+        let cfg = CellConfig::from_toml_str(&ok, "test").unwrap();
+        assert_eq!(cfg.calibration.board.map(|b| b.cols), Some(10));
     }
 
     #[test]

@@ -46,8 +46,9 @@ pub enum CalibrateCommand {
         #[arg(long, value_enum, default_value_t = NoiseChoice::Realistic)]
         noise: NoiseChoice,
     },
-    /// Move the arm through planned board poses and capture the board in every camera
-    /// (the built-in simulated cell; resumes an interrupted run).
+    /// Move the arm through planned board poses and capture the board in every camera's IR
+    /// image (the built-in simulated cell, or the real cell of --config; resumes an
+    /// interrupted run).
     Capture {
         /// The cell configuration; the built-in simulated cell when omitted.
         #[arg(long)]
@@ -117,25 +118,45 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             limit,
         } => {
             let cfg = super::config::load(config.as_ref())?;
-            if cfg.robot.backend == cell_types::config::RobotBackend::Ur {
-                anyhow::bail!(
-                    "capturing on a real cell needs the RealSense IR stream, which this build \
-                     does not have; the captures folder format (calibration::capture) is ready for \
-                     it. Run without --config for the simulated cell"
-                );
-            }
-            let run = equact::calibrate_capture::capture_in_sim(
-                &cfg,
-                &out,
-                equact::calibrate_capture::CapturePlan {
-                    seed,
-                    poses,
-                    limit,
-                    ir_sigma: 2.0,
-                },
-                std::sync::Arc::new(cell_types::SystemClock::new()),
-                &mut |line| eprintln!("{line}"),
-            )?;
+            let clock = std::sync::Arc::new(cell_types::SystemClock::new());
+            let mut progress = |line: &str| eprintln!("{line}");
+            let run = if cfg.robot.backend == cell_types::config::RobotBackend::Ur {
+                let config_dir = config
+                    .as_ref()
+                    .and_then(|p| p.parent())
+                    .map(PathBuf::from)
+                    .unwrap_or_default();
+                let mut cameras = equact::real_cell::open_cameras(&cfg)?;
+                equact::calibrate_capture::capture_on_cell(
+                    &cfg,
+                    &config_dir,
+                    &out,
+                    equact::calibrate_capture::CapturePlan {
+                        seed,
+                        poses,
+                        limit,
+                        ir_sigma: 0.0,
+                        settle_s: 0.5,
+                    },
+                    &mut cameras,
+                    clock,
+                    &mut progress,
+                )?
+            } else {
+                equact::calibrate_capture::capture_in_sim(
+                    &cfg,
+                    &out,
+                    equact::calibrate_capture::CapturePlan {
+                        seed,
+                        poses,
+                        limit,
+                        ir_sigma: 2.0,
+                        settle_s: 0.0,
+                    },
+                    clock,
+                    &mut progress,
+                )?
+            };
             for (i, why) in &run.skipped {
                 eprintln!("pose {i} skipped: {why}");
             }
