@@ -12,7 +12,6 @@ use cell_types::config::{CellConfig, GripperTransport, RobotModel};
 use cell_types::{Clock, Transform};
 use firmware_iface::arm::{Arm, ArmError, JointLimits};
 use firmware_iface::dashboard::{RobotMode, SafetyMode};
-use firmware_iface::gripper::can::{CanId, CanMapping};
 use firmware_iface::gripper::RobotiqGripper;
 use firmware_iface::ur::{UrArm, UrConfig, UrPorts};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
@@ -204,20 +203,6 @@ fn check_controller(cfg: &CellConfig, clock: Arc<dyn Clock>) -> Vec<Check> {
 
 fn check_gripper(cfg: &CellConfig, clock: Arc<dyn Clock>) -> Check {
     let g = &cfg.gripper;
-    let mapping = || -> Result<CanMapping, String> {
-        let id = |raw: u32| {
-            if raw <= 0x7FF {
-                CanId::standard(raw as u16)
-            } else {
-                CanId::extended(raw)
-            }
-            .map_err(|e| e.to_string())
-        };
-        Ok(CanMapping {
-            command_id: id(g.can_command_id)?,
-            status_id: id(g.can_status_id)?,
-        })
-    };
     let status = match g.transport {
         GripperTransport::Sim => {
             return Check::pass("gripper", "simulated (hil_sim emulator)");
@@ -226,7 +211,7 @@ fn check_gripper(cfg: &CellConfig, clock: Arc<dyn Clock>) -> Check {
             .and_then(|mut d| d.status_image().map(|s| d.to_state(&s))),
         GripperTransport::ModbusRtu => RobotiqGripper::modbus_rtu(&g.device, clock)
             .and_then(|mut d| d.status_image().map(|s| d.to_state(&s))),
-        GripperTransport::CanSlcan => match mapping() {
+        GripperTransport::CanSlcan => match crate::real_cell::can_mapping(cfg) {
             Ok(m) => RobotiqGripper::slcan(&g.device, m, clock)
                 .and_then(|mut d| d.status_image().map(|s| d.to_state(&s))),
             Err(e) => return Check::fail("gripper", e, "fix gripper.can_*_id"),
