@@ -71,6 +71,11 @@ impl LearnedPolicy {
         Self::new(policy, instruction, cfg)
     }
 
+    /// The instruction the next predictions follow.
+    pub fn set_instruction(&mut self, instruction: InstructionEmbedding) {
+        self.instruction = instruction;
+    }
+
     /// Seeds the next episode's predictions (each prediction adds its index).
     pub fn set_seed(&mut self, seed: u64) {
         self.policy.seed = seed;

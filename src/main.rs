@@ -43,6 +43,8 @@ enum Command {
     Plot(cmd::plot::PlotArgs),
     /// Record scripted-expert demonstrations in the simulated cell into a dataset.
     Demos(cmd::demos::DemosArgs),
+    /// Closed-loop evaluation in the simulated cell: success rate per task variation.
+    Eval(cmd::eval::EvalArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -81,5 +83,6 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Plan(args) => cmd::plan::run(args),
         Command::Plot(args) => cmd::plot::run(args),
         Command::Demos(args) => cmd::demos::run(args),
+        Command::Eval(args) => cmd::eval::run(args),
     }
 }

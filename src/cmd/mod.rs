@@ -7,6 +7,7 @@ pub mod calibrate;
 pub mod check;
 pub mod config;
 pub mod demos;
+pub mod eval;
 pub mod gripper;
 pub mod inspect;
 pub mod perceive;

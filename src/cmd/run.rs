@@ -76,7 +76,8 @@ pub enum NetworkSize {
 }
 
 impl NetworkSize {
-    fn config(self) -> PolicyConfig {
+    /// The network configuration of this size.
+    pub fn config(self) -> PolicyConfig {
         match self {
             Self::Physical => PolicyConfig::physical(),
             Self::Tiny => PolicyConfig::tiny(),

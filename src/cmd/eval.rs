@@ -1,0 +1,127 @@
+//! `equact eval`: closed-loop evaluation episodes in the simulated cell and the success-rate
+//! table per task variation ([`equact::eval`]).
+
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use anyhow::Context;
+use clap::Args;
+use equact::eval::{evaluate, EpisodePolicy, EvalPlan, ExpertEval, LearnedEval, EVAL_SEED};
+use equact::learned::LearnedPolicy;
+use policy::predict::InstructionEmbedding;
+
+use super::run::{NetworkSize, PolicyChoice};
+
+/// Arguments of `equact eval`.
+#[derive(Args, Debug)]
+pub struct EvalArgs {
+    /// `task/variation`, a task name (all its variations) or `all`.
+    #[arg(long, default_value = "all")]
+    pub task: String,
+    /// Episodes per task variation.
+    #[arg(long, default_value_t = 20)]
+    pub episodes: u64,
+    /// Seed of each variation's first episode (away from the demonstrations' 0, 1, ...).
+    #[arg(long, default_value_t = EVAL_SEED)]
+    pub seed: u64,
+    /// Which policy to evaluate.
+    #[arg(long, value_enum, default_value_t = PolicyChoice::Learned)]
+    pub policy: PolicyChoice,
+    /// Network weights (`--policy learned`).
+    #[arg(long)]
+    pub model: Option<PathBuf>,
+    /// Folder of instruction embeddings, one per variation:
+    /// `<dir>/<task>/<variation>.safetensors` (53 x 512 F32).
+    #[arg(long)]
+    pub instruction_embeddings: Option<PathBuf>,
+    /// Network size the weights were trained with.
+    #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
+    pub network: NetworkSize,
+    /// Where the episodes' recordings go.
+    #[arg(long, default_value = "recordings/eval")]
+    pub out: PathBuf,
+    /// The cell configuration; the built-in simulated cell when omitted.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Print the table as JSON instead of Markdown.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Runs `equact eval`.
+pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+    let cfg = super::config::load(args.config.as_ref())?;
+    if cfg.robot.backend != cell_types::config::RobotBackend::Sim {
+        anyhow::bail!(
+            "evaluation runs in the simulated cell (it needs the success test); omit --config \
+             or use a configuration with backend = \"sim\""
+        );
+    }
+    let kinds = super::demos::kinds_for(&args.task)?;
+    let mut policy: Box<dyn EpisodePolicy> = match args.policy {
+        PolicyChoice::Expert => Box::new(ExpertEval::default()),
+        PolicyChoice::Learned => {
+            let (Some(model), Some(dir)) = (&args.model, &args.instruction_embeddings) else {
+                anyhow::bail!(
+                    "--policy learned needs --model FILE and --instruction-embeddings DIR (no \
+                     trained weights are committed yet: issue 9); --policy expert evaluates the \
+                     scripted expert"
+                );
+            };
+            // Every variation's embedding is read before the first episode: a missing one
+            // fails now, not an hour into the run.
+            let mut embeddings = Vec::with_capacity(kinds.len());
+            let mut first = None;
+            for k in &kinds {
+                let path = dir
+                    .join(k.task_name())
+                    .join(format!("{}.safetensors", k.variation_name()));
+                let e = InstructionEmbedding::from_file(&path).with_context(|| {
+                    format!(
+                        "reading the embedding of `{}` from {}",
+                        k.instruction(),
+                        path.display()
+                    )
+                })?;
+                first.get_or_insert(path);
+                embeddings.push((*k, e));
+            }
+            let first = first.context("no task variation to evaluate")?;
+            let policy =
+                LearnedPolicy::load(args.network.config(), model, &first, &cfg, args.seed)?;
+            Box::new(LearnedEval { policy, embeddings })
+        }
+    };
+    let interrupt = Arc::new(AtomicBool::new(false));
+    {
+        let interrupt = interrupt.clone();
+        ctrlc::set_handler(move || {
+            interrupt.store(true, Ordering::SeqCst);
+            eprintln!("\nCtrl-C: stopping after the current episode");
+        })
+        .context("installing the Ctrl-C handler")?;
+    }
+    let plan = EvalPlan {
+        kinds,
+        episodes: args.episodes,
+        seed: args.seed,
+    };
+    let table = evaluate(
+        &cfg,
+        &plan,
+        policy.as_mut(),
+        &args.out,
+        &interrupt,
+        &mut |line| eprintln!("{line}"),
+    )?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&table)?);
+    } else {
+        print!("{}", table.markdown());
+    }
+    if interrupt.load(Ordering::SeqCst) {
+        anyhow::bail!("interrupted by Ctrl-C; the table above holds the episodes run");
+    }
+    Ok(())
+}

@@ -1,0 +1,256 @@
+//! `equact eval`: closed-loop episodes in the simulated cell (policy → planner → UR driver →
+//! simulated arm and gripper, at most [`crate::episode::MAX_KEYFRAMES`] keyframes each) over
+//! seeded SE(3)-perturbed scenes, and the success-rate table per task variation.
+//!
+//! Evaluation seeds start at [`EVAL_SEED`] by default, away from the demonstrations' seeds
+//! (`equact demos collect` starts at 0), so that a policy is not evaluated on the scenes it
+//! was trained on.
+
+use std::collections::BTreeMap;
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+
+use anyhow::Context;
+use cell_types::config::CellConfig;
+use cell_types::SystemClock;
+use serde::Serialize;
+
+use crate::episode::{run_sim_episode, KeyframeSource, ScriptedExpert};
+use crate::learned::LearnedPolicy;
+use crate::recording::EpisodeRecorder;
+use crate::sim_cell::SimCell;
+use crate::task::{TaskInstance, TaskKind};
+
+/// First evaluation seed by default (demonstrations use 0, 1, ...).
+pub const EVAL_SEED: u64 = 1_000_000;
+
+/// The results of one task variation.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct VariationResult {
+    /// `task/variation`.
+    pub task: String,
+    /// Episodes run.
+    pub episodes: u64,
+    /// Episodes whose success test passed.
+    pub successes: u64,
+    /// Episodes per outcome label.
+    pub outcomes: BTreeMap<&'static str, u64>,
+}
+
+impl VariationResult {
+    /// Success rate in [0, 1] (0 with no episode).
+    pub fn rate(&self) -> f64 {
+        if self.episodes == 0 {
+            0.0
+        } else {
+            self.successes as f64 / self.episodes as f64
+        }
+    }
+}
+
+/// The evaluation of a policy over task variations.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct EvalTable {
+    /// Which policy ran (`expert`, `learned`).
+    pub policy: String,
+    /// One row per task variation, in the order run.
+    pub rows: Vec<VariationResult>,
+}
+
+impl EvalTable {
+    /// Successes and episodes per task (all its variations together), in the order run.
+    pub fn per_task(&self) -> Vec<(String, u64, u64)> {
+        let mut out: Vec<(String, u64, u64)> = Vec::new();
+        for r in &self.rows {
+            let task = r.task.split('/').next().unwrap_or(&r.task).to_string();
+            match out.iter_mut().find(|(t, _, _)| *t == task) {
+                Some(e) => {
+                    e.1 += r.successes;
+                    e.2 += r.episodes;
+                }
+                None => out.push((task, r.successes, r.episodes)),
+            }
+        }
+        out
+    }
+
+    /// The table as Markdown (per variation, then per task).
+    pub fn markdown(&self) -> String {
+        let mut s = format!(
+            "| task/variation ({}) | success | rate |\n|---|---|---|\n",
+            self.policy
+        );
+        for r in &self.rows {
+            s.push_str(&format!(
+                "| {} | {}/{} | {:.0} % |\n",
+                r.task,
+                r.successes,
+                r.episodes,
+                100.0 * r.rate()
+            ));
+        }
+        for (task, ok, n) in self.per_task() {
+            let rate = if n == 0 { 0.0 } else { ok as f64 / n as f64 };
+            s.push_str(&format!(
+                "| **{task}** | {ok}/{n} | {:.0} % |\n",
+                100.0 * rate
+            ));
+        }
+        s
+    }
+}
+
+/// Hands out the keyframe source of each evaluation episode.
+pub trait EpisodePolicy {
+    /// The policy's name in the table and the recordings.
+    fn name(&self) -> &str;
+    /// The source for one episode of variation `kind` on scene `task` with `seed`.
+    fn for_episode(
+        &mut self,
+        kind: TaskKind,
+        task: &TaskInstance,
+        seed: u64,
+    ) -> anyhow::Result<&mut dyn KeyframeSource>;
+}
+
+/// The scripted expert, from each scene's true object poses.
+#[derive(Default)]
+pub struct ExpertEval {
+    current: Option<ScriptedExpert>,
+}
+
+impl EpisodePolicy for ExpertEval {
+    fn name(&self) -> &str {
+        "expert"
+    }
+    fn for_episode(
+        &mut self,
+        _kind: TaskKind,
+        task: &TaskInstance,
+        _seed: u64,
+    ) -> anyhow::Result<&mut dyn KeyframeSource> {
+        Ok(self
+            .current
+            .insert(ScriptedExpert::new(task.expert_keyframes())))
+    }
+}
+
+/// The learned policy (loaded once) with each variation's instruction embedding.
+pub struct LearnedEval {
+    /// The network.
+    pub policy: LearnedPolicy,
+    /// One embedding per variation evaluated.
+    pub embeddings: Vec<(TaskKind, policy::predict::InstructionEmbedding)>,
+}
+
+impl EpisodePolicy for LearnedEval {
+    fn name(&self) -> &str {
+        "learned"
+    }
+    fn for_episode(
+        &mut self,
+        kind: TaskKind,
+        _task: &TaskInstance,
+        seed: u64,
+    ) -> anyhow::Result<&mut dyn KeyframeSource> {
+        let embedding = self
+            .embeddings
+            .iter()
+            .find(|(k, _)| *k == kind)
+            .map(|(_, e)| e.clone())
+            .with_context(|| format!("no instruction embedding for {}", kind.name()))?;
+        self.policy.set_instruction(embedding);
+        self.policy.set_seed(seed);
+        Ok(&mut self.policy)
+    }
+}
+
+/// What to evaluate.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EvalPlan {
+    /// Task variations.
+    pub kinds: Vec<TaskKind>,
+    /// Episodes per variation.
+    pub episodes: u64,
+    /// Seed of each variation's first episode (the next ones add one).
+    pub seed: u64,
+}
+
+/// Runs the evaluation: for each variation and seed, a fresh simulated cell and the
+/// policy's source for that episode; recordings go to `out`.
+/// Progress lines go to `progress`. Ctrl-C (`interrupt`) stops after the current episode
+/// (its arm stopped, its recording finished) and returns the table so far.
+pub fn evaluate(
+    cfg: &CellConfig,
+    plan: &EvalPlan,
+    policy: &mut dyn EpisodePolicy,
+    out: &Path,
+    interrupt: &Arc<AtomicBool>,
+    progress: &mut dyn FnMut(&str),
+) -> anyhow::Result<EvalTable> {
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let policy_name = policy.name().to_string();
+    let mut table = EvalTable {
+        policy: policy_name.clone(),
+        rows: Vec::new(),
+    };
+    let total = plan.episodes * plan.kinds.len() as u64;
+    let mut done = 0;
+    for &kind in &plan.kinds {
+        let mut row = VariationResult {
+            task: kind.name(),
+            episodes: 0,
+            successes: 0,
+            outcomes: BTreeMap::new(),
+        };
+        for e in 0..plan.episodes {
+            if interrupt.load(Ordering::SeqCst) {
+                break;
+            }
+            let seed = plan.seed + e;
+            let clock = Arc::new(SystemClock::new());
+            let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
+            let source = policy.for_episode(kind, &task, seed)?;
+            let mut cell = SimCell::start(cfg, task, seed, clock.clone())?;
+            let path = out.join(format!(
+                "{}_{policy_name}_seed{seed}.mcap",
+                kind.name().replace('/', "-")
+            ));
+            let mut meta = BTreeMap::new();
+            meta.insert("task".into(), kind.name());
+            meta.insert("seed".into(), seed.to_string());
+            meta.insert("policy".into(), policy_name.clone());
+            meta.insert("purpose".into(), "evaluation".into());
+            let mut recorder = EpisodeRecorder::create(&path, &meta)?;
+            let report = run_sim_episode(
+                cfg,
+                &mut cell,
+                source,
+                &mut recorder,
+                interrupt,
+                clock.as_ref(),
+                seed,
+            );
+            cell.controller.shutdown();
+            done += 1;
+            row.episodes += 1;
+            let success = report.outcome == crate::episode::Outcome::Success;
+            row.successes += u64::from(success);
+            *row.outcomes.entry(report.outcome.label()).or_default() += 1;
+            progress(&format!(
+                "[{done}/{total}] {} seed {seed}: {} after {} keyframes ({}/{} so far)",
+                kind.name(),
+                report.outcome.label(),
+                report.steps,
+                row.successes,
+                row.episodes
+            ));
+        }
+        table.rows.push(row);
+        if interrupt.load(Ordering::SeqCst) {
+            break;
+        }
+    }
+    Ok(table)
+}

@@ -1,0 +1,104 @@
+//! `equact eval`: closed-loop evaluation episodes in the simulated cell, counted per task
+//! variation, for the scripted expert (which must succeed) and the learned policy (tiny
+//! network with random weights: the harness runs it and counts its outcomes).
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers may panic
+
+use std::sync::atomic::AtomicBool;
+use std::sync::Arc;
+
+use cell_types::config::CellConfig;
+use equact::eval::{evaluate, EvalPlan, ExpertEval, LearnedEval, EVAL_SEED};
+use equact::learned::{for_cell, LearnedPolicy};
+use equact::task::{Fruit, TaskKind};
+use policy::predict::{InstructionEmbedding, Policy, PolicyConfig};
+
+#[test]
+fn expert_and_learned_policies_are_evaluated_per_variation() {
+    let cfg = CellConfig::simulated().unwrap();
+    let dir = std::env::temp_dir().join(format!("equact-eval-{}", std::process::id()));
+    let interrupt = Arc::new(AtomicBool::new(false));
+    let plum = TaskKind::PickFruit(Fruit::Plum);
+    let mut lines = Vec::new();
+    let table = evaluate(
+        &cfg,
+        &EvalPlan {
+            kinds: vec![plum],
+            episodes: 2,
+            seed: EVAL_SEED,
+        },
+        &mut ExpertEval::default(),
+        &dir,
+        &interrupt,
+        &mut |l| lines.push(l.to_string()),
+    )
+    .unwrap();
+    assert_eq!(table.policy, "expert");
+    assert_eq!(table.rows.len(), 1);
+    let row = &table.rows[0];
+    assert_eq!((row.task.as_str(), row.episodes), ("pick_fruit/plum", 2));
+    assert_eq!(row.successes, 2, "{:?} {lines:?}", row.outcomes);
+    assert!(table
+        .markdown()
+        .contains("| pick_fruit/plum | 2/2 | 100 % |"));
+    assert_eq!(lines.len(), 2);
+    // One recording per episode.
+    let recordings = std::fs::read_dir(&dir)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .path()
+                .extension()
+                .is_some_and(|x| x == "mcap")
+        })
+        .count();
+    assert_eq!(recordings, 2);
+
+    let net = for_cell(PolicyConfig::tiny(), &cfg);
+    let policy = LearnedPolicy::new(
+        Policy::random(net, 3).unwrap(),
+        InstructionEmbedding::random(0),
+        &cfg,
+    )
+    .unwrap();
+    let mut learned = LearnedEval {
+        policy,
+        embeddings: vec![(plum, InstructionEmbedding::random(5))],
+    };
+    let table = evaluate(
+        &cfg,
+        &EvalPlan {
+            kinds: vec![plum],
+            episodes: 1,
+            seed: EVAL_SEED,
+        },
+        &mut learned,
+        &dir,
+        &interrupt,
+        &mut |_| {},
+    )
+    .unwrap();
+    assert_eq!(table.policy, "learned");
+    let row = &table.rows[0];
+    assert_eq!(row.episodes, 1);
+    assert_eq!(row.outcomes.values().sum::<u64>(), 1);
+    assert!(!row.outcomes.contains_key("error"), "{:?}", row.outcomes);
+
+    // A variation without an embedding is an error, not a silent skip.
+    let err = evaluate(
+        &cfg,
+        &EvalPlan {
+            kinds: vec![TaskKind::PickFruit(Fruit::Peach)],
+            episodes: 1,
+            seed: EVAL_SEED,
+        },
+        &mut learned,
+        &dir,
+        &interrupt,
+        &mut |_| {},
+    )
+    .unwrap_err();
+    assert!(format!("{err:#}").contains("pick_fruit/peach"), "{err:#}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
