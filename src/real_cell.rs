@@ -151,3 +151,25 @@ pub fn open_cameras(cfg: &CellConfig) -> anyhow::Result<Vec<Box<dyn DepthCamera>
         cfg.cameras.len()
     )
 }
+
+/// A real arm moves only after the operator said so: Enter at a terminal, or `--yes`.
+pub fn confirm_motion(yes: bool) -> anyhow::Result<()> {
+    use std::io::IsTerminal;
+    if yes {
+        return Ok(());
+    }
+    if !std::io::stdin().is_terminal() {
+        anyhow::bail!(
+            "the arm is about to move and nobody can confirm it (stdin is not a terminal): \
+             pass --yes to run unattended"
+        );
+    }
+    println!(
+        "the arm will move now: keep clear of the cell; press Enter to start, Ctrl-C to abort"
+    );
+    let mut line = String::new();
+    std::io::stdin()
+        .read_line(&mut line)
+        .context("waiting for Enter")?;
+    Ok(())
+}

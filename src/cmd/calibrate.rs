@@ -65,6 +65,9 @@ pub enum CalibrateCommand {
         /// Capture at most this many new poses in this run.
         #[arg(long)]
         limit: Option<usize>,
+        /// On a real cell, start moving without asking (interactive runs ask for Enter).
+        #[arg(long)]
+        yes: bool,
     },
     /// Solve a captures folder: per-camera base_from_camera and flange_from_board in one
     /// bundle adjustment; prints the report and writes calibration.toml.
@@ -116,6 +119,7 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             seed,
             poses,
             limit,
+            yes,
         } => {
             let cfg = super::config::load(config.as_ref())?;
             let clock = std::sync::Arc::new(cell_types::SystemClock::new());
@@ -127,6 +131,7 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
                     .map(PathBuf::from)
                     .unwrap_or_default();
                 let mut cameras = equact::real_cell::open_cameras(&cfg)?;
+                equact::real_cell::confirm_motion(yes)?;
                 equact::calibrate_capture::capture_on_cell(
                     &cfg,
                     &config_dir,

@@ -343,7 +343,7 @@ fn run_real(
         );
     }
     let mut cell = RealCell::connect(cfg, &config_dir, clock.clone())?;
-    confirm_motion(args.yes)?;
+    equact::real_cell::confirm_motion(args.yes)?;
     if let Ok(mut handles) = stop_handles.lock() {
         handles.clear();
         handles.push(cell.arm.stop_handle());
@@ -410,27 +410,5 @@ fn run_real(
     if interrupt.load(Ordering::SeqCst) {
         anyhow::bail!("interrupted by Ctrl-C; the arm was stopped and the recording finished");
     }
-    Ok(())
-}
-
-/// A real arm moves only after the operator said so: Enter at a terminal, or `--yes`.
-fn confirm_motion(yes: bool) -> anyhow::Result<()> {
-    use std::io::IsTerminal;
-    if yes {
-        return Ok(());
-    }
-    if !std::io::stdin().is_terminal() {
-        anyhow::bail!(
-            "the arm is about to move and nobody can confirm it (stdin is not a terminal): \
-             pass --yes to run unattended"
-        );
-    }
-    println!(
-        "the arm will move now: keep clear of the cell; press Enter to start, Ctrl-C to abort"
-    );
-    let mut line = String::new();
-    std::io::stdin()
-        .read_line(&mut line)
-        .context("waiting for Enter")?;
     Ok(())
 }
