@@ -46,6 +46,12 @@ pub enum PolicyError {
         /// What was wrong, and which file.
         what: String,
     },
+    /// Values a computation needs finite were not (NaN, infinite, or none at all).
+    #[error("{what}: not finite; check the network's inputs and weights")]
+    NonFinite {
+        /// What was not finite.
+        what: String,
+    },
     /// The observed point cloud has no points at all.
     #[error("the point cloud is empty; the policy needs an observed scene (check the cameras and the crop)")]
     EmptyCloud,

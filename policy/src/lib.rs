@@ -24,6 +24,9 @@
 //! - [`predict`]: the inference API [`Policy`] (input preparation, coarse-to-fine translation
 //!   sampling, open logit, rotation argmax with local refinement), its configuration and the
 //!   instruction-embedding file;
+//! - [`training`]: the training losses (translation CE, open BCE, rotation soft CE) with
+//!   their gradients, and the rotation augmentation (no backward pass through the network
+//!   yet);
 //! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`).
 //!
 //! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit),
@@ -45,6 +48,7 @@ pub mod predict;
 pub mod rotation_head;
 pub mod so2_conv;
 pub mod so3;
+pub mod training;
 pub mod transblock;
 pub mod weights;
 
