@@ -4,7 +4,7 @@
 //! with the sphere model, then with the exact parry shapes ([`crate::exact`]) against the same
 //! world (keyframe semantics applied).
 
-use crate::checker::{lerp, Checker};
+use crate::checker::{dense_walk, sweep_with, Checker};
 use crate::error::PlanError;
 use crate::exact::{validate_exact, ExactChecker, ExactModel};
 use crate::model::RobotModel;
@@ -333,31 +333,24 @@ impl Planner {
     }
 }
 
-/// Re-checks the executed trajectory densely: every sample, and between samples enough
-/// interpolated states that no robot point moves more than the checker's resolution between
-/// two checks. Consecutive samples lie on one straight checked segment (phase-synchronized
-/// rest-to-rest timing), so linear interpolation between them is the executed motion.
+/// Re-checks the executed trajectory densely with the spheres: configurations along it such
+/// that no robot point moves more than the checker's resolution between two checks
+/// ([`dense_walk`]). Consecutive samples lie on one straight checked segment
+/// (phase-synchronized rest-to-rest timing), so linear interpolation between them is the
+/// executed motion.
 pub fn validate_dense(traj: &Trajectory, checker: &mut Checker<'_>) -> Result<(), PlanError> {
-    let s = traj.samples();
-    for (i, x) in s.iter().enumerate() {
-        if let Some(contact) = checker.contact(&x.position) {
-            return Err(PlanError::TrajectoryCollides { t: x.t, contact });
-        }
-        if let Some(next) = s.get(i + 1) {
-            let n = checker.steps(&x.position, &next.position);
-            for k in 1..n {
-                let f = k as f64 / n as f64;
-                let q = lerp(&x.position, &next.position, f);
-                if let Some(contact) = checker.contact(&q) {
-                    return Err(PlanError::TrajectoryCollides {
-                        t: x.t + f * traj.period(),
-                        contact,
-                    });
-                }
-            }
-        }
-    }
-    Ok(())
+    let res = checker.resolution();
+    let levers = checker.levers();
+    dense_walk(
+        traj.samples(),
+        traj.period(),
+        res,
+        |a, b| sweep_with(&levers, a, b),
+        |q, t| match checker.contact(q) {
+            Some(contact) => Err(PlanError::TrajectoryCollides { t, contact }),
+            None => Ok(()),
+        },
+    )
 }
 
 #[cfg(test)]

@@ -395,6 +395,23 @@ pub enum Hit {
     Obstacle(usize),
 }
 
+/// What a ball may touch ([`World::near_ball`]): a bit per obstacle (all of them when there are
+/// more than 64) and the cloud.
+#[derive(Copy, Clone, Debug, PartialEq, Eq)]
+pub struct Near {
+    mask: u64,
+    all: bool,
+    cloud: bool,
+}
+
+impl Near {
+    /// True when the ball touches nothing.
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.mask == 0 && !self.all && !self.cloud
+    }
+}
+
 /// Static geometry plus (optionally) an observed cloud.
 #[derive(Clone, Debug, Default)]
 pub struct World {
@@ -489,6 +506,62 @@ impl World {
     /// The distance field, if there is a cloud.
     pub fn field(&self) -> Option<&DistanceField> {
         self.field.as_ref()
+    }
+
+    /// The obstacles and cloud a ball of radius `r` at `c` may touch (a superset of those
+    /// it touches): one test per obstacle for a whole group of spheres inside the ball.
+    #[inline]
+    pub fn near_ball(&self, c: &Point3<f64>, r: f64) -> Near {
+        let cloud = self
+            .field
+            .as_ref()
+            .is_some_and(|f| f.distance_bounds(c).0 <= r);
+        if self.obstacles.len() > 64 {
+            return Near {
+                mask: 0,
+                all: true,
+                cloud,
+            };
+        }
+        let mut mask = 0u64;
+        for (i, (o, (oc, or))) in self.obstacles.iter().zip(&self.bounds).enumerate() {
+            let reach = or + r;
+            if (c - oc).norm_squared() <= reach * reach && o.distance(c) <= r {
+                mask |= 1 << i;
+            }
+        }
+        Near {
+            mask,
+            all: false,
+            cloud,
+        }
+    }
+
+    /// What the sphere touches among `near` (from [`Self::near_ball`] of a ball containing
+    /// the sphere), if anything; the same answer as [`Self::sphere_hit`].
+    #[inline]
+    pub fn sphere_hit_near(&self, s: &Sphere, near: &Near) -> Option<Hit> {
+        if near.all {
+            return self.sphere_hit(s);
+        }
+        if near.cloud {
+            if let Some(f) = &self.field {
+                if f.touches(&s.center, s.radius) {
+                    return Some(Hit::Cloud);
+                }
+            }
+        }
+        let mut m = near.mask;
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            m &= m - 1;
+            let (o, (c, r)) = (&self.obstacles[i], &self.bounds[i]);
+            let reach = r + s.radius;
+            if (s.center - c).norm_squared() <= reach * reach && o.distance(&s.center) <= s.radius {
+                return Some(Hit::Obstacle(i));
+            }
+        }
+        None
     }
 
     /// What the sphere touches, if anything.
