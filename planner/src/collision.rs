@@ -346,8 +346,23 @@ impl SphereModel {
             if (ca - cb).norm_squared() >= rr * rr {
                 continue;
             }
-            for &(a, b) in &self.self_pairs[g.pairs.clone()] {
-                let (sa, sb) = (placed[a as usize], placed[b as usize]);
+            // The group's pairs run sphere by sphere of the first body (they were generated
+            // in that order and sorted stably): a sphere clear of the second body's ball skips
+            // its whole run.
+            let pairs = &self.self_pairs[g.pairs.clone()];
+            let mut k = 0;
+            while k < pairs.len() {
+                let a = pairs[k].0;
+                let sa = placed[a as usize];
+                let reach = sa.radius + g.b.radius;
+                if (sa.center - cb).norm_squared() >= reach * reach {
+                    while k < pairs.len() && pairs[k].0 == a {
+                        k += 1;
+                    }
+                    continue;
+                }
+                let b = pairs[k].1;
+                let sb = placed[b as usize];
                 let rr = sa.radius + sb.radius;
                 if (sa.center - sb.center).norm_squared() < rr * rr {
                     return Some(Contact {
@@ -355,6 +370,7 @@ impl SphereModel {
                         other: self.link_names[self.spheres[b as usize].link].to_string(),
                     });
                 }
+                k += 1;
             }
         }
         None

@@ -273,7 +273,7 @@ mod tests {
                 assert!(!eqp_is_valid(p, out.as_ptr()));
                 let mut near = [0.0; 6];
                 near.copy_from_slice(&sg[..6]);
-                near[5] += 0.05;
+                near[5] -= 0.05;
                 assert!(eqp_motion_valid(p, sg.as_ptr(), near.as_ptr()));
                 // Folded onto itself: the motion there is blocked.
                 let folded = [sg[0], sg[1], 3.1, sg[3], sg[4], sg[5]];
