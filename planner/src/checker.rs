@@ -92,9 +92,7 @@ impl<'a> Checker<'a> {
     pub fn contact(&mut self, q: &Joints) -> Option<Contact> {
         self.checks += 1;
         let sm = &self.model.spheres;
-        self.model
-            .chain
-            .anchor_poses_into(q, &sm.link_anchors, &mut self.poses);
+        sm.fk.poses_into(q, &mut self.poses);
         sm.place_from_anchors(&self.poses, &mut self.placed);
         // Per rigid body (distal first): one test of its ball against each obstacle and the
         // distance field, then its spheres only against what the ball may touch.

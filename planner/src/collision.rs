@@ -6,7 +6,7 @@
 //! the URDF-adjacency allowed-collision rule, widened by one because the UR wrists overlap).
 
 use crate::error::{Contact, PlanError};
-use crate::urdf::{Chain, Shape};
+use crate::urdf::{AnchorFk, Chain, Shape};
 use nalgebra::{Isometry3, Matrix3, Point3, Vector3};
 
 /// One sphere of the model, fixed to a link.
@@ -47,6 +47,8 @@ pub struct SphereModel {
     pub link_anchors: Vec<(usize, Isometry3<f64>)>,
     /// Per sphere: anchor slot and centre in the anchor frame.
     pub anchored: Vec<(usize, Point3<f64>)>,
+    /// The anchor poses' forward kinematics with the constant transforms multiplied out.
+    pub fk: AnchorFk,
     /// Self-collision grouped by pairs of rigid bodies: each group's two body balls (anchor
     /// slot, centre in the anchor frame, radius covering the body's spheres) and its range in
     /// `self_pairs`. Two balls apart rule out every sphere pair of the group with one test.
@@ -282,6 +284,7 @@ impl SphereModel {
             .filter(|(_, m)| !m.is_empty())
             .collect();
         Ok(Self {
+            fk: chain.anchor_fk(&link_anchors),
             body_pairs,
             world_bodies,
             link_anchors,
@@ -434,6 +437,12 @@ mod tests {
                 model
                     .chain
                     .anchor_poses_into(&q, &model.spheres.link_anchors, &mut anchors);
+                let mut fast = [Isometry3::identity(); 7];
+                model.spheres.fk.poses_into(&q, &mut fast);
+                for (x, y) in anchors.iter().zip(&fast) {
+                    assert!((x.translation.vector - y.translation.vector).norm() < 1e-12);
+                    assert!(x.rotation.angle_to(&y.rotation) < 1e-9);
+                }
                 model.spheres.place_from_anchors(&anchors, &mut b);
                 for (x, y) in a.iter().zip(&b) {
                     assert!((x.center - y.center).norm() < 1e-12);
