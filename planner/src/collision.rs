@@ -69,16 +69,25 @@ pub struct BodyBall {
     pub radius: f64,
 }
 
-/// The sphere pairs between two rigid bodies checked for self-collision.
+/// The sphere pairs between two rigid bodies checked for self-collision: every sphere of the
+/// first against every sphere of the second, the second's spheres in clusters of a few
+/// neighbours with a ball each, so that a sphere of the first body meets only the clusters
+/// near it.
 #[derive(Clone, Debug, PartialEq)]
 pub struct BodyPair {
     /// Ball of the first body.
     pub a: BodyBall,
     /// Ball of the second body.
     pub b: BodyBall,
-    /// Range of this group in `SphereModel::self_pairs`.
-    pub pairs: std::ops::Range<usize>,
+    /// Spheres of the first body.
+    pub a_spheres: Vec<u16>,
+    /// Spheres of the second body in clusters, each with a ball in the second body's anchor
+    /// frame covering its spheres.
+    pub b_clusters: Vec<(BodyBall, Vec<u16>)>,
 }
+
+/// Largest cluster of [`BodyPair::b_clusters`].
+const CLUSTER: usize = 4;
 
 /// Spheres covering a shape, in the link frame. `inflate` is the ratio of sphere radius to
 /// the shape's cross-section radius (larger: fewer, fatter spheres).
@@ -187,34 +196,82 @@ fn body_ball(spheres: &[LinkSphere], anchored: &[(usize, Point3<f64>)], body: us
     }
 }
 
-/// Groups sorted self pairs by body pair, with a ball around each body's spheres in its anchor
-/// frame. A body whose spheres sit on different anchors (not the case for a serial chain's
-/// fixed-joint groups) gets an infinite ball, so its pairs are always checked.
+/// Groups the self pairs by body pair (every pair between two bodies is in the list, since
+/// the rule is per body), with a ball around each body and clusters of the second body's
+/// spheres (neighbours along the body's longest extent). A body whose spheres sit on
+/// different anchors (not the case for a serial chain's fixed-joint groups) gets infinite
+/// balls, so its pairs are always checked.
 fn body_pairs(
     spheres: &[LinkSphere],
     anchored: &[(usize, Point3<f64>)],
     self_pairs: &[(u16, u16)],
 ) -> Vec<BodyPair> {
-    let ball = |b: usize| body_ball(spheres, anchored, b);
-    let bodies = spheres.iter().map(|s| s.body + 1).max().unwrap_or(0);
-    let balls: Vec<BodyBall> = (0..bodies).map(ball).collect();
-    let mut out: Vec<BodyPair> = Vec::new();
-    let mut last = None;
-    for (k, &(a, b)) in self_pairs.iter().enumerate() {
-        let key = (spheres[a as usize].body, spheres[b as usize].body);
-        match out.last_mut() {
-            Some(g) if last == Some(key) => g.pairs.end = k + 1,
-            _ => {
-                out.push(BodyPair {
-                    a: balls[key.0],
-                    b: balls[key.1],
-                    pairs: k..k + 1,
-                });
-                last = Some(key);
-            }
+    let members = |b: usize| -> Vec<u16> {
+        (0..spheres.len())
+            .filter(|&i| spheres[i].body == b)
+            .map(|i| i as u16)
+            .collect()
+    };
+    let ball_of = |idx: &[u16], slot: usize| -> BodyBall {
+        if idx.iter().any(|&i| anchored[i as usize].0 != slot) {
+            return BodyBall {
+                slot,
+                center: Point3::origin(),
+                radius: f64::INFINITY,
+            };
         }
-    }
-    out
+        let n = idx.len().max(1) as f64;
+        let center = Point3::from(
+            idx.iter()
+                .map(|&i| anchored[i as usize].1.coords)
+                .sum::<Vector3<f64>>()
+                / n,
+        );
+        let radius = idx
+            .iter()
+            .map(|&i| (anchored[i as usize].1 - center).norm() + spheres[i as usize].radius)
+            .fold(0.0, f64::max);
+        BodyBall {
+            slot,
+            center,
+            radius,
+        }
+    };
+    let mut keys: Vec<(usize, usize)> = self_pairs
+        .iter()
+        .map(|&(a, b)| (spheres[a as usize].body, spheres[b as usize].body))
+        .collect();
+    keys.dedup();
+    keys.into_iter()
+        .map(|(ba, bb)| {
+            let a_spheres = members(ba);
+            let mut b_spheres = members(bb);
+            let slot = b_spheres.first().map_or(0, |&i| anchored[i as usize].0);
+            let b = ball_of(&b_spheres, slot);
+            // Order along the direction from the centre to the farthest sphere, then chunk.
+            let far = b_spheres
+                .iter()
+                .map(|&i| anchored[i as usize].1 - b.center)
+                .max_by(|x, y| x.norm().total_cmp(&y.norm()))
+                .unwrap_or_else(Vector3::zeros);
+            b_spheres.sort_by(|&x, &y| {
+                let px = (anchored[x as usize].1 - b.center).dot(&far);
+                let py = (anchored[y as usize].1 - b.center).dot(&far);
+                px.total_cmp(&py)
+            });
+            let b_clusters = b_spheres
+                .chunks(CLUSTER)
+                .map(|c| (ball_of(c, slot), c.to_vec()))
+                .collect();
+            let a_slot = a_spheres.first().map_or(0, |&i| anchored[i as usize].0);
+            BodyPair {
+                a: ball_of(&a_spheres, a_slot),
+                b,
+                a_spheres,
+                b_clusters,
+            }
+        })
+        .collect()
 }
 
 fn leak(s: &str) -> &'static str {
@@ -349,31 +406,37 @@ impl SphereModel {
             if (ca - cb).norm_squared() >= rr * rr {
                 continue;
             }
-            // The group's pairs run sphere by sphere of the first body (they were generated
-            // in that order and sorted stably): a sphere clear of the second body's ball skips
-            // its whole run.
-            let pairs = &self.self_pairs[g.pairs.clone()];
-            let mut k = 0;
-            while k < pairs.len() {
-                let a = pairs[k].0;
+            // Each sphere of the first body against the clusters of the second near it.
+            let mut clusters = [(Point3::origin(), 0.0); 16];
+            let nc = g.b_clusters.len().min(clusters.len());
+            for (slot, (ball, _)) in clusters.iter_mut().zip(&g.b_clusters) {
+                *slot = (anchors[ball.slot.min(6)] * ball.center, ball.radius);
+            }
+            for &a in &g.a_spheres {
                 let sa = placed[a as usize];
                 let reach = sa.radius + g.b.radius;
                 if (sa.center - cb).norm_squared() >= reach * reach {
-                    while k < pairs.len() && pairs[k].0 == a {
-                        k += 1;
-                    }
                     continue;
                 }
-                let b = pairs[k].1;
-                let sb = placed[b as usize];
-                let rr = sa.radius + sb.radius;
-                if (sa.center - sb.center).norm_squared() < rr * rr {
-                    return Some(Contact {
-                        link: self.link_names[self.spheres[a as usize].link],
-                        other: self.link_names[self.spheres[b as usize].link].to_string(),
-                    });
+                for (k, (_, members)) in g.b_clusters.iter().enumerate() {
+                    if k < nc {
+                        let (cc, cr) = clusters[k];
+                        let reach = sa.radius + cr;
+                        if (sa.center - cc).norm_squared() >= reach * reach {
+                            continue;
+                        }
+                    }
+                    for &b in members {
+                        let sb = placed[b as usize];
+                        let rr = sa.radius + sb.radius;
+                        if (sa.center - sb.center).norm_squared() < rr * rr {
+                            return Some(Contact {
+                                link: self.link_names[self.spheres[a as usize].link],
+                                other: self.link_names[self.spheres[b as usize].link].to_string(),
+                            });
+                        }
+                    }
                 }
-                k += 1;
             }
         }
         None
@@ -477,10 +540,22 @@ mod tests {
         for model in [RobotModel::ur5().unwrap(), crate::mbm::mbm_robot().unwrap()] {
             let sm = &model.spheres;
             assert!(sm.body_pairs.len() > 1);
-            assert_eq!(
-                sm.body_pairs.iter().map(|g| g.pairs.len()).sum::<usize>(),
-                sm.self_pairs.len()
-            );
+            // The groups hold exactly the self pairs.
+            let mut grouped: Vec<(u16, u16)> = sm
+                .body_pairs
+                .iter()
+                .flat_map(|g| {
+                    g.a_spheres.iter().flat_map(move |&a| {
+                        g.b_clusters
+                            .iter()
+                            .flat_map(move |(_, m)| m.iter().map(move |&b| (a, b)))
+                    })
+                })
+                .collect();
+            grouped.sort_unstable();
+            let mut all = sm.self_pairs.clone();
+            all.sort_unstable();
+            assert_eq!(grouped, all);
             let mut placed = vec![Sphere::default(); sm.spheres.len()];
             let mut anchors = [Isometry3::identity(); 7];
             let mut hits = 0;

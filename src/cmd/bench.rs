@@ -71,6 +71,12 @@ pub struct PlannerBenchArgs {
     /// RRT seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// RRT-Connect extension step (rad, max-norm); the planner's default when absent.
+    #[arg(long)]
+    pub range: Option<f64>,
+    /// Only the scenes whose name contains this.
+    #[arg(long)]
+    pub scene: Option<String>,
     /// Also run OMPL's RRTConnect on the same problems with the same collision checker, using
     /// this Python (a venv with `ompl`, see planner/benches/ompl_rrtconnect.py), and print the
     /// ratio of the search medians.
@@ -168,6 +174,9 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
     let file = MbmFile::parse(&text)?;
     let mut config = PlannerConfig::default();
     config.rrt.seed = a.seed;
+    if let Some(r) = a.range {
+        config.rrt.range = r;
+    }
     // Thread CPU time: other processes on the machine do not inflate the stage times.
     config.clock = planner::StageClock::ThreadCpu;
     let planner = Planner::new(mbm_robot()?, PlannerLimits::default(), config)?;
@@ -182,6 +191,12 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
         let t = Instant::now();
         let mut results = Vec::new();
         for (scene, ps) in &file.problems {
+            if a.scene
+                .as_ref()
+                .is_some_and(|s| !scene.contains(s.as_str()))
+            {
+                continue;
+            }
             for p in ps
                 .iter()
                 .filter(|p| p.valid)
