@@ -10,7 +10,7 @@ use crate::collision::Sphere;
 use crate::error::Contact;
 use crate::model::RobotModel;
 use crate::world::World;
-use cell_types::Joints;
+use cell_types::{Joints, TrajectorySample};
 use nalgebra::Isometry3;
 
 /// Per-joint lever arms (m): an upper bound on how far a sphere surface moves per radian.
@@ -75,26 +75,43 @@ impl<'a> Checker<'a> {
 
     /// The lever bound on sphere motion between two configurations (m).
     pub fn sweep_bound(&self, a: &Joints, b: &Joints) -> f64 {
-        (0..6).map(|j| self.levers[j] * (a[j] - b[j]).abs()).sum()
+        sweep_with(&self.levers, a, b)
+    }
+
+    /// The per-joint lever arms of [`Self::sweep_bound`] (m/rad).
+    pub fn levers(&self) -> Joints {
+        self.levers
+    }
+
+    /// Largest motion of any sphere between two checks of a motion (m).
+    pub fn resolution(&self) -> f64 {
+        self.resolution
     }
 
     /// What touches what at `q`, or `None` when it is free.
     pub fn contact(&mut self, q: &Joints) -> Option<Contact> {
         self.checks += 1;
         let sm = &self.model.spheres;
-        self.model
-            .chain
-            .anchor_poses_into(q, &sm.link_anchors, &mut self.poses);
+        sm.fk.poses_into(q, &mut self.poses);
         sm.place_from_anchors(&self.poses, &mut self.placed);
-        for &i in &sm.world_spheres {
-            if let Some(h) = self.world.sphere_hit(&self.placed[i as usize]) {
-                return Some(Contact {
-                    link: sm.link_of(i as usize),
-                    other: self.world.hit_name(h),
-                });
+        // Per rigid body (distal first): one test of its ball against each obstacle and the
+        // distance field, then its spheres only against what the ball may touch.
+        for (ball, members) in &sm.world_bodies {
+            let c = self.poses[ball.slot.min(6)] * ball.center;
+            let near = self.world.near_ball(&c, ball.radius);
+            if near.is_empty() {
+                continue;
+            }
+            for &i in members {
+                if let Some(h) = self.world.sphere_hit_near(&self.placed[i as usize], &near) {
+                    return Some(Contact {
+                        link: sm.link_of(i as usize),
+                        other: self.world.hit_name(h),
+                    });
+                }
             }
         }
-        sm.self_collision(&self.placed)
+        sm.self_collision(&self.poses, &self.placed)
     }
 
     /// True when `q` is within limits and free.
@@ -149,6 +166,53 @@ impl<'a> Checker<'a> {
     }
 }
 
+/// `Σ_j levers_j |a_j − b_j|`: a bound on how far any point moves from `a` to `b` (m).
+#[inline]
+pub fn sweep_with(levers: &Joints, a: &Joints, b: &Joints) -> f64 {
+    (0..6).map(|j| levers[j] * (a[j] - b[j]).abs()).sum()
+}
+
+/// Walks the executed trajectory (straight joint-space motion between consecutive samples)
+/// and calls `visit(q, t)` on configurations spaced so that the motion bound `sweep` between
+/// two consecutive visits, summed over the samples passed in between, is at most
+/// `resolution`: the first sample, evenly spaced points along the path, and the last sample.
+/// Where the samples crowd (near rest) one visit covers many of them; where they are far
+/// apart, several visits fall between two. Stops at the first error `visit` returns.
+pub fn dense_walk<E>(
+    samples: &[TrajectorySample],
+    period: f64,
+    resolution: f64,
+    sweep: impl Fn(&Joints, &Joints) -> f64,
+    mut visit: impl FnMut(&Joints, f64) -> Result<(), E>,
+) -> Result<(), E> {
+    let (Some(first), Some(last)) = (samples.first(), samples.last()) else {
+        return Ok(());
+    };
+    visit(&first.position, first.t)?;
+    // Motion bound since the last visit.
+    let mut travel = 0.0;
+    for w in samples.windows(2) {
+        let (a, b) = (&w[0].position, &w[1].position);
+        let len = sweep(a, b);
+        if travel + len <= resolution {
+            travel += len;
+            continue;
+        }
+        // Distance along this segment of the next visit, then every `resolution`.
+        let mut pos = resolution - travel;
+        while pos < len {
+            let f = pos / len;
+            visit(&lerp(a, b, f), w[0].t + f * period)?;
+            pos += resolution;
+        }
+        travel = len - (pos - resolution);
+    }
+    if samples.len() > 1 {
+        visit(&last.position, last.t)?;
+    }
+    Ok(())
+}
+
 /// Linear interpolation in joint space.
 pub fn lerp(a: &Joints, b: &Joints, t: f64) -> Joints {
     std::array::from_fn(|j| a[j] + (b[j] - a[j]) * t)
@@ -178,6 +242,51 @@ mod tests {
                 worst = worst.max(d);
             }
             assert!(worst <= c.sweep_bound(&a, &b) + 1e-12);
+        }
+    }
+
+    /// The grouped check (body balls against obstacles, the field and each other) answers
+    /// exactly as every world sphere against the whole world plus every self pair, on MBM
+    /// scenes as primitives and as clouds.
+    #[test]
+    fn grouped_check_equals_brute_force_over_all_spheres() {
+        use crate::mbm::{mbm_robot, MbmFile, WorldMode, MBM_PROBLEMS_PATH};
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        let model = mbm_robot().unwrap();
+        let sm = &model.spheres;
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(21);
+        for scene in ["bookshelf_small", "cage", "table_pick"] {
+            let p = file.problems[scene].iter().find(|p| p.valid).unwrap();
+            for mode in [WorldMode::Primitives, WorldMode::Cloud] {
+                let world = p.world(mode).unwrap();
+                let mut c = Checker::new(&model, &world, 0.02);
+                let (mut placed, mut anchors) = (c.placed.clone(), [Isometry3::identity(); 7]);
+                let mut hits = 0;
+                for _ in 0..1500 {
+                    // Around the start configuration: both outcomes occur often.
+                    let (start, _) = p.start_goal().unwrap();
+                    let q: Joints = std::array::from_fn(|j| start[j] + rng.random_range(-2.0..2.0));
+                    model
+                        .chain
+                        .anchor_poses_into(&q, &sm.link_anchors, &mut anchors);
+                    sm.place_from_anchors(&anchors, &mut placed);
+                    let world_hit = sm
+                        .world_spheres
+                        .iter()
+                        .any(|&i| world.sphere_hit(&placed[i as usize]).is_some());
+                    let self_hit = sm.self_pairs.iter().any(|&(a, b)| {
+                        let (sa, sb) = (placed[a as usize], placed[b as usize]);
+                        (sa.center - sb.center).norm() < sa.radius + sb.radius
+                    });
+                    let brute = world_hit || self_hit;
+                    assert_eq!(c.contact(&q).is_some(), brute, "{scene} {mode:?} {q:?}");
+                    hits += usize::from(brute);
+                }
+                assert!(
+                    hits > 100 && hits < 1400,
+                    "{scene} {mode:?}: {hits} of 1500"
+                );
+            }
         }
     }
 

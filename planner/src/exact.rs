@@ -12,9 +12,8 @@
 //! signed distance to the ball centre and the distance field (a lower bound on the distance
 //! to the cloud) skip parts far from everything.
 //!
-//! [`validate_exact`] re-checks an executed trajectory: every sample and interpolated
-//! configurations between samples such that no point of any link (the TCP included) moves
-//! more than the resolution between two checks. The bound is configuration-independent: a
+//! [`validate_exact`] re-checks an executed trajectory: configurations along it such that no
+//! point of any link (the TCP included) moves more than the resolution between two checks. The bound is configuration-independent: a
 //! point of link `L` is at most `Σ |t_j| + |c| + r` from joint `k`'s origin (the joint origins
 //! between them, the part's bounding ball), so it moves at most that much per radian of `k`.
 //!
@@ -528,32 +527,23 @@ impl<'a> ExactChecker<'a> {
     }
 }
 
-/// Re-checks the executed trajectory with the exact shapes: every sample, and between samples
-/// enough interpolated states that no point of any link (the TCP included) moves more than the
-/// checker's resolution between two checks. Consecutive samples lie on one straight checked
-/// segment (phase-synchronized rest-to-rest timing), so linear interpolation between them is
-/// the executed motion.
+/// Re-checks the executed trajectory with the exact shapes: configurations along it such that
+/// no point of any link (the TCP included) moves more than the checker's resolution between
+/// two checks (`checker::dense_walk`). Consecutive samples lie on one straight checked segment
+/// (phase-synchronized rest-to-rest timing), so linear interpolation between them is the
+/// executed motion.
 pub fn validate_exact(traj: &Trajectory, checker: &mut ExactChecker<'_>) -> Result<(), PlanError> {
-    let s = traj.samples();
-    for (i, x) in s.iter().enumerate() {
-        if let Some(contact) = checker.contact(&x.position)? {
-            return Err(PlanError::ExactCollision { t: x.t, contact });
-        }
-        if let Some(next) = s.get(i + 1) {
-            let n = checker.steps(&x.position, &next.position);
-            for k in 1..n {
-                let f = k as f64 / n as f64;
-                let q = crate::checker::lerp(&x.position, &next.position, f);
-                if let Some(contact) = checker.contact(&q)? {
-                    return Err(PlanError::ExactCollision {
-                        t: x.t + f * traj.period(),
-                        contact,
-                    });
-                }
-            }
-        }
-    }
-    Ok(())
+    let model = checker.model;
+    crate::checker::dense_walk(
+        traj.samples(),
+        traj.period(),
+        checker.resolution,
+        |a, b| model.sweep_bound(a, b),
+        |q, t| match checker.contact(q)? {
+            Some(contact) => Err(PlanError::ExactCollision { t, contact }),
+            None => Ok(()),
+        },
+    )
 }
 
 #[cfg(test)]
@@ -807,7 +797,9 @@ mod tests {
             let exact = ExactModel::new(&model, 0.0).unwrap();
             let sm = &model.spheres;
             let mut placed = vec![Sphere::default(); sm.spheres.len()];
-            sm.place_into(&model.chain.link_poses(&q), &mut placed);
+            let mut anchors = [Isometry3::identity(); 7];
+            model.chain.anchor_poses_into(&q, &sm.link_anchors, &mut anchors);
+            sm.place_from_anchors(&anchors, &mut placed);
             let empty = World::empty();
             let mut ec = ExactChecker::new(&exact, &model.chain, &empty, 0.01);
             ec.place(&q);
@@ -848,7 +840,7 @@ mod tests {
                 prop_assert!(!sphere_free || exact_hit.is_none(), "{exact_hit:?}");
             }
             // Self-collision.
-            let self_free = sm.self_collision(&placed).is_none();
+            let self_free = sm.self_collision(&anchors, &placed).is_none();
             let exact_self = ec.placed_contact().unwrap();
             prop_assert!(!self_free || exact_self.is_none(), "{exact_self:?}");
         }

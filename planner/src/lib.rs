@@ -5,7 +5,8 @@
 //! `rsruckig` (pure-Rust Ruckig) does jerk-limited timing without the C++ library's cloud
 //! client; `rand_chacha` gives seeded, platform-independent sampling for RRT-Connect;
 //! `parry3d` gives the exact link, obstacle and point queries of the final re-check of every
-//! trajectory ([`exact`]), independent of the sphere model the search uses.
+//! trajectory ([`exact`]), independent of the sphere model the search uses; `cpu-time` reads
+//! the thread's CPU clock for benchmark stage times (a safe wrapper of `clock_gettime`).
 
 pub mod checker;
 pub mod cloud_io;
@@ -25,7 +26,7 @@ pub mod world;
 
 pub use error::{Contact, ExactContact, ExactOther, PlanError};
 pub use model::RobotModel;
-pub use planner::{ClosingVolume, PlanStats, PlannedMotion, Planner, PlannerConfig};
+pub use planner::{ClosingVolume, PlanStats, PlannedMotion, Planner, PlannerConfig, StageClock};
 pub use rrt::RrtParams;
 pub use timing::PlannerLimits;
 pub use world::{CloudParams, Obstacle, World};

@@ -153,6 +153,20 @@ impl MbmProblem {
         out
     }
 
+    /// The problem's world in the given mode: the primitives, or the distance field over the
+    /// 1 cm surface cloud.
+    pub fn world(&self, mode: WorldMode) -> Result<World, PlanError> {
+        match mode {
+            WorldMode::Primitives => Ok(self
+                .obstacles()
+                .into_iter()
+                .fold(World::empty(), World::with_obstacle)),
+            WorldMode::Cloud => {
+                World::from_cloud(&self.surface_cloud(0.01)?, &CloudParams::default())
+            }
+        }
+    }
+
     /// Points on the obstacle surfaces, about `spacing` apart (the robot base frame of the
     /// problems, which is their world frame).
     pub fn surface_cloud(&self, spacing: f64) -> Result<PointCloud, PlanError> {
@@ -256,12 +270,16 @@ pub struct ProblemResult {
     pub exact_s: f64,
     /// Configurations the exact re-check tested.
     pub exact_checks: u64,
-    /// Whole plan excluding the cloud build (s).
+    /// Whole plan excluding the cloud build (s), on the planner's stage clock.
     pub total_s: f64,
     /// Joint-space path length (rad).
     pub path_length: f64,
     /// Trajectory duration (s).
     pub duration_s: f64,
+    /// Searches repeated at a finer spacing after a dense re-check found a contact.
+    pub replans: usize,
+    /// Wall-clock time of the whole plan excluding the cloud build (s).
+    pub wall_s: f64,
 }
 
 /// Plans one problem in the given mode.
@@ -287,24 +305,22 @@ pub fn run_problem(
         total_s: 0.0,
         path_length: 0.0,
         duration_s: 0.0,
+        replans: 0,
+        wall_s: 0.0,
     };
     let outcome = (|| -> Result<_, PlanError> {
         let (start, goal) = p.start_goal()?;
-        let world = match mode {
-            WorldMode::Primitives => p
-                .obstacles()
-                .into_iter()
-                .fold(World::empty(), World::with_obstacle),
-            WorldMode::Cloud => {
-                let cloud = p.surface_cloud(0.01)?;
-                r.cloud_points = cloud.len();
-                let t = Instant::now();
-                let w = World::from_cloud(&cloud, &CloudParams::default())?;
-                r.build_s = t.elapsed().as_secs_f64();
-                w
-            }
-        };
-        planner.plan_to_joints(&start, &goal, &world)
+        let t = Instant::now();
+        let world = p.world(mode)?;
+        if mode == WorldMode::Cloud {
+            r.cloud_points = world.cloud_len();
+            // Includes sampling the surfaces (well under a millisecond), as the FFI build does.
+            r.build_s = t.elapsed().as_secs_f64();
+        }
+        let t = Instant::now();
+        let m = planner.plan_to_joints(&start, &goal, &world);
+        r.wall_s = t.elapsed().as_secs_f64();
+        m
     })();
     match outcome {
         Ok(m) => {
@@ -318,6 +334,7 @@ pub fn run_problem(
             r.total_s = m.stats.total_s;
             r.path_length = m.stats.path_length;
             r.duration_s = m.trajectory.duration();
+            r.replans = m.stats.replans;
         }
         Err(e) => r.error = Some(e.to_string()),
     }
@@ -343,8 +360,10 @@ pub struct SceneSummary {
     pub solved: usize,
     /// Problems run.
     pub total: usize,
-    /// Median / p95 whole plan time excluding cloud build (ms).
+    /// Median / p95 whole plan time excluding cloud build (ms), on the planner's stage clock.
     pub plan_ms: (f64, f64),
+    /// Median / p95 wall-clock time of the whole plan excluding cloud build (ms).
+    pub plan_wall_ms: (f64, f64),
     /// Median / p95 search time (ms).
     pub search_ms: (f64, f64),
     /// Median / p95 shortcut time (ms).
@@ -357,6 +376,8 @@ pub struct SceneSummary {
     pub build_ms: (f64, f64),
     /// Median path length (rad).
     pub path_length_median: f64,
+    /// Solved problems that needed at least one finer search after a dense re-check.
+    pub replanned: usize,
 }
 
 /// Summarizes results per scene and overall.
@@ -381,11 +402,13 @@ pub fn summarize(results: &[ProblemResult]) -> Vec<SceneSummary> {
                 solved: ok.len(),
                 total: rs.len(),
                 plan_ms: col(&|r| r.total_s),
+                plan_wall_ms: col(&|r| r.wall_s),
                 search_ms: col(&|r| r.search_s),
                 shortcut_ms: col(&|r| r.shortcut_s),
                 timing_validate_ms: col(&|r| r.timing_s + r.validate_s),
                 exact_ms: col(&|r| r.exact_s),
                 build_ms: col(&|r| r.build_s),
+                replanned: ok.iter().filter(|r| r.replans > 0).count(),
                 path_length_median: {
                     let mut v: Vec<f64> = ok.iter().map(|r| r.path_length).collect();
                     median_p95(&mut v).0

@@ -4,7 +4,7 @@
 //! with the sphere model, then with the exact parry shapes ([`crate::exact`]) against the same
 //! world (keyframe semantics applied).
 
-use crate::checker::{lerp, Checker};
+use crate::checker::{dense_walk, sweep_with, Checker};
 use crate::error::PlanError;
 use crate::exact::{validate_exact, ExactChecker, ExactModel};
 use crate::model::RobotModel;
@@ -14,6 +14,44 @@ use crate::world::World;
 use cell_types::{Base, Joints, Keyframe, Tcp, Trajectory, Transform};
 use nalgebra::Point3;
 use std::time::Instant;
+
+/// The clock [`PlanStats`] stage times are read from.
+#[derive(Copy, Clone, Debug, Default, PartialEq, Eq)]
+pub enum StageClock {
+    /// Monotonic wall clock.
+    #[default]
+    Wall,
+    /// CPU time of the planning thread (`CLOCK_THREAD_CPUTIME_ID`, via `cpu-time`; a system
+    /// call per read): benchmarks on a shared machine, where other processes would inflate
+    /// wall-clock times.
+    ThreadCpu,
+}
+
+/// A stopwatch on a [`StageClock`].
+struct Stopwatch {
+    wall: Instant,
+    cpu: Option<cpu_time::ThreadTime>,
+}
+
+impl Stopwatch {
+    fn start(clock: StageClock) -> Self {
+        Self {
+            wall: Instant::now(),
+            cpu: match clock {
+                StageClock::Wall => None,
+                StageClock::ThreadCpu => cpu_time::ThreadTime::try_now().ok(),
+            },
+        }
+    }
+
+    /// Seconds since the start.
+    fn elapsed(&self) -> f64 {
+        match self.cpu.as_ref().and_then(|c| c.try_elapsed().ok()) {
+            Some(d) => d.as_secs_f64(),
+            None => self.wall.elapsed().as_secs_f64(),
+        }
+    }
+}
 
 /// The region between the open 2F-85 fingers at the goal, plus a margin: cloud points in it
 /// belong to the object being grasped or placed and are excluded for the final approach.
@@ -67,6 +105,8 @@ pub struct PlannerConfig {
     /// Also re-check the trajectory densely with the spheres before the exact re-check (the
     /// spheres cover the shapes, so this only adds false alarms and time; kept on by default).
     pub sphere_recheck: bool,
+    /// The clock of the stage times in [`PlanStats`].
+    pub clock: StageClock,
 }
 
 impl Default for PlannerConfig {
@@ -79,6 +119,7 @@ impl Default for PlannerConfig {
             closing_volume: ClosingVolume::default(),
             exact_margin: 0.0,
             sphere_recheck: true,
+            clock: StageClock::Wall,
         }
     }
 }
@@ -104,6 +145,9 @@ pub struct PlanStats {
     pub total_s: f64,
     /// RRT iterations (0: the direct segment was free).
     pub iterations: usize,
+    /// Searches repeated at a finer spacing because a dense re-check found a contact the
+    /// search had missed (their time is in `total_s` only).
+    pub replans: usize,
     /// Configurations checked.
     pub checks: u64,
     /// Joint-space path length after shortcutting (rad).
@@ -163,7 +207,7 @@ impl Planner {
         keyframe: &Keyframe,
         world: &World,
     ) -> Result<PlannedMotion, PlanError> {
-        let t0 = Instant::now();
+        let t0 = Stopwatch::start(self.config.clock);
         self.model.check_limits(start)?;
         // Keyframe semantics: "ignore collisions" drops the cloud; otherwise points in the
         // closing volume at the goal belong to the object and are excluded for this motion.
@@ -208,13 +252,13 @@ impl Planner {
                 });
             }
         }
-        let goal_s = t0.elapsed().as_secs_f64();
+        let goal_s = t0.elapsed();
         let mut last_err = PlanError::NoPath { iterations: 0 };
         for goal in free {
             match self.plan_joints_inner(start, &goal, &mut checker, world) {
                 Ok(mut m) => {
                     m.stats.goal_s = goal_s;
-                    m.stats.total_s = t0.elapsed().as_secs_f64();
+                    m.stats.total_s = t0.elapsed();
                     return Ok(m);
                 }
                 Err(e) => last_err = e,
@@ -231,7 +275,7 @@ impl Planner {
         goal: &Joints,
         world: &World,
     ) -> Result<PlannedMotion, PlanError> {
-        let t0 = Instant::now();
+        let t0 = Stopwatch::start(self.config.clock);
         self.model.check_limits(start)?;
         self.model.check_limits(goal)?;
         let mut checker = Checker::new(&self.model, world, self.config.check_resolution);
@@ -245,7 +289,7 @@ impl Planner {
             });
         }
         let mut m = self.plan_joints_inner(start, goal, &mut checker, world)?;
-        m.stats.total_s = t0.elapsed().as_secs_f64();
+        m.stats.total_s = t0.elapsed();
         Ok(m)
     }
 
@@ -263,18 +307,21 @@ impl Planner {
         let mut spent = checker.checks;
         let mut res = self.config.check_resolution;
         let mut result = first;
+        let mut replans = 0;
         while matches!(
             result,
             Err(PlanError::TrajectoryCollides { .. } | PlanError::ExactCollision { .. })
         ) && res > self.config.validate_resolution / 2.0
         {
             res /= 2.0;
+            replans += 1;
             let mut finer = Checker::new(&self.model, world, res);
             result = self.plan_joints_once(start, goal, &mut finer, world);
             spent += finer.checks;
         }
         result.map(|mut m| {
             m.stats.checks = m.stats.checks.max(spent);
+            m.stats.replans = replans;
             m
         })
     }
@@ -287,33 +334,33 @@ impl Planner {
         world: &World,
     ) -> Result<PlannedMotion, PlanError> {
         let mut stats = PlanStats::default();
-        let t = Instant::now();
+        let t = Stopwatch::start(self.config.clock);
         let search = plan_path(start, goal, &self.model.limits, checker, &self.config.rrt)?;
-        stats.search_s = t.elapsed().as_secs_f64();
+        stats.search_s = t.elapsed();
         stats.iterations = search.iterations;
         let mut path = search.path;
-        let t = Instant::now();
+        let t = Stopwatch::start(self.config.clock);
         shortcut(
             &mut path,
             checker,
             self.config.rrt.shortcut_attempts,
             self.config.rrt.seed,
         );
-        stats.shortcut_s = t.elapsed().as_secs_f64();
+        stats.shortcut_s = t.elapsed();
         stats.path_length = path_length(&path);
         stats.waypoints = path.len();
-        let t = Instant::now();
+        let t = Stopwatch::start(self.config.clock);
         let trajectory = time_path(&path, &self.limits)?;
-        stats.timing_s = t.elapsed().as_secs_f64();
-        let t = Instant::now();
+        stats.timing_s = t.elapsed();
+        let t = Stopwatch::start(self.config.clock);
         validate_limits(&trajectory, &self.model.limits, &self.limits)?;
         let mut dense = Checker::new(&self.model, world, self.config.validate_resolution);
         if self.config.sphere_recheck {
             validate_dense(&trajectory, &mut dense)?;
         }
-        stats.validate_s = t.elapsed().as_secs_f64();
+        stats.validate_s = t.elapsed();
         // The same world the search used (keyframe semantics applied), with the exact shapes.
-        let t = Instant::now();
+        let t = Stopwatch::start(self.config.clock);
         let mut exact = ExactChecker::new(
             &self.exact,
             &self.model.chain,
@@ -321,7 +368,7 @@ impl Planner {
             self.config.validate_resolution,
         );
         validate_exact(&trajectory, &mut exact)?;
-        stats.exact_s = t.elapsed().as_secs_f64();
+        stats.exact_s = t.elapsed();
         stats.exact_checks = exact.checks;
         stats.checks = checker.checks + dense.checks;
         Ok(PlannedMotion {
@@ -333,31 +380,24 @@ impl Planner {
     }
 }
 
-/// Re-checks the executed trajectory densely: every sample, and between samples enough
-/// interpolated states that no robot point moves more than the checker's resolution between
-/// two checks. Consecutive samples lie on one straight checked segment (phase-synchronized
-/// rest-to-rest timing), so linear interpolation between them is the executed motion.
+/// Re-checks the executed trajectory densely with the spheres: configurations along it such
+/// that no robot point moves more than the checker's resolution between two checks
+/// ([`dense_walk`]). Consecutive samples lie on one straight checked segment
+/// (phase-synchronized rest-to-rest timing), so linear interpolation between them is the
+/// executed motion.
 pub fn validate_dense(traj: &Trajectory, checker: &mut Checker<'_>) -> Result<(), PlanError> {
-    let s = traj.samples();
-    for (i, x) in s.iter().enumerate() {
-        if let Some(contact) = checker.contact(&x.position) {
-            return Err(PlanError::TrajectoryCollides { t: x.t, contact });
-        }
-        if let Some(next) = s.get(i + 1) {
-            let n = checker.steps(&x.position, &next.position);
-            for k in 1..n {
-                let f = k as f64 / n as f64;
-                let q = lerp(&x.position, &next.position, f);
-                if let Some(contact) = checker.contact(&q) {
-                    return Err(PlanError::TrajectoryCollides {
-                        t: x.t + f * traj.period(),
-                        contact,
-                    });
-                }
-            }
-        }
-    }
-    Ok(())
+    let res = checker.resolution();
+    let levers = checker.levers();
+    dense_walk(
+        traj.samples(),
+        traj.period(),
+        res,
+        |a, b| sweep_with(&levers, a, b),
+        |q, t| match checker.contact(q) {
+            Some(contact) => Err(PlanError::TrajectoryCollides { t, contact }),
+            None => Ok(()),
+        },
+    )
 }
 
 #[cfg(test)]

@@ -533,6 +533,26 @@ impl Chain {
         }
     }
 
+    /// [`Self::anchor_poses_into`] with the constant part of each joint's transform (parent
+    /// anchor offset times joint origin) multiplied out once.
+    pub fn anchor_fk(&self, anchors: &[(usize, Isometry3<f64>)]) -> AnchorFk {
+        let joints = std::array::from_fn(|k| {
+            let Some(j) = self.actuated.get(k).map(|&ji| &self.joints[ji]) else {
+                return (0, Isometry3::identity(), Vector3::z_axis());
+            };
+            let (slot, off) = anchors
+                .get(j.parent)
+                .copied()
+                .unwrap_or((0, Isometry3::identity()));
+            (
+                slot.min(6),
+                off * j.origin,
+                j.axis.unwrap_or_else(Vector3::z_axis),
+            )
+        });
+        AnchorFk { joints }
+    }
+
     /// Joint limits of the six actuated joints.
     pub fn limits(&self) -> [(f64, f64); 6] {
         let mut l = [(0.0, 0.0); 6];
@@ -540,6 +560,25 @@ impl Chain {
             l[i] = self.joints[j].limits;
         }
         l
+    }
+}
+
+/// The seven anchor poses of a chain as one fixed transform and one rotation per joint (see
+/// [`Chain::anchor_fk`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct AnchorFk {
+    /// Per actuated joint: parent anchor slot, fixed transform from it, rotation axis.
+    joints: [(usize, Isometry3<f64>, Unit<Vector3<f64>>); 6],
+}
+
+impl AnchorFk {
+    /// The same poses as [`Chain::anchor_poses_into`] with the anchors this was built from.
+    #[inline]
+    pub fn poses_into(&self, q: &[f64; 6], out: &mut [Isometry3<f64>; 7]) {
+        out[0] = Isometry3::identity();
+        for (k, (slot, fixed, axis)) in self.joints.iter().enumerate() {
+            out[k + 1] = out[*slot] * fixed * UnitQuaternion::from_axis_angle(axis, q[k]);
+        }
     }
 }
 

@@ -16,7 +16,7 @@ use crate::collision::Sphere;
 use crate::error::PlanError;
 use crate::kdtree::KdTree;
 use cell_types::{FrameId, PointCloud};
-use nalgebra::{Isometry3, Point3, Unit, Vector3};
+use nalgebra::{Isometry3, Matrix3, Point3, Unit, Vector3};
 
 /// A static obstacle.
 #[derive(Clone, Debug, PartialEq)]
@@ -99,29 +99,73 @@ impl Obstacle {
 
     /// Signed distance from `p` to the obstacle's surface (negative inside); exact.
     pub fn distance(&self, p: &Point3<f64>) -> f64 {
+        self.distance_local(&self.frame().inverse_transform_point(p))
+    }
+
+    /// The frame [`Self::distance_local`] works in: the pose for boxes and cylinders, the
+    /// centre for balls, the base frame for half-spaces.
+    fn frame(&self) -> Isometry3<f64> {
         match self {
-            Obstacle::Cuboid { pose, half, .. } => {
-                let l = pose.inverse_transform_point(p);
+            Obstacle::Cuboid { pose, .. } | Obstacle::Cylinder { pose, .. } => *pose,
+            Obstacle::Ball { center, .. } => Isometry3::translation(center.x, center.y, center.z),
+            Obstacle::HalfSpace { .. } => Isometry3::identity(),
+        }
+    }
+
+    /// Signed distance from a point given in [`Self::frame`].
+    #[inline]
+    fn distance_local(&self, l: &Point3<f64>) -> f64 {
+        match self {
+            Obstacle::Cuboid { half, .. } => {
                 let q = l.coords.abs() - half;
                 let outside = q.map(|v| v.max(0.0)).norm();
                 let inside = q.x.max(q.y).max(q.z).min(0.0);
                 outside + inside
             }
             Obstacle::Cylinder {
-                pose,
                 radius,
                 half_length,
                 ..
             } => {
-                let l = pose.inverse_transform_point(p);
                 let dr = (l.x * l.x + l.y * l.y).sqrt() - radius;
                 let dz = l.z.abs() - half_length;
                 let outside = (dr.max(0.0).powi(2) + dz.max(0.0).powi(2)).sqrt();
                 outside + dr.max(dz).min(0.0)
             }
-            Obstacle::Ball { center, radius, .. } => (p - center).norm() - radius,
-            Obstacle::HalfSpace { normal, offset, .. } => normal.dot(&p.coords) - offset,
+            Obstacle::Ball { radius, .. } => l.coords.norm() - radius,
+            Obstacle::HalfSpace { normal, offset, .. } => normal.dot(&l.coords) - offset,
         }
+    }
+}
+
+/// An obstacle's bounding ball and the inverse of its frame as a matrix (one matrix-vector
+/// product per distance instead of a quaternion rotation).
+#[derive(Clone, Debug)]
+struct Bound {
+    center: Point3<f64>,
+    radius: f64,
+    inv_rot: Matrix3<f64>,
+    origin: Vector3<f64>,
+}
+
+impl Bound {
+    fn of(o: &Obstacle) -> Self {
+        let (center, radius) = o
+            .bounding_ball()
+            .unwrap_or((Point3::origin(), f64::INFINITY));
+        let f = o.frame();
+        Self {
+            center,
+            radius,
+            inv_rot: f.rotation.to_rotation_matrix().into_inner().transpose(),
+            origin: f.translation.vector,
+        }
+    }
+
+    /// `o.distance(p)` for the obstacle this bound was made of.
+    #[inline]
+    fn distance(&self, o: &Obstacle, p: &Point3<f64>) -> f64 {
+        o.distance_local(&Point3::from(self.inv_rot * (p.coords - self.origin)))
     }
 }
 
@@ -395,6 +439,23 @@ pub enum Hit {
     Obstacle(usize),
 }
 
+/// What a ball may touch ([`World::near_ball`]): a bit per obstacle (all of them when there are
+/// more than 64) and the cloud.
+#[derive(Copy, Clone, Debug, PartialEq, Eq)]
+pub struct Near {
+    mask: u64,
+    all: bool,
+    cloud: bool,
+}
+
+impl Near {
+    /// True when the ball touches nothing.
+    #[inline]
+    pub fn is_empty(&self) -> bool {
+        self.mask == 0 && !self.all && !self.cloud
+    }
+}
+
 /// Static geometry plus (optionally) an observed cloud.
 #[derive(Clone, Debug, Default)]
 pub struct World {
@@ -402,7 +463,7 @@ pub struct World {
     pub obstacles: Vec<Obstacle>,
     /// Bounding ball of each obstacle (centre, radius; infinite radius when unbounded): one
     /// distance rejects most sphere/obstacle pairs before the exact test.
-    bounds: Vec<(Point3<f64>, f64)>,
+    bounds: Vec<Bound>,
     field: Option<DistanceField>,
     points: Vec<Point3<f32>>,
     params: Option<CloudParams>,
@@ -435,10 +496,7 @@ impl World {
 
     /// Adds a static obstacle.
     pub fn with_obstacle(mut self, o: Obstacle) -> Self {
-        self.bounds.push(
-            o.bounding_ball()
-                .unwrap_or((Point3::origin(), f64::INFINITY)),
-        );
+        self.bounds.push(Bound::of(&o));
         self.obstacles.push(o);
         self
     }
@@ -491,6 +549,64 @@ impl World {
         self.field.as_ref()
     }
 
+    /// The obstacles and cloud a ball of radius `r` at `c` may touch (a superset of those
+    /// it touches): one test per obstacle for a whole group of spheres inside the ball.
+    #[inline]
+    pub fn near_ball(&self, c: &Point3<f64>, r: f64) -> Near {
+        let cloud = self
+            .field
+            .as_ref()
+            .is_some_and(|f| f.distance_bounds(c).0 <= r);
+        if self.obstacles.len() > 64 {
+            return Near {
+                mask: 0,
+                all: true,
+                cloud,
+            };
+        }
+        let mut mask = 0u64;
+        for (i, (o, b)) in self.obstacles.iter().zip(&self.bounds).enumerate() {
+            let reach = b.radius + r;
+            if (c - b.center).norm_squared() <= reach * reach && b.distance(o, c) <= r {
+                mask |= 1 << i;
+            }
+        }
+        Near {
+            mask,
+            all: false,
+            cloud,
+        }
+    }
+
+    /// What the sphere touches among `near` (from [`Self::near_ball`] of a ball containing
+    /// the sphere), if anything; the same answer as [`Self::sphere_hit`].
+    #[inline]
+    pub fn sphere_hit_near(&self, s: &Sphere, near: &Near) -> Option<Hit> {
+        if near.all {
+            return self.sphere_hit(s);
+        }
+        if near.cloud {
+            if let Some(f) = &self.field {
+                if f.touches(&s.center, s.radius) {
+                    return Some(Hit::Cloud);
+                }
+            }
+        }
+        let mut m = near.mask;
+        while m != 0 {
+            let i = m.trailing_zeros() as usize;
+            m &= m - 1;
+            let (o, b) = (&self.obstacles[i], &self.bounds[i]);
+            let reach = b.radius + s.radius;
+            if (s.center - b.center).norm_squared() <= reach * reach
+                && b.distance(o, &s.center) <= s.radius
+            {
+                return Some(Hit::Obstacle(i));
+            }
+        }
+        None
+    }
+
     /// What the sphere touches, if anything.
     #[inline]
     pub fn sphere_hit(&self, s: &Sphere) -> Option<Hit> {
@@ -499,9 +615,9 @@ impl World {
                 return Some(Hit::Cloud);
             }
         }
-        for (i, (o, (c, r))) in self.obstacles.iter().zip(&self.bounds).enumerate() {
-            let reach = r + s.radius;
-            if (s.center - c).norm_squared() > reach * reach {
+        for (i, (o, b)) in self.obstacles.iter().zip(&self.bounds).enumerate() {
+            let reach = b.radius + s.radius;
+            if (s.center - b.center).norm_squared() > reach * reach {
                 continue;
             }
             if o.distance(&s.center) <= s.radius {

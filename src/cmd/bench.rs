@@ -71,6 +71,92 @@ pub struct PlannerBenchArgs {
     /// RRT seed.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// RRT-Connect extension step (rad, max-norm); the planner's default when absent.
+    #[arg(long)]
+    pub range: Option<f64>,
+    /// Only the scenes whose name contains this.
+    #[arg(long)]
+    pub scene: Option<String>,
+    /// Also run OMPL's RRTConnect on the same problems with the same collision checker, using
+    /// this Python (a venv with `ompl`, see planner/benches/ompl_rrtconnect.py), and print the
+    /// ratio of the search medians.
+    #[arg(long)]
+    pub ompl: Option<std::path::PathBuf>,
+    /// OMPL's time budget per problem (s).
+    #[arg(long, default_value_t = 5.0)]
+    pub ompl_budget: f64,
+    /// The checker library for OMPL (default: libplanner_ffi.so next to this binary; build it
+    /// with `cargo build --release -p planner_ffi`).
+    #[arg(long)]
+    pub ompl_lib: Option<std::path::PathBuf>,
+}
+
+/// The OMPL driver script (in the source tree; the benchmark runs from a checkout).
+const OMPL_SCRIPT: &str = concat!(
+    env!("CARGO_MANIFEST_DIR"),
+    "/planner/benches/ompl_rrtconnect.py"
+);
+
+/// Runs OMPL's RRTConnect through the Python driver; the parsed JSON, or why it could not run.
+fn run_ompl(
+    a: &PlannerBenchArgs,
+    python: &std::path::Path,
+    mode: WorldMode,
+) -> Result<serde_json::Value, String> {
+    let lib = match &a.ompl_lib {
+        Some(l) => l.clone(),
+        None => std::env::current_exe()
+            .map_err(|e| format!("locating this binary: {e}"))?
+            .with_file_name(format!(
+                "{}planner_ffi{}",
+                std::env::consts::DLL_PREFIX,
+                std::env::consts::DLL_SUFFIX
+            )),
+    };
+    if !lib.exists() {
+        return Err(format!(
+            "{} not found: build it with `cargo build --release -p planner_ffi` (or pass --ompl-lib)",
+            lib.display()
+        ));
+    }
+    let mut cmd = std::process::Command::new(python);
+    cmd.arg(OMPL_SCRIPT)
+        .arg("--lib")
+        .arg(&lib)
+        .arg("--problems")
+        .arg(&a.problems)
+        .arg("--mode")
+        .arg(match mode {
+            WorldMode::Primitives => "primitives",
+            WorldMode::Cloud => "cloud",
+        })
+        .arg("--budget")
+        .arg(a.ompl_budget.to_string());
+    if let Some(n) = a.limit {
+        cmd.arg("--limit").arg(n.to_string());
+    }
+    let out = cmd
+        .output()
+        .map_err(|e| format!("running {} {OMPL_SCRIPT}: {e}", python.display()))?;
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let parsed: Option<serde_json::Value> = stdout
+        .lines()
+        .rev()
+        .find_map(|l| serde_json::from_str(l).ok());
+    match parsed {
+        Some(v) if out.status.success() && v.get("error").is_none() => Ok(v),
+        Some(v) if v.get("error").is_some() => Err(format!("OMPL driver: {}", v["error"])),
+        _ => Err(format!(
+            "OMPL driver exited with {} and no result; stderr: {}",
+            out.status,
+            String::from_utf8_lossy(&out.stderr)
+                .lines()
+                .rev()
+                .take(5)
+                .collect::<Vec<_>>()
+                .join(" | ")
+        )),
+    }
 }
 
 /// Runs `equact bench`.
@@ -88,6 +174,11 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
     let file = MbmFile::parse(&text)?;
     let mut config = PlannerConfig::default();
     config.rrt.seed = a.seed;
+    if let Some(r) = a.range {
+        config.rrt.range = r;
+    }
+    // Thread CPU time: other processes on the machine do not inflate the stage times.
+    config.clock = planner::StageClock::ThreadCpu;
     let planner = Planner::new(mbm_robot()?, PlannerLimits::default(), config)?;
     let modes: Vec<WorldMode> = match a.mode.as_deref() {
         None => vec![WorldMode::Primitives, WorldMode::Cloud],
@@ -100,6 +191,12 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
         let t = Instant::now();
         let mut results = Vec::new();
         for (scene, ps) in &file.problems {
+            if a.scene
+                .as_ref()
+                .is_some_and(|s| !scene.contains(s.as_str()))
+            {
+                continue;
+            }
             for p in ps
                 .iter()
                 .filter(|p| p.valid)
@@ -114,25 +211,30 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
         }
         let summary = summarize(&results);
         if !a.json {
-            println!("mode {mode:?} ({:.1} s wall)", t.elapsed().as_secs_f64());
             println!(
-                "{:<18} {:>9} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>8}",
+                "mode {mode:?} ({:.1} s wall; times in ms of thread CPU unless marked wall)",
+                t.elapsed().as_secs_f64()
+            );
+            println!(
+                "{:<18} {:>9} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>8} {:>8}",
                 "scene",
                 "solved",
                 "plan ms med/p95",
+                "plan wall ms",
                 "search",
                 "shortcut",
                 "timing+valid.",
                 "exact re-check",
                 "cloud build",
-                "len rad"
+                "len rad",
+                "replans"
             );
             for s in &summary {
                 println!(
-                    "{:<18} {:>4}/{:<4} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.2}/{:<8.2} {:>8.2}",
-                    s.scene, s.solved, s.total, s.plan_ms.0, s.plan_ms.1, s.search_ms.0, s.search_ms.1,
+                    "{:<18} {:>4}/{:<4} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.2}/{:<8.2} {:>8.2} {:>8}",
+                    s.scene, s.solved, s.total, s.plan_ms.0, s.plan_ms.1, s.plan_wall_ms.0, s.plan_wall_ms.1, s.search_ms.0, s.search_ms.1,
                     s.shortcut_ms.0, s.shortcut_ms.1, s.timing_validate_ms.0, s.timing_validate_ms.1,
-                    s.exact_ms.0, s.exact_ms.1, s.build_ms.0, s.build_ms.1, s.path_length_median
+                    s.exact_ms.0, s.exact_ms.1, s.build_ms.0, s.build_ms.1, s.path_length_median, s.replanned
                 );
             }
         }
@@ -140,6 +242,47 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
             format!("{mode:?}").to_lowercase(),
             serde_json::to_value(&summary)?,
         );
+        if let Some(python) = &a.ompl {
+            let ours = summary.last().map_or((f64::NAN, f64::NAN), |s| s.search_ms);
+            let entry = match run_ompl(&a, python, mode) {
+                Ok(mut v) => {
+                    let med = v["solve_ms_median"].as_f64().unwrap_or(f64::NAN);
+                    let p95 = v["solve_ms_p95"].as_f64().unwrap_or(f64::NAN);
+                    if !a.json {
+                        println!(
+                            "OMPL RRTConnect ({mode:?}, same checker via planner_ffi, Python callbacks): solved {}/{}, median {med:.3} ms, p95 {p95:.3} ms; ours (search) median {:.3} ms, p95 {:.3} ms; OMPL/ours median ratio {:.1}",
+                            v["solved"], v["total"], ours.0, ours.1, med / ours.0
+                        );
+                    }
+                    if let Some(o) = v.as_object_mut() {
+                        // Per-problem times stay in the driver's own output; the summary keeps
+                        // the statistics.
+                        o.remove("problems");
+                        o.insert("ours_search_ms_median".into(), serde_json::json!(ours.0));
+                        o.insert("ours_search_ms_p95".into(), serde_json::json!(ours.1));
+                        o.insert(
+                            "median_ratio_ompl_over_ours".into(),
+                            serde_json::json!(med / ours.0),
+                        );
+                        o.insert(
+                            "p95_ratio_ompl_over_ours".into(),
+                            serde_json::json!(p95 / ours.1),
+                        );
+                    }
+                    v
+                }
+                Err(e) => {
+                    if !a.json {
+                        println!("OMPL RRTConnect ({mode:?}) did not run: {e}");
+                    }
+                    serde_json::json!({"error": e})
+                }
+            };
+            out.insert(
+                format!("ompl_{}", format!("{mode:?}").to_lowercase()),
+                entry,
+            );
+        }
     }
     // Collision check of one configuration against a cloud of the densest scene.
     if let Some(p) = file.problems.get("bookshelf_tall").and_then(|v| v.first()) {
