@@ -4,6 +4,7 @@ pub mod arm;
 pub mod camera;
 pub mod dashboard;
 pub mod gripper;
+pub mod realsense;
 pub mod rtde;
 pub mod ur;
 pub mod urscript;
