@@ -57,9 +57,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if cfg.robot.backend == RobotBackend::Ur {
         anyhow::bail!(
             "running on a real UR controller is not wired into `equact run` yet: the drivers \
-             (firmware_iface::ur::UrArm, RobotiqGripper) work and `equact check --config FILE` \
-             checks the cell without moving it, but there is no RealSense capture backend yet; \
-             use the simulated cell (no --config) for now"
+             (firmware_iface::ur::UrArm, RobotiqGripper, realsense::RealSenseCamera) work, \
+             `equact check --config FILE` checks the cell without moving it and `equact \
+             perceive --config FILE` captures and fuses the cameras; use the simulated cell \
+             (no --config) for episodes for now"
         );
     }
     if args.policy == PolicyChoice::Learned {

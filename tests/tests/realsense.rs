@@ -9,15 +9,27 @@
 //!   pixel is known; the backend plays it through the same pipeline code as a live device
 //!   and must return every frame, size, intrinsic, timestamp and depth value exactly, in
 //!   millimetres whatever the recorded depth units, then time out at the end (no repeat).
+//! - `equact check`'s camera checks: with no device, each configured serial is reported
+//!   not connected; with recordings standing in for the devices, a wrong mode and
+//!   intrinsics that disagree with the calibration's camera model fail and say which value.
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers may panic
 
 use std::path::Path;
+use std::sync::{Mutex, MutexGuard};
 use std::time::Duration;
 
 use cell_types::config::DepthMode;
 use firmware_iface::camera::{CameraError, DepthCamera};
 use firmware_iface::realsense::{DistortionModel, RealSenseCamera, RealSenseError};
+
+/// One recording plays at a time per process (`RealSenseError::PlaybackBusy`): the tests
+/// that play take this first.
+static PLAYBACK: Mutex<()> = Mutex::new(());
+
+fn one_playback() -> MutexGuard<'static, ()> {
+    PLAYBACK.lock().unwrap_or_else(|p| p.into_inner())
+}
 
 const W: u32 = 64;
 const H: u32 = 48;
@@ -134,9 +146,18 @@ fn check_playback(path: &Path) {
 #[test]
 fn a_recording_plays_back_exactly() {
     tests::load_venv_librealsense().unwrap();
+    let _one = one_playback();
     let dir = std::env::temp_dir().join(format!("equact-realsense-{}", std::process::id()));
     // The D455's own unit: raw values are millimetres already.
-    check_playback(&record(&dir, "mm.db3", 0.001));
+    let mm = record(&dir, "mm.db3", 0.001);
+    check_playback(&mm);
+    // A second recording while one plays is refused, not a crash.
+    let playing = RealSenseCamera::open_recording(0, &mm).unwrap();
+    assert!(matches!(
+        RealSenseCamera::open_recording(1, &mm),
+        Err(RealSenseError::PlaybackBusy { .. })
+    ));
+    drop(playing);
     // 100 um units (a D455 set to finer depth units): converted to millimetres.
     check_playback(&record(&dir, "tenth_mm.db3", 0.0001));
     let _ = std::fs::remove_dir_all(&dir);
@@ -145,10 +166,111 @@ fn a_recording_plays_back_exactly() {
 #[test]
 fn a_missing_recording_is_a_typed_error() {
     tests::load_venv_librealsense().unwrap();
+    let _one = one_playback();
     let e = RealSenseCamera::open_recording(0, Path::new("/nonexistent/cell.db3")).unwrap_err();
     assert!(
         matches!(&e, RealSenseError::Call { message, .. } if !message.is_empty()),
         "{e:?}"
     );
     assert!(e.to_string().contains("/nonexistent/cell.db3"), "{e}");
+}
+
+#[test]
+fn preflight_camera_checks() {
+    use calibration::{CameraCalibration, CellCalibration, Intrinsics};
+    use cell_types::Transform;
+    use equact::preflight::{check_camera_streams, check_cameras};
+
+    tests::load_venv_librealsense().unwrap();
+    let cfg = cell_types::CellConfig::simulated().unwrap();
+    assert!(cfg.cameras.len() >= 2);
+
+    // No device: every configured serial is named, with what to do.
+    let checks = check_cameras(&cfg, None);
+    let cams = checks.iter().find(|c| c.name == "cameras").unwrap();
+    assert!(!cams.passed, "{cams:?}");
+    assert!(cams.detail.ends_with("; connected: none"), "{cams:?}");
+    for c in &cfg.cameras {
+        assert!(
+            cams.detail
+                .contains(&format!("{}: no D455 with serial {}", c.name, c.serial)),
+            "{cams:?}"
+        );
+        assert!(
+            cams.fix.contains(&format!("plug camera `{}`", c.name)),
+            "{cams:?}"
+        );
+    }
+
+    // Recordings at 848x480 stand in for the devices.
+    let dir = std::env::temp_dir().join(format!("equact-realsense-check-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("wvga.db3");
+    tests::run_peer(
+        "realsense_bag.py",
+        &[path.to_str().unwrap(), "848", "480", "30", "2", "0.001"],
+    )
+    .unwrap();
+    let _one = one_playback();
+    let mut open =
+        |id: u8, _: &cell_types::config::CameraSection| RealSenseCamera::open_recording(id, &path);
+    let recorded = Intrinsics {
+        width: 848,
+        height: 480,
+        fx: 421.25,
+        fy: 420.75,
+        ppx: 424.75,
+        ppy: 238.75,
+        distortion: calibration::Distortion::None,
+    };
+    let mut cal = CellCalibration {
+        cameras: (0..cfg.cameras.len())
+            .map(|i| CameraCalibration {
+                id: i as u8,
+                intrinsics: recorded,
+                base_from_camera: Transform::identity(),
+            })
+            .collect(),
+    };
+    let checks = check_camera_streams(&cfg, Some(&cal), &mut open);
+    assert!(checks.iter().all(|c| c.passed), "{checks:?}");
+    let intr = checks.iter().find(|c| c.name == "intrinsics").unwrap();
+    assert_eq!(
+        intr.detail.matches("agree").count(),
+        cfg.cameras.len(),
+        "{intr:?}"
+    );
+
+    // Camera 1's calibration has the sample factory model: fx and ppy are 3.7 and 2.1 px off.
+    cal.cameras[1].intrinsics = Intrinsics::d455_depth(calibration::DepthMode::Wvga848x480);
+    let checks = check_camera_streams(&cfg, Some(&cal), &mut open);
+    assert!(checks.iter().find(|c| c.name == "cameras").unwrap().passed);
+    let intr = checks.iter().find(|c| c.name == "intrinsics").unwrap();
+    assert!(!intr.passed, "{intr:?}");
+    let name = &cfg.cameras[1].name;
+    assert!(
+        intr.detail
+            .contains(&format!("{name}: fx 421.25 (device) vs 424.99")),
+        "{intr:?}"
+    );
+    assert!(intr.detail.contains("ppy 238.75 (device)"), "{intr:?}");
+    assert!(!intr.detail.contains("ppx"), "{intr:?}");
+    assert!(
+        intr.fix.contains(&format!("recalibrate camera `{name}`")),
+        "{intr:?}"
+    );
+
+    // The config asks for another mode than the device streams.
+    let mut vga = cfg.clone();
+    vga.cameras[0].mode = cell_types::config::DepthMode::W640H480;
+    let checks = check_camera_streams(&vga, Some(&cal), &mut open);
+    let cams = checks.iter().find(|c| c.name == "cameras").unwrap();
+    assert!(!cams.passed, "{cams:?}");
+    assert!(
+        cams.detail
+            .contains("streams 848x480, the config says 640x480"),
+        "{cams:?}"
+    );
+    assert!(cams.fix.contains("cameras[0].mode"), "{cams:?}");
+    let _ = std::fs::remove_dir_all(&dir);
 }

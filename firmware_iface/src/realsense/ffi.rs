@@ -138,6 +138,7 @@ struct Api {
     get_video_stream_intrinsics:
         unsafe extern "C" fn(*const RsStreamProfile, *mut RsIntrinsics, Err),
     playback_device_set_real_time: unsafe extern "C" fn(*const RsDevice, c_int, Err),
+    playback_device_pause: unsafe extern "C" fn(*const RsDevice, Err),
     embedded_frames_count: unsafe extern "C" fn(*mut RsFrame, Err) -> c_int,
     extract_frame: unsafe extern "C" fn(*mut RsFrame, c_int, Err) -> *mut RsFrame,
     release_frame: unsafe extern "C" fn(*mut RsFrame),
@@ -219,8 +220,11 @@ macro_rules! call {
 
 /// Where the library was loaded from, and the table.
 static API: OnceLock<(PathBuf, Api)> = OnceLock::new();
-/// Serialises the first load.
+/// Serialises the first load and context creation.
 static LOADING: Mutex<()> = Mutex::new(());
+/// Serialises pipeline starts and stops: two playback pipelines starting or stopping at
+/// once in different threads crashed librealsense 2.59 ("pure virtual method called").
+static LIFECYCLE: Mutex<()> = Mutex::new(());
 
 /// The environment variable naming librealsense2's shared library.
 pub const LIBRARY_ENV: &str = "EQUACT_LIBREALSENSE";
@@ -282,6 +286,7 @@ fn load_from(path: &Path) -> Result<Api, RealSenseError> {
         get_stream_profile_data: sym!("rs2_get_stream_profile_data"),
         get_video_stream_intrinsics: sym!("rs2_get_video_stream_intrinsics"),
         playback_device_set_real_time: sym!("rs2_playback_device_set_real_time"),
+        playback_device_pause: sym!("rs2_playback_device_pause"),
         embedded_frames_count: sym!("rs2_embedded_frames_count"),
         extract_frame: sym!("rs2_extract_frame"),
         release_frame: sym!("rs2_release_frame"),
@@ -382,23 +387,39 @@ pub fn preload_global(path: &Path) -> Result<(), RealSenseError> {
     Ok(())
 }
 
-/// A librealsense context: owns devices and pipelines made from it.
+/// A librealsense context. The one for live devices lives for the process; a recording
+/// plays in a context of its own (librealsense lists a playing recording among its
+/// context's devices), deleted after its pipeline.
 pub struct Context {
     api: &'static Api,
     raw: *mut RsContext,
 }
 
-// SAFETY: librealsense contexts are internally synchronised; the handle is only used
-// through `&self`/`&mut self` of its owner.
+// SAFETY: a librealsense context is internally synchronised (its device list and
+// playback-device registry are locked), and this handle is never deleted.
 unsafe impl Send for Context {}
+// SAFETY: as above: every C call made through `&Context` is thread-safe.
+unsafe impl Sync for Context {}
+
+/// The context for live devices.
+static LIVE: OnceLock<Context> = OnceLock::new();
 
 impl Context {
-    /// Creates a context (this starts librealsense's device watcher thread).
-    pub fn new() -> Result<Self, RealSenseError> {
+    /// The context for live devices, created on first use (this starts librealsense's
+    /// device watcher thread) and kept for the process.
+    pub fn live() -> Result<&'static Self, RealSenseError> {
+        Self::get(&LIVE)
+    }
+
+    fn get(cell: &'static OnceLock<Context>) -> Result<&'static Self, RealSenseError> {
         let api = api(None)?;
+        let _guard = LOADING.lock().unwrap_or_else(|p| p.into_inner());
+        if let Some(ctx) = cell.get() {
+            return Ok(ctx);
+        }
         let raw = call!(api, create_context(API_VERSION))
             .map_err(|e| RealSenseError::call(&e, "creating a context"))?;
-        Ok(Self { api, raw })
+        Ok(cell.get_or_init(|| Self { api, raw }))
     }
 
     /// (serial, name) of every connected device.
@@ -422,11 +443,24 @@ impl Context {
     }
 }
 
-impl Drop for Context {
+/// A context owned by one pipeline (a recording's).
+pub struct OwnedContext(Context);
+
+impl OwnedContext {
+    /// Creates a context.
+    pub fn new() -> Result<Self, RealSenseError> {
+        let api = api(None)?;
+        let raw = call!(api, create_context(API_VERSION))
+            .map_err(|e| RealSenseError::call(&e, "creating a context"))?;
+        Ok(Self(Context { api, raw }))
+    }
+}
+
+impl Drop for OwnedContext {
     fn drop(&mut self) {
-        // SAFETY: `raw` came from rs2_create_context and is deleted once; pipelines made
-        // from it are dropped first (field order of their owners).
-        unsafe { (self.api.delete_context)(self.raw) }
+        // SAFETY: `raw` came from rs2_create_context and is deleted once, after the
+        // pipeline made from it (the pipeline's drop runs before its fields').
+        unsafe { (self.0.api.delete_context)(self.0.raw) }
     }
 }
 
@@ -486,13 +520,63 @@ fn profile_info(api: &Api, p: *const RsStreamProfile) -> Result<ProfileInfo, Rs2
     })
 }
 
+/// A C string argument.
+fn text(s: &str) -> Result<CString, Rs2Error> {
+    CString::new(s).map_err(|_| Rs2Error {
+        function: "equact".into(),
+        message: format!("{s:?} contains a NUL byte"),
+    })
+}
+
+/// Configures `pipe` for `source` and `streams` and starts it.
+fn configure_and_start(
+    api: &Api,
+    pipe: *mut RsPipeline,
+    source: Source<'_>,
+    streams: &[StreamRequest],
+) -> Result<*mut RsPipelineProfile, Rs2Error> {
+    let config = Owned(call!(api, create_config())?, api.delete_config);
+    match source {
+        Source::Device(serial) => {
+            let serial = text(serial)?;
+            call!(api, config_enable_device(config.0, serial.as_ptr()))?;
+        }
+        Source::File(path) => {
+            let file = text(&path.to_string_lossy())?;
+            call!(
+                api,
+                config_enable_device_from_file_repeat_option(config.0, file.as_ptr(), 0)
+            )?;
+            // Playback is real time by default: frames a slow reader misses are dropped.
+            // Resolving first creates the context's playback device, which the start
+            // below reuses, so it is non-real-time from the first frame.
+            let pre = Owned(
+                call!(api, config_resolve(config.0, pipe))?,
+                api.delete_pipeline_profile,
+            );
+            let dev = Owned(
+                call!(api, pipeline_profile_get_device(pre.0))?,
+                api.delete_device,
+            );
+            call!(api, playback_device_set_real_time(dev.0, 0))?;
+        }
+    }
+    for &(stream, index, w, h, format, fps) in streams {
+        call!(
+            api,
+            config_enable_stream(config.0, stream, index, w, h, format, fps)
+        )?;
+    }
+    call!(api, pipeline_start_with_config(pipe, config.0))
+}
+
 /// A started pipeline; dropping it stops the streams.
 pub struct Pipeline {
     api: &'static Api,
     raw: *mut RsPipeline,
     profile: *mut RsPipelineProfile,
-    /// The context the pipeline was made from; dropped after the pipeline.
-    _ctx: Context,
+    /// A recording's own context, deleted after the pipeline.
+    _owned: Option<OwnedContext>,
 }
 
 // SAFETY: librealsense pipelines may be used from any thread (one at a time, which
@@ -501,59 +585,44 @@ unsafe impl Send for Pipeline {}
 
 impl Pipeline {
     /// Starts a pipeline on `source` with `streams`.
+    /// A librealsense failure of the start itself goes through `failed`.
     pub fn start(
-        ctx: Context,
         source: Source<'_>,
         streams: &[StreamRequest],
-    ) -> Result<Self, Rs2Error> {
-        let api = ctx.api;
-        let config = Owned(call!(api, create_config())?, api.delete_config);
-        let raw = call!(api, create_pipeline(ctx.raw))?;
-        let mut pipe = Self {
+        failed: impl FnOnce(Rs2Error) -> RealSenseError,
+    ) -> Result<Self, RealSenseError> {
+        let owned = match source {
+            Source::File(_) => Some(OwnedContext::new()?),
+            Source::Device(_) => None,
+        };
+        let ctx = match &owned {
+            Some(o) => &o.0,
+            None => Context::live()?,
+        };
+        let (api, raw, profile) = Self::start_in(ctx, source, streams).map_err(failed)?;
+        Ok(Self {
             api,
             raw,
-            profile: ptr::null_mut(),
-            _ctx: ctx,
-        };
-        let text = |s: &str| {
-            CString::new(s).map_err(|_| Rs2Error {
-                function: "equact".into(),
-                message: format!("{s:?} contains a NUL byte"),
-            })
-        };
-        match source {
-            Source::Device(serial) => {
-                let serial = text(serial)?;
-                call!(api, config_enable_device(config.0, serial.as_ptr()))?;
-            }
-            Source::File(path) => {
-                let file = text(&path.to_string_lossy())?;
-                call!(
-                    api,
-                    config_enable_device_from_file_repeat_option(config.0, file.as_ptr(), 0)
-                )?;
-                // Playback is real time by default: frames a slow reader misses are
-                // dropped. Resolving first creates the context's playback device, which
-                // the start below reuses, so it is non-real-time from the first frame.
-                let pre = Owned(
-                    call!(api, config_resolve(config.0, pipe.raw))?,
-                    api.delete_pipeline_profile,
-                );
-                let dev = Owned(
-                    call!(api, pipeline_profile_get_device(pre.0))?,
-                    api.delete_device,
-                );
-                call!(api, playback_device_set_real_time(dev.0, 0))?;
-            }
-        }
-        for &(stream, index, w, h, format, fps) in streams {
-            call!(
-                api,
-                config_enable_stream(config.0, stream, index, w, h, format, fps)
-            )?;
-        }
-        pipe.profile = call!(api, pipeline_start_with_config(pipe.raw, config.0))?;
-        Ok(pipe)
+            profile,
+            _owned: owned,
+        })
+    }
+
+    /// Creates and starts a pipeline in `ctx`; returns the raw handles.
+    #[allow(clippy::type_complexity)]
+    fn start_in(
+        ctx: &Context,
+        source: Source<'_>,
+        streams: &[StreamRequest],
+    ) -> Result<(&'static Api, *mut RsPipeline, *mut RsPipelineProfile), Rs2Error> {
+        let api = ctx.api;
+        let _lifecycle = LIFECYCLE.lock().unwrap_or_else(|p| p.into_inner());
+        let raw = Owned(call!(api, create_pipeline(ctx.raw))?, api.delete_pipeline);
+        let profile = configure_and_start(api, raw.0, source, streams)?;
+        let pipe = raw.0;
+        // The pipeline owns the handle now.
+        std::mem::forget(raw);
+        Ok((api, pipe, profile))
     }
 
     /// The streams the pipeline runs.
@@ -589,13 +658,23 @@ impl Pipeline {
 impl Drop for Pipeline {
     fn drop(&mut self) {
         let api = self.api;
-        if !self.profile.is_null() {
-            if let Err(e) = call!(api, pipeline_stop(self.raw)) {
-                log::warn!("stopping the RealSense pipeline: {e}");
+        let _lifecycle = LIFECYCLE.lock().unwrap_or_else(|p| p.into_inner());
+        if self._owned.is_some() {
+            // A recording: pause its reader before the stop, which otherwise raced with a
+            // frame in flight and crashed librealsense 2.59 now and then.
+            let paused = call!(api, pipeline_profile_get_device(self.profile)).and_then(|d| {
+                let dev = Owned(d, api.delete_device);
+                call!(api, playback_device_pause(dev.0))
+            });
+            if let Err(e) = paused {
+                log::warn!("pausing the RealSense playback: {e}");
             }
-            // SAFETY: the profile came from rs2_pipeline_start_with_config; deleted once.
-            unsafe { (api.delete_pipeline_profile)(self.profile) };
         }
+        if let Err(e) = call!(api, pipeline_stop(self.raw)) {
+            log::warn!("stopping the RealSense pipeline: {e}");
+        }
+        // SAFETY: the profile came from rs2_pipeline_start_with_config; deleted once.
+        unsafe { (api.delete_pipeline_profile)(self.profile) };
         // SAFETY: the pipeline came from rs2_create_pipeline; deleted once, after stop.
         unsafe { (api.delete_pipeline)(self.raw) };
     }

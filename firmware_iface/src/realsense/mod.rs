@@ -17,10 +17,13 @@
 //!
 //! # Threads
 //!
-//! librealsense runs its own threads: a device watcher per context, and USB transfer and
-//! frame-dispatch threads per streaming sensor (a playback device has a reader thread).
-//! They are librealsense's, stopped when the pipeline stops ([`RealSenseCamera`]'s drop)
-//! and the context is deleted. The library itself stays loaded until the process exits.
+//! librealsense runs its own threads: a device watcher for the context, and USB transfer
+//! and frame-dispatch threads per streaming sensor (a playback device has a reader thread).
+//! The streaming threads stop when the pipeline stops ([`RealSenseCamera`]'s drop). The
+//! process keeps one librealsense context for live devices, created on first use and never
+//! deleted, so its device watcher runs until the process exits, and the library stays
+//! loaded; a recording plays in a context of its own, deleted with its camera. One recording plays at a time: librealsense 2.59
+//! crashed (SIGSEGV, "pure virtual method called") playing two at once in one process.
 //!
 //! # Frames
 //!
@@ -33,6 +36,7 @@
 mod ffi;
 
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use cell_types::config::DepthMode;
@@ -127,6 +131,12 @@ pub enum RealSenseError {
         camera: u8,
         /// The timeout (ms).
         timeout_ms: u64,
+    },
+    /// Another recording is already playing in this process.
+    #[error("cannot play {path}: another recording is playing in this process (librealsense crashes playing two at once); drop the other camera first")]
+    PlaybackBusy {
+        /// The recording asked for.
+        path: String,
     },
     /// A frameset lacked a stream or had an unexpected layout.
     #[error("camera {camera}: bad frame: {what}")]
@@ -268,8 +278,8 @@ pub fn load_library(path: &Path) -> Result<(PathBuf, i32), RealSenseError> {
 
 /// The RealSense devices connected now.
 pub fn connected_devices() -> Result<Vec<DeviceInfo>, RealSenseError> {
-    let ctx = Context::new()?;
-    list(&ctx)
+    let ctx = Context::live()?;
+    list(ctx)
 }
 
 fn list(ctx: &Context) -> Result<Vec<DeviceInfo>, RealSenseError> {
@@ -291,6 +301,32 @@ pub struct RealSenseCamera {
     ir: Option<StreamIntrinsics>,
     fps: u32,
     timeout_ms: u32,
+    /// Held by a recording's camera; released after the pipeline stops (field order).
+    _playback: Option<PlaybackSlot>,
+}
+
+/// Whether a recording is playing in this process.
+static PLAYBACK_ACTIVE: AtomicBool = AtomicBool::new(false);
+
+/// The one playback slot: librealsense 2.59 crashed (SIGSEGV, "pure virtual method
+/// called") when two recordings played at once in one process, so a second is refused.
+struct PlaybackSlot;
+
+impl PlaybackSlot {
+    fn take(path: &Path) -> Result<Self, RealSenseError> {
+        PLAYBACK_ACTIVE
+            .compare_exchange(false, true, Ordering::AcqRel, Ordering::Acquire)
+            .map(|_| PlaybackSlot)
+            .map_err(|_| RealSenseError::PlaybackBusy {
+                path: path.display().to_string(),
+            })
+    }
+}
+
+impl Drop for PlaybackSlot {
+    fn drop(&mut self) {
+        PLAYBACK_ACTIVE.store(false, Ordering::Release);
+    }
 }
 
 impl std::fmt::Debug for RealSenseCamera {
@@ -313,8 +349,8 @@ impl RealSenseCamera {
     /// Opens the connected device with `serial` and starts depth (Z16) and left IR (Y8) at
     /// `mode` and `fps`.
     pub fn open(id: u8, serial: &str, mode: DepthMode, fps: u32) -> Result<Self, RealSenseError> {
-        let ctx = Context::new()?;
-        let found = list(&ctx)?;
+        let ctx = Context::live()?;
+        let found = list(ctx)?;
         if !found.iter().any(|d| d.serial == serial) {
             return Err(RealSenseError::NotConnected {
                 serial: serial.to_string(),
@@ -330,26 +366,29 @@ impl RealSenseCamera {
             (ffi::STREAM_DEPTH, 0, wi, hi, ffi::FORMAT_Z16, f),
             (ffi::STREAM_INFRARED, 1, wi, hi, ffi::FORMAT_Y8, f),
         ];
-        let pipeline = Pipeline::start(ctx, Source::Device(serial), &streams).map_err(|e| {
-            RealSenseError::Mode {
+        let pipeline =
+            Pipeline::start(Source::Device(serial), &streams, |e| RealSenseError::Mode {
                 serial: serial.to_string(),
                 width: w,
                 height: h,
                 fps,
                 message: e.to_string(),
-            }
-        })?;
+            })?;
         Self::started(id, serial.to_string(), pipeline)
     }
 
     /// Plays a librealsense recording (`.bag` or, from 2.59 on, `.db3`) once, as fast as
     /// frames are captured, through the same pipeline as a live device; past the last frame
-    /// `capture` times out.
+    /// `capture` times out. One recording plays at a time per process
+    /// ([`RealSenseError::PlaybackBusy`] otherwise).
     pub fn open_recording(id: u8, path: &Path) -> Result<Self, RealSenseError> {
-        let ctx = Context::new()?;
-        let pipeline = Pipeline::start(ctx, Source::File(path), &[])
-            .map_err(|e| RealSenseError::call(&e, &format!("opening {}", path.display())))?;
-        Self::started(id, path.display().to_string(), pipeline)
+        let slot = PlaybackSlot::take(path)?;
+        let pipeline = Pipeline::start(Source::File(path), &[], |e| {
+            RealSenseError::call(&e, &format!("opening {}", path.display()))
+        })?;
+        let mut cam = Self::started(id, path.display().to_string(), pipeline)?;
+        cam._playback = Some(slot);
+        Ok(cam)
     }
 
     fn started(id: u8, source: String, pipeline: Pipeline) -> Result<Self, RealSenseError> {
@@ -375,6 +414,7 @@ impl RealSenseCamera {
             fps: u32::try_from(depth.fps).unwrap_or(0),
             pipeline,
             timeout_ms: DEFAULT_TIMEOUT_MS,
+            _playback: None,
         })
     }
 
