@@ -1,18 +1,22 @@
 //! `equact check`: the dry-run check of a cell before anything moves. It connects to the
 //! UR controller and the gripper the configuration names, reads their state without
 //! commanding motion, checks the calibration file and the workspace, and says per check
-//! what is wrong and what to do. Every check runs even when an earlier one fails, so one
+//! what is wrong and what to do. The cameras are opened through librealsense (loaded at run
+//! time, `firmware_iface::realsense`): each configured serial must be connected and stream
+//! at its mode, with intrinsics that agree with the calibration file's. Every check runs even when an earlier one fails, so one
 //! pass lists everything to fix.
 
 use std::net::{IpAddr, SocketAddr, ToSocketAddrs};
 use std::path::Path;
 use std::sync::Arc;
 
-use cell_types::config::{CellConfig, GripperTransport, RobotModel};
+use calibration::CellCalibration;
+use cell_types::config::{CameraSection, CellConfig, GripperTransport, RobotModel};
 use cell_types::{Clock, Transform};
 use firmware_iface::arm::{Arm, ArmError, JointLimits};
 use firmware_iface::dashboard::{RobotMode, SafetyMode};
 use firmware_iface::gripper::RobotiqGripper;
+use firmware_iface::realsense::{self, RealSenseCamera, RealSenseError, StreamIntrinsics};
 use firmware_iface::ur::{UrArm, UrConfig, UrPorts};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -101,18 +105,190 @@ pub fn ur_config(cfg: &CellConfig) -> Result<UrConfig, String> {
 pub fn run_checks(cfg: &CellConfig, config_dir: &Path, clock: Arc<dyn Clock>) -> Vec<Check> {
     let mut checks = check_controller(cfg, clock.clone());
     checks.push(check_gripper(cfg, clock));
-    checks.push(check_calibration(cfg, config_dir));
+    let (check, calibration) = check_calibration(cfg, config_dir);
+    checks.push(check);
     checks.push(check_workspace(cfg));
-    checks.push(Check::fail(
-        "cameras",
-        format!(
-            "{} D455 camera(s) configured, but this build has no RealSense capture backend",
-            cfg.cameras.len()
-        ),
-        "real cameras are not wired in yet; run in the simulated cell (no --config) or \
-         record clouds with the RealSense tools and use `equact plan`",
-    ));
+    checks.extend(check_cameras(cfg, calibration.as_ref()));
     checks
+}
+
+/// How far (px) a device's focal lengths and principal point may be from the calibration
+/// file's before `equact check` fails: factory and calibrated values of one camera agree to
+/// about a pixel; more means the file was made with another camera, mode or camera order.
+pub const INTRINSICS_TOLERANCE_PX: f64 = 2.0;
+
+/// The camera checks on the connected D455s: each configured serial is connected and
+/// streams depth + IR at its mode and rate ("cameras"), and its depth intrinsics agree with
+/// the calibration's camera model ("intrinsics", when the calibration file was read).
+pub fn check_cameras(cfg: &CellConfig, calibration: Option<&CellCalibration>) -> Vec<Check> {
+    if let Err(e) = realsense::library() {
+        return vec![Check::fail(
+            "cameras",
+            format!("{} D455 camera(s) configured: {e}", cfg.cameras.len()),
+            "install librealsense2 on this machine (README, \"Cameras\"), or point \
+             EQUACT_LIBREALSENSE at librealsense2.so",
+        )];
+    }
+    check_camera_streams(cfg, calibration, &mut |id, c| {
+        RealSenseCamera::open(id, &c.serial, c.mode, c.fps)
+    })
+}
+
+/// [`check_cameras`] with the cameras opened by `open` (a test plays recordings): camera
+/// `i` is the config's `i`-th `[[cameras]]` entry.
+pub fn check_camera_streams(
+    cfg: &CellConfig,
+    calibration: Option<&CellCalibration>,
+    open: &mut dyn FnMut(u8, &CameraSection) -> Result<RealSenseCamera, RealSenseError>,
+) -> Vec<Check> {
+    let mut streams = Vec::new();
+    let mut stream_fixes = Vec::new();
+    let mut intrinsics = Vec::new();
+    let mut intrinsics_fixes = Vec::new();
+    let mut found: Option<Vec<String>> = None;
+    for (i, c) in cfg.cameras.iter().enumerate() {
+        let Ok(id) = u8::try_from(i) else {
+            streams.push(format!("{}: more than 256 cameras", c.name));
+            continue;
+        };
+        let (w, h) = c.mode.size();
+        let mut cam = match open(id, c) {
+            Ok(cam) => cam,
+            Err(RealSenseError::NotConnected { serial, connected }) => {
+                // Said once for all cameras below.
+                found = Some(connected);
+                streams.push(format!("{}: no D455 with serial {serial}", c.name));
+                stream_fixes.push(format!(
+                    "plug camera `{}` into a USB 3 port, or fix cameras[{i}].serial",
+                    c.name
+                ));
+                continue;
+            }
+            Err(e) => {
+                streams.push(format!("{} ({}): {e}", c.name, c.serial));
+                stream_fixes.push(match e {
+                    RealSenseError::Mode { .. } => format!(
+                        "set cameras[{i}].mode/fps to a mode the D455 streams (848x480 at 30 fps)"
+                    ),
+                    _ => format!("replug camera `{}`", c.name),
+                });
+                continue;
+            }
+        };
+        let d = *cam.depth_intrinsics();
+        if (d.width, d.height) != (w, h) {
+            streams.push(format!(
+                "{} ({}): streams {}x{}, the config says {w}x{h}",
+                c.name,
+                cam.source(),
+                d.width,
+                d.height
+            ));
+            stream_fixes.push(format!("set cameras[{i}].mode"));
+            continue;
+        }
+        match cam.next_frame() {
+            Ok(f) => {
+                let valid = f.depth.raw.data.iter().filter(|&&v| v > 0).count();
+                streams.push(format!(
+                    "{} ({}): {w}x{h} at {} fps, {:.0} % of the first frame has depth",
+                    c.name,
+                    cam.source(),
+                    cam.fps(),
+                    100.0 * valid as f64 / f.depth.raw.data.len().max(1) as f64
+                ));
+            }
+            Err(e) => {
+                streams.push(format!("{} ({}): {e}", c.name, cam.source()));
+                stream_fixes.push(format!(
+                    "camera `{}` opened but sent no frame: use a USB 3 port (not a hub shared \
+                     with the other cameras) and replug it",
+                    c.name
+                ));
+                continue;
+            }
+        }
+        let Some(cal) = calibration else { continue };
+        let Some(model) = cal.cameras.iter().find(|m| m.id == id) else {
+            // The calibration check already names cameras without a pose.
+            continue;
+        };
+        match compare_intrinsics(&d, &model.intrinsics, INTRINSICS_TOLERANCE_PX) {
+            Ok(()) => intrinsics.push(format!(
+                "{}: device and calibration agree within {INTRINSICS_TOLERANCE_PX} px",
+                c.name
+            )),
+            Err(why) => {
+                intrinsics.push(format!("{}: {why}", c.name));
+                intrinsics_fixes.push(format!(
+                    "recalibrate camera `{}` at {w}x{h} (`equact calibrate`), or check that \
+                     [[cameras]] lists the cameras in the calibration's order",
+                    c.name
+                ));
+            }
+        }
+    }
+    if let Some(found) = found {
+        streams.push(format!(
+            "connected: {}",
+            if found.is_empty() {
+                "none".to_string()
+            } else {
+                found.join(", ")
+            }
+        ));
+        stream_fixes.push("`rs-enumerate-devices` lists the connected serials".into());
+    }
+    let mut out = vec![if stream_fixes.is_empty() {
+        Check::pass("cameras", streams.join("; "))
+    } else {
+        Check::fail("cameras", streams.join("; "), stream_fixes.join("; "))
+    }];
+    if !intrinsics.is_empty() {
+        out.push(if intrinsics_fixes.is_empty() {
+            Check::pass("intrinsics", intrinsics.join("; "))
+        } else {
+            Check::fail(
+                "intrinsics",
+                intrinsics.join("; "),
+                intrinsics_fixes.join("; "),
+            )
+        });
+    }
+    out
+}
+
+/// Whether a device's depth intrinsics match a calibration camera model: same size, and
+/// focal lengths and principal point within `tolerance_px`; the error names what differs.
+pub fn compare_intrinsics(
+    device: &StreamIntrinsics,
+    model: &calibration::Intrinsics,
+    tolerance_px: f64,
+) -> Result<(), String> {
+    if (device.width, device.height) != (model.width, model.height) {
+        return Err(format!(
+            "the device streams {}x{}, the calibration's model is {}x{}",
+            device.width, device.height, model.width, model.height
+        ));
+    }
+    let off: Vec<String> = [
+        ("fx", device.fx, model.fx),
+        ("fy", device.fy, model.fy),
+        ("ppx", device.ppx, model.ppx),
+        ("ppy", device.ppy, model.ppy),
+    ]
+    .iter()
+    .filter(|(_, d, m)| (d - m).abs() > tolerance_px || !d.is_finite())
+    .map(|(k, d, m)| format!("{k} {d:.2} (device) vs {m:.2} (calibration)"))
+    .collect();
+    if off.is_empty() {
+        Ok(())
+    } else {
+        Err(format!(
+            "{} differ by more than {tolerance_px} px",
+            off.join(", ")
+        ))
+    }
 }
 
 fn check_controller(cfg: &CellConfig, clock: Arc<dyn Clock>) -> Vec<Check> {
@@ -250,22 +426,28 @@ fn check_gripper(cfg: &CellConfig, clock: Arc<dyn Clock>) -> Check {
     }
 }
 
-fn check_calibration(cfg: &CellConfig, config_dir: &Path) -> Check {
+fn check_calibration(cfg: &CellConfig, config_dir: &Path) -> (Check, Option<CellCalibration>) {
     if cfg.calibration.file.is_empty() {
-        return Check::fail(
-            "calibration",
-            "no calibration.file in the config",
-            "calibrate the cameras (`equact calibrate`) and name the file in [calibration]",
+        return (
+            Check::fail(
+                "calibration",
+                "no calibration.file in the config",
+                "calibrate the cameras (`equact calibrate`) and name the file in [calibration]",
+            ),
+            None,
         );
     }
     let path = config_dir.join(&cfg.calibration.file);
     let calibration = match calibration::read_calibration_toml(&path) {
         Ok(c) => c,
         Err(e) => {
-            return Check::fail(
-                "calibration",
-                e.to_string(),
-                "calibrate the cameras (`equact calibrate solve`) or fix calibration.file",
+            return (
+                Check::fail(
+                    "calibration",
+                    e.to_string(),
+                    "calibrate the cameras (`equact calibrate solve`) or fix calibration.file",
+                ),
+                None,
             )
         }
     };
@@ -281,13 +463,16 @@ fn check_calibration(cfg: &CellConfig, config_dir: &Path) -> Check {
         .filter_map(|i| u8::try_from(i).ok())
         .collect();
     if let Err(e) = calibration.validate_against(&known) {
-        return Check::fail(
-            "calibration",
-            format!("{}: {e}", path.display()),
-            "recalibrate with the cameras the config lists, in its order",
+        return (
+            Check::fail(
+                "calibration",
+                format!("{}: {e}", path.display()),
+                "recalibrate with the cameras the config lists, in its order",
+            ),
+            None,
         );
     }
-    if missing.is_empty() {
+    let check = if missing.is_empty() {
         Check::pass(
             "calibration",
             format!(
@@ -306,7 +491,8 @@ fn check_calibration(cfg: &CellConfig, config_dir: &Path) -> Check {
             ),
             "recalibrate with every camera connected",
         )
-    }
+    };
+    (check, Some(calibration))
 }
 
 /// The corners of the workspace box with the gripper pointing down should be reachable; a

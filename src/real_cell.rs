@@ -13,6 +13,7 @@ use cell_types::Clock;
 use firmware_iface::camera::DepthCamera;
 use firmware_iface::gripper::can::{CanId, CanMapping};
 use firmware_iface::gripper::{Gripper, RobotiqGripper};
+use firmware_iface::realsense::RealSenseCamera;
 use firmware_iface::ur::UrArm;
 
 use crate::episode::{CellIo, TaskMonitor};
@@ -143,13 +144,24 @@ pub fn connect_gripper(
     })
 }
 
-/// Opens the configured D455 cameras.
+/// Frames dropped after each camera starts, while its auto-exposure settles.
+const WARMUP_FRAMES: u32 = 30;
+
+/// Opens the configured D455 cameras (librealsense2, loaded at run time), numbered by
+/// their order in `[[cameras]]`, and lets each settle its exposure.
 pub fn open_cameras(cfg: &CellConfig) -> anyhow::Result<Vec<Box<dyn DepthCamera>>> {
-    anyhow::bail!(
-        "{} D455 camera(s) configured, but this build has no RealSense capture backend: run in \
-         the simulated cell (no --config) for now",
-        cfg.cameras.len()
-    )
+    let mut cameras: Vec<Box<dyn DepthCamera>> = Vec::with_capacity(cfg.cameras.len());
+    for (i, c) in cfg.cameras.iter().enumerate() {
+        let id = u8::try_from(i).context("more than 255 cameras")?;
+        let mut cam = RealSenseCamera::open(id, &c.serial, c.mode, c.fps)
+            .with_context(|| format!("opening the D455 `{}` (serial {})", c.name, c.serial))?;
+        for _ in 0..WARMUP_FRAMES {
+            cam.capture()
+                .with_context(|| format!("camera `{}` warming up", c.name))?;
+        }
+        cameras.push(Box::new(cam));
+    }
+    Ok(cameras)
 }
 
 /// A real arm moves only after the operator said so: Enter at a terminal, or `--yes`.

@@ -1,7 +1,7 @@
 //! The depth-camera hardware trait (ARCHITECTURE.md "Cameras"; issue 7 item 4).
 //!
-//! Implemented by `hil_sim::depth_camera::SimDepthCamera` and, behind the optional
-//! `realsense` feature (not built yet), by a librealsense D455 driver. Intrinsics and
+//! Implemented by `hil_sim::depth_camera::SimDepthCamera` and by the librealsense D455
+//! driver [`crate::realsense::RealSenseCamera`] (librealsense loaded at run time). Intrinsics and
 //! extrinsics are not part of a frame: they come from `calibration` (factory intrinsics or
 //! `calibration.toml`), so the fusion never trusts a driver's idea of where it is.
 

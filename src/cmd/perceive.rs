@@ -1,6 +1,8 @@
 //! `equact perceive`: render the three simulated D455 cameras of the default cell, fuse
 //! them (calibration::fusion) and write the clouds as PLY plus pictures of them as PNG
-//! (issue 7 item 5). Real capture comes with the `realsense` feature (not built yet).
+//! (issue 7 item 5). With `--config`, it captures one frameset from each of the real cell's
+//! D455s instead (`firmware_iface::realsense`, serials and modes from the config) and fuses
+//! them with the config's calibration file; the arm is not read, so it is not cropped out.
 
 use std::fs::File;
 use std::io::BufWriter;
@@ -8,10 +10,12 @@ use std::path::{Path, PathBuf};
 use std::time::Duration;
 
 use anyhow::Context;
-use calibration::fusion::{FusionParams, FusionPipeline};
+use calibration::fusion::{Capsule, FusionParams, FusionPipeline};
 use calibration::view::{splat, write_ply};
+use calibration::CellCalibration;
 use calibration::{DepthMode, Intrinsics};
-use cell_types::{Image, Rgb};
+use cell_types::{CameraFrame, Image, Rgb};
+use firmware_iface::realsense::{self, RealSenseCamera};
 use hil_sim::depth_camera::{default_rig, render_rig, rig_calibration};
 use hil_sim::scene::{robot_capsules, Scene, HOME_Q};
 use nalgebra::Point3;
@@ -25,12 +29,20 @@ pub struct PerceiveArgs {
     /// Seed of the simulated sensor noise and of the sampling.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
-    /// Depth mode of the simulated cameras: 848x480, 1280x720 or 640x480.
+    /// Depth mode of the simulated cameras: 848x480, 1280x720 or 640x480 (with --config the
+    /// config's modes are used).
     #[arg(long, default_value = "848x480")]
     pub mode: String,
     /// Also write each camera's raw depth as a 16-bit PNG (millimetres).
     #[arg(long)]
     pub depth_png: bool,
+    /// A real cell's configuration: capture from its D455 cameras (needs librealsense2).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// With --config: framesets to drop after each camera starts, while auto-exposure
+    /// settles.
+    #[arg(long, default_value_t = 30)]
+    pub warmup: u32,
 }
 
 fn parse_mode(s: &str) -> anyhow::Result<DepthMode> {
@@ -65,11 +77,19 @@ fn write_png_depth(path: &Path, img: &Image<u16>) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Runs `equact perceive`.
-pub fn run(args: PerceiveArgs) -> anyhow::Result<()> {
+/// Frames, camera names, the calibration to fuse with, the fusion parameters and the robot
+/// capsules to crop.
+type Captured = (
+    Vec<CameraFrame>,
+    Vec<String>,
+    CellCalibration,
+    FusionParams,
+    Vec<Capsule>,
+);
+
+/// Renders the simulated rig of the default cell.
+fn simulated(args: &PerceiveArgs) -> anyhow::Result<Captured> {
     let mode = parse_mode(&args.mode)?;
-    std::fs::create_dir_all(&args.out)
-        .with_context(|| format!("creating the output folder {}", args.out.display()))?;
     let scene = Scene::default_cell();
     let geometry = scene.build()?;
     let mut rig = default_rig(args.seed);
@@ -77,20 +97,78 @@ pub fn run(args: PerceiveArgs) -> anyhow::Result<()> {
         c.intrinsics = Intrinsics::d455_depth(mode);
     }
     let frames = render_rig(&rig, &geometry, 0, Duration::ZERO)?;
-    if args.depth_png {
-        for (c, f) in rig.iter().zip(&frames) {
-            write_png_depth(
-                &args.out.join(format!("depth_{}.png", c.name)),
-                &f.depth.raw,
-            )?;
-        }
-    }
     let params = FusionParams {
         seed: args.seed,
         ..FusionParams::default()
     };
-    let pipe = FusionPipeline::new(rig_calibration(&rig), params)?;
-    let fused = pipe.fuse(&frames, &robot_capsules(&HOME_Q, 0.085))?;
+    Ok((
+        frames,
+        rig.iter().map(|c| c.name.clone()).collect(),
+        rig_calibration(&rig),
+        params,
+        robot_capsules(&HOME_Q, 0.085),
+    ))
+}
+
+/// Captures one frameset from each configured D455 (camera `i` is the config's `i`-th).
+fn real(args: &PerceiveArgs, path: &Path) -> anyhow::Result<Captured> {
+    let cfg = super::config::load(Some(&path.to_path_buf()))?;
+    if cfg.calibration.file.is_empty() {
+        anyhow::bail!(
+            "{} names no calibration.file: calibrate the cameras (`equact calibrate`) first",
+            path.display()
+        );
+    }
+    let dir = path.parent().map(PathBuf::from).unwrap_or_default();
+    let cal_path = dir.join(&cfg.calibration.file);
+    let calibration = calibration::read_calibration_toml(&cal_path)
+        .with_context(|| format!("reading the calibration {}", cal_path.display()))?;
+    let (lib, version) = realsense::library()?;
+    eprintln!(
+        "librealsense {}.{}.{} from {}",
+        version / 10000,
+        version / 100 % 100,
+        version % 100,
+        lib.display()
+    );
+    let mut frames = Vec::new();
+    for (i, c) in cfg.cameras.iter().enumerate() {
+        let id = u8::try_from(i).context("more than 256 cameras")?;
+        let mut cam = RealSenseCamera::open(id, &c.serial, c.mode, c.fps)
+            .with_context(|| format!("opening camera `{}`", c.name))?;
+        for _ in 0..args.warmup {
+            cam.next_frame()
+                .with_context(|| format!("camera `{}` warming up", c.name))?;
+        }
+        frames.push(
+            cam.next_frame()
+                .with_context(|| format!("capturing from camera `{}`", c.name))?,
+        );
+    }
+    Ok((
+        frames,
+        cfg.cameras.iter().map(|c| c.name.clone()).collect(),
+        calibration,
+        equact::episode::fusion_params(&cfg, args.seed),
+        Vec::new(),
+    ))
+}
+
+/// Runs `equact perceive`.
+pub fn run(args: PerceiveArgs) -> anyhow::Result<()> {
+    std::fs::create_dir_all(&args.out)
+        .with_context(|| format!("creating the output folder {}", args.out.display()))?;
+    let (frames, names, calibration, params, robot) = match &args.config {
+        None => simulated(&args)?,
+        Some(path) => real(&args, path)?,
+    };
+    if args.depth_png {
+        for (name, f) in names.iter().zip(&frames) {
+            write_png_depth(&args.out.join(format!("depth_{name}.png")), &f.depth.raw)?;
+        }
+    }
+    let pipe = FusionPipeline::new(calibration, params)?;
+    let fused = pipe.fuse(&frames, &robot)?;
     for (name, cloud) in [("fused.ply", &fused.dense), ("sampled.ply", &fused.sampled)] {
         let path = args.out.join(name);
         let file = File::create(&path).with_context(|| format!("creating {}", path.display()))?;

@@ -54,3 +54,48 @@ pub fn run_peer(script: &str, args: &[&str]) -> anyhow::Result<String> {
     }
     Ok(String::from_utf8_lossy(&out.stdout).into_owned())
 }
+
+/// Loads librealsense for this test process from the venv's pyrealsense2 wheel, which
+/// statically contains librealsense and exports its `rs2_*` C API. The wheel's library
+/// also needs libusb (from the libusb-package wheel) and libpython's symbols (not the
+/// interpreter), preloaded with global visibility. Fails, never skips, when the venv lacks
+/// them: `make venv` installs both.
+pub fn load_venv_librealsense() -> anyhow::Result<PathBuf> {
+    use std::sync::OnceLock;
+    static LOADED: OnceLock<Result<PathBuf, String>> = OnceLock::new();
+    let loaded = LOADED.get_or_init(|| {
+        let find = || -> anyhow::Result<PathBuf> {
+            let python = peer_python()?;
+            let out = Command::new(python)
+                .arg("-c")
+                .arg(
+                    "import importlib.util, os, sysconfig, libusb_package\n\
+                     spec = importlib.util.find_spec('pyrealsense2')\n\
+                     d = spec.submodule_search_locations[0]\n\
+                     so = [f for f in os.listdir(d) if f.startswith('pyrealsense2.') and f.endswith('.so')]\n\
+                     print(os.path.join(sysconfig.get_config_var('LIBDIR'), sysconfig.get_config_var('INSTSONAME')))\n\
+                     print(libusb_package.get_library_path())\n\
+                     print(os.path.join(d, so[0]))",
+                )
+                .output()?;
+            if !out.status.success() {
+                anyhow::bail!(
+                    "the venv has no pyrealsense2 or libusb-package ({}): run `make venv` \
+                     (tests/peers/requirements.txt lists both)",
+                    String::from_utf8_lossy(&out.stderr).trim()
+                );
+            }
+            let text = String::from_utf8_lossy(&out.stdout).into_owned();
+            let paths: Vec<&str> = text.lines().collect();
+            let [libpython, libusb, wheel] = paths[..] else {
+                anyhow::bail!("unexpected answer from the venv's Python: {text}");
+            };
+            firmware_iface::realsense::preload_global(Path::new(libpython))?;
+            firmware_iface::realsense::preload_global(Path::new(libusb))?;
+            let (from, _) = firmware_iface::realsense::load_library(Path::new(wheel))?;
+            Ok(from)
+        };
+        find().map_err(|e| format!("{e:#}"))
+    });
+    loaded.clone().map_err(|e| anyhow::anyhow!(e))
+}

@@ -1,0 +1,276 @@
+//! The D455 backend (`firmware_iface::realsense`) against the real librealsense 2.59, with
+//! no camera: the pyrealsense2 wheel in the venv statically contains librealsense and
+//! exports its `rs2_*` C API, so the backend's dlopen path talks to the real library.
+//!
+//! - With no device connected, opening a serial fails with the typed "not connected" error
+//!   (a real context and device query).
+//! - librealsense's own recorder (driven from Python: a software device streaming depth Z16
+//!   and IR Y8, `tests/peers/realsense_bag.py`) writes a recording with frames whose every
+//!   pixel is known; the backend plays it through the same pipeline code as a live device
+//!   and must return every frame, size, intrinsic, timestamp and depth value exactly, in
+//!   millimetres whatever the recorded depth units, then time out at the end (no repeat).
+//! - `equact check`'s camera checks: with no device, each configured serial is reported
+//!   not connected; with recordings standing in for the devices, a wrong mode and
+//!   intrinsics that disagree with the calibration's camera model fail and say which value.
+
+#![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers may panic
+
+use std::path::Path;
+use std::sync::{Mutex, MutexGuard};
+use std::time::Duration;
+
+use cell_types::config::DepthMode;
+use firmware_iface::camera::{CameraError, DepthCamera};
+use firmware_iface::realsense::{DistortionModel, RealSenseCamera, RealSenseError};
+
+/// One recording plays at a time per process (`RealSenseError::PlaybackBusy`): the tests
+/// that play take this first.
+static PLAYBACK: Mutex<()> = Mutex::new(());
+
+fn one_playback() -> MutexGuard<'static, ()> {
+    PLAYBACK.lock().unwrap_or_else(|p| p.into_inner())
+}
+
+const W: u32 = 64;
+const H: u32 = 48;
+const FPS: u32 = 30;
+const FRAMES: u32 = 5;
+
+#[test]
+fn open_without_a_camera_says_none_is_connected() {
+    tests::load_venv_librealsense().unwrap();
+    let e = RealSenseCamera::open(0, "123456789012", DepthMode::W848H480, 30).unwrap_err();
+    match &e {
+        RealSenseError::NotConnected { serial, connected } => {
+            assert_eq!(serial, "123456789012");
+            assert!(connected.is_empty(), "{connected:?}");
+        }
+        other => panic!("expected NotConnected, got {other:?}"),
+    }
+    assert!(
+        e.to_string()
+            .starts_with("no D455 with serial 123456789012; connected: none"),
+        "{e}"
+    );
+    assert!(firmware_iface::realsense::connected_devices()
+        .unwrap()
+        .is_empty());
+}
+
+/// Writes a recording with the peer and returns its path.
+fn record(dir: &Path, name: &str, units: f64) -> std::path::PathBuf {
+    std::fs::create_dir_all(dir).unwrap();
+    let path = dir.join(name);
+    let _ = std::fs::remove_file(&path);
+    let out = tests::run_peer(
+        "realsense_bag.py",
+        &[
+            path.to_str().unwrap(),
+            &W.to_string(),
+            &H.to_string(),
+            &FPS.to_string(),
+            &FRAMES.to_string(),
+            &units.to_string(),
+        ],
+    )
+    .unwrap();
+    let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
+    assert_eq!(v["frames"], FRAMES);
+    assert!(path.exists(), "the peer wrote no {}", path.display());
+    path
+}
+
+/// Plays `path` and checks every frame against the peer's formula.
+fn check_playback(path: &Path) {
+    let mut cam = RealSenseCamera::open_recording(3, path).unwrap();
+    cam.set_timeout(Duration::from_millis(500));
+    let d = *cam.depth_intrinsics();
+    assert_eq!((d.width, d.height), (W, H));
+    // The peer's intrinsics (exact in f32).
+    assert_eq!((d.fx, d.fy), (421.25, 420.75));
+    assert_eq!(
+        (d.ppx, d.ppy),
+        (
+            f64::from(W) / 2.0 - 0.5 + 1.25,
+            f64::from(H) / 2.0 - 0.5 - 0.75
+        )
+    );
+    assert_eq!(d.model, DistortionModel::None);
+    assert_eq!(d.coeffs, [0.0; 5]);
+    assert_eq!(cam.ir_intrinsics(), Some(&d));
+    assert_eq!(cam.fps(), FPS);
+    assert_eq!(cam.id(), 3);
+
+    for i in 0..FRAMES {
+        let f = cam.capture().unwrap();
+        assert_eq!(f.camera, 3);
+        // The recording keeps timestamps to the microsecond.
+        let ms = f.timestamp.as_secs_f64() * 1e3;
+        let want = f64::from(i) * 1000.0 / f64::from(FPS);
+        assert!(
+            (ms - want).abs() < 1e-3,
+            "frame {i} at {ms} ms, want {want}"
+        );
+        assert_eq!(f.depth.depth_scale, 0.001);
+        assert_eq!((f.depth.raw.width, f.depth.raw.height), (W, H));
+        assert!(f.colour.is_none());
+        let ir = f.ir.as_ref().expect("an IR image");
+        assert_eq!((ir.width, ir.height), (W, H));
+        for v in 0..H {
+            for u in 0..W {
+                let mm = 500 + 3 * u + 7 * v + 11 * i;
+                assert_eq!(
+                    u32::from(*f.depth.raw.get(u, v).unwrap()),
+                    mm,
+                    "frame {i} depth at ({u}, {v})"
+                );
+                let grey = (u + 2 * v + 5 * i) % 256;
+                assert_eq!(
+                    u32::from(*ir.get(u, v).unwrap()),
+                    grey,
+                    "frame {i} IR at ({u}, {v})"
+                );
+            }
+        }
+    }
+    // Played once: past the last frame nothing more comes.
+    assert_eq!(
+        cam.capture().unwrap_err(),
+        CameraError::Timeout {
+            camera: 3,
+            timeout_ms: 500
+        }
+    );
+}
+
+#[test]
+fn a_recording_plays_back_exactly() {
+    tests::load_venv_librealsense().unwrap();
+    let _one = one_playback();
+    let dir = std::env::temp_dir().join(format!("equact-realsense-{}", std::process::id()));
+    // The D455's own unit: raw values are millimetres already.
+    let mm = record(&dir, "mm.db3", 0.001);
+    check_playback(&mm);
+    // A second recording while one plays is refused, not a crash.
+    let playing = RealSenseCamera::open_recording(0, &mm).unwrap();
+    assert!(matches!(
+        RealSenseCamera::open_recording(1, &mm),
+        Err(RealSenseError::PlaybackBusy { .. })
+    ));
+    drop(playing);
+    // 100 um units (a D455 set to finer depth units): converted to millimetres.
+    check_playback(&record(&dir, "tenth_mm.db3", 0.0001));
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+#[test]
+fn a_missing_recording_is_a_typed_error() {
+    tests::load_venv_librealsense().unwrap();
+    let _one = one_playback();
+    let e = RealSenseCamera::open_recording(0, Path::new("/nonexistent/cell.db3")).unwrap_err();
+    assert!(
+        matches!(&e, RealSenseError::Call { message, .. } if !message.is_empty()),
+        "{e:?}"
+    );
+    assert!(e.to_string().contains("/nonexistent/cell.db3"), "{e}");
+}
+
+#[test]
+fn preflight_camera_checks() {
+    use calibration::{CameraCalibration, CellCalibration, Intrinsics};
+    use cell_types::Transform;
+    use equact::preflight::{check_camera_streams, check_cameras};
+
+    tests::load_venv_librealsense().unwrap();
+    let cfg = cell_types::CellConfig::simulated().unwrap();
+    assert!(cfg.cameras.len() >= 2);
+
+    // No device: every configured serial is named, with what to do.
+    let checks = check_cameras(&cfg, None);
+    let cams = checks.iter().find(|c| c.name == "cameras").unwrap();
+    assert!(!cams.passed, "{cams:?}");
+    assert!(cams.detail.ends_with("; connected: none"), "{cams:?}");
+    for c in &cfg.cameras {
+        assert!(
+            cams.detail
+                .contains(&format!("{}: no D455 with serial {}", c.name, c.serial)),
+            "{cams:?}"
+        );
+        assert!(
+            cams.fix.contains(&format!("plug camera `{}`", c.name)),
+            "{cams:?}"
+        );
+    }
+
+    // Recordings at 848x480 stand in for the devices.
+    let dir = std::env::temp_dir().join(format!("equact-realsense-check-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join("wvga.db3");
+    tests::run_peer(
+        "realsense_bag.py",
+        &[path.to_str().unwrap(), "848", "480", "30", "2", "0.001"],
+    )
+    .unwrap();
+    let _one = one_playback();
+    let mut open =
+        |id: u8, _: &cell_types::config::CameraSection| RealSenseCamera::open_recording(id, &path);
+    let recorded = Intrinsics {
+        width: 848,
+        height: 480,
+        fx: 421.25,
+        fy: 420.75,
+        ppx: 424.75,
+        ppy: 238.75,
+        distortion: calibration::Distortion::None,
+    };
+    let mut cal = CellCalibration {
+        cameras: (0..cfg.cameras.len())
+            .map(|i| CameraCalibration {
+                id: i as u8,
+                intrinsics: recorded,
+                base_from_camera: Transform::identity(),
+            })
+            .collect(),
+    };
+    let checks = check_camera_streams(&cfg, Some(&cal), &mut open);
+    assert!(checks.iter().all(|c| c.passed), "{checks:?}");
+    let intr = checks.iter().find(|c| c.name == "intrinsics").unwrap();
+    assert_eq!(
+        intr.detail.matches("agree").count(),
+        cfg.cameras.len(),
+        "{intr:?}"
+    );
+
+    // Camera 1's calibration has the sample factory model: fx and ppy are 3.7 and 2.1 px off.
+    cal.cameras[1].intrinsics = Intrinsics::d455_depth(calibration::DepthMode::Wvga848x480);
+    let checks = check_camera_streams(&cfg, Some(&cal), &mut open);
+    assert!(checks.iter().find(|c| c.name == "cameras").unwrap().passed);
+    let intr = checks.iter().find(|c| c.name == "intrinsics").unwrap();
+    assert!(!intr.passed, "{intr:?}");
+    let name = &cfg.cameras[1].name;
+    assert!(
+        intr.detail
+            .contains(&format!("{name}: fx 421.25 (device) vs 424.99")),
+        "{intr:?}"
+    );
+    assert!(intr.detail.contains("ppy 238.75 (device)"), "{intr:?}");
+    assert!(!intr.detail.contains("ppx"), "{intr:?}");
+    assert!(
+        intr.fix.contains(&format!("recalibrate camera `{name}`")),
+        "{intr:?}"
+    );
+
+    // The config asks for another mode than the device streams.
+    let mut vga = cfg.clone();
+    vga.cameras[0].mode = cell_types::config::DepthMode::W640H480;
+    let checks = check_camera_streams(&vga, Some(&cal), &mut open);
+    let cams = checks.iter().find(|c| c.name == "cameras").unwrap();
+    assert!(!cams.passed, "{cams:?}");
+    assert!(
+        cams.detail
+            .contains("streams 848x480, the config says 640x480"),
+        "{cams:?}"
+    );
+    assert!(cams.fix.contains("cameras[0].mode"), "{cams:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}
