@@ -3,10 +3,11 @@
 //! module of the crate with `unsafe` code.
 //!
 //! Declarations follow librealsense's `rs.h`, `rs_types.h`, `rs_context.h`, `rs_device.h`,
-//! `rs_pipeline.h`, `rs_config.h`, `rs_frame.h`, `rs_sensor.h` and `rs_record_playback.h`
-//! (API 2.x; every function used exists since 2.16 or earlier). Each function takes a
-//! trailing `rs2_error**`: a non-null error after the call means it failed, and its message
-//! is carried into [`Rs2Error`].
+//! `rs_pipeline.h`, `rs_config.h`, `rs_frame.h`, `rs_processing.h` and
+//! `rs_record_playback.h` (API 2.x; the context asks for 2.50 or newer, and the tests run
+//! 2.59). Every call but the deleters and releases takes a trailing `rs2_error**`: a
+//! non-null error after the call means it failed, and its message is carried into
+//! [`Rs2Error`]. A function missing from the loaded library is a typed error at load time.
 //!
 //! The library is loaded once per process and never unloaded: librealsense starts its own
 //! threads (device watcher, USB transfer and frame dispatch threads per streaming sensor),
