@@ -5,7 +5,11 @@ depth units UNITS (m per raw count). Frame i holds depth(u, v) = 500 + 3 u + 7 v
 (millimetres; raw = mm * 0.001 / UNITS) and
 ir(u, v) = (u + 2 v + 5 i) mod 256, so every pixel of every frame is checkable.
 
-Usage: realsense_bag.py OUT.db3 WIDTH HEIGHT FPS FRAMES UNITS
+With a seventh argument `colour`, a second sensor streams RGB8 at the same size and
+intrinsics, registered with identity extrinsics to depth, with
+rgb(u, v) = ((3 u + i) mod 256, (5 v) mod 256, (u + v + 7 i) mod 256).
+
+Usage: realsense_bag.py OUT.db3 WIDTH HEIGHT FPS FRAMES UNITS [colour]
 (librealsense 2.59 records ROS 2 .db3 files; its recorder refuses any other extension.)
 Prints one JSON line: {"librealsense": version, "frames": n, "intrinsics": {...}}.
 """
@@ -30,6 +34,7 @@ def load_pyrealsense2():
 def main():
     out, width, height, fps, frames = sys.argv[1], *map(int, sys.argv[2:6])
     units = float(sys.argv[6])
+    colour = len(sys.argv) > 7 and sys.argv[7] == "colour"
     per_mm = 0.001 / units
     rs = load_pyrealsense2()
     import numpy as np
@@ -46,7 +51,7 @@ def main():
     dev.register_info(rs.camera_info.serial_number, "000000000001")
     sensor = dev.add_sensor("Stereo Module")
 
-    def stream(kind, index, uid, fmt, bpp):
+    def stream(kind, index, uid, fmt, bpp, sensor=sensor):
         vs = rs.video_stream()
         vs.type, vs.index, vs.uid = kind, index, uid
         vs.width, vs.height, vs.fps, vs.bpp, vs.fmt = width, height, fps, bpp, fmt
@@ -56,17 +61,39 @@ def main():
     depth_profile = stream(rs.stream.depth, 0, 0, rs.format.z16, 2)
     ir_profile = stream(rs.stream.infrared, 1, 1, rs.format.y8, 1)
     sensor.add_read_only_option(rs.option.depth_units, units)
+    if colour:
+        colour_sensor = dev.add_sensor("RGB Camera")
+        colour_profile = stream(rs.stream.color, 0, 2, rs.format.rgb8, 3, colour_sensor)
+        identity = rs.extrinsics()
+        identity.rotation = [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]
+        identity.translation = [0.0, 0.0, 0.0]
+        depth_profile.register_extrinsics_to(colour_profile, identity)
+        ir_profile.register_extrinsics_to(colour_profile, identity)
 
     recorder = rs.recorder(out, dev)
     sensor.open([depth_profile, ir_profile])
     sensor.start(lambda f: None)
+    if colour:
+        colour_sensor.open(colour_profile)
+        colour_sensor.start(lambda f: None)
     u = np.arange(width)[None, :]
     v = np.arange(height)[:, None]
     keep = []
     for i in range(frames):
         depth = np.rint((500 + 3 * u + 7 * v + 11 * i) * per_mm).astype(np.uint16)
         ir = ((u + 2 * v + 5 * i) % 256).astype(np.uint8)
-        for profile, pixels, bpp in ((depth_profile, depth, 2), (ir_profile, ir, 1)):
+        streams = [(sensor, depth_profile, depth, 2), (sensor, ir_profile, ir, 1)]
+        if colour:
+            rgb = np.stack(
+                [
+                    np.broadcast_to((3 * u + i) % 256, (height, width)),
+                    np.broadcast_to((5 * v) % 256, (height, width)),
+                    (u + v + 7 * i) % 256,
+                ],
+                axis=-1,
+            ).astype(np.uint8)
+            streams.append((colour_sensor, colour_profile, np.ascontiguousarray(rgb), 3))
+        for target, profile, pixels, bpp in streams:
             f = rs.software_video_frame()
             f.pixels = pixels
             f.bpp = bpp
@@ -78,14 +105,18 @@ def main():
             if bpp == 2:
                 f.depth_units = units
             keep.append(pixels)
-            sensor.on_video_frame(f)
+            target.on_video_frame(f)
     sensor.stop()
     sensor.close()
+    if colour:
+        colour_sensor.stop()
+        colour_sensor.close()
     del recorder
     print(json.dumps({
         "librealsense": rs.__version__,
         "frames": frames,
         "depth_units": units,
+        "colour": colour,
         "intrinsics": {"width": width, "height": height, "fx": intr.fx, "fy": intr.fy,
                        "ppx": intr.ppx, "ppy": intr.ppy},
     }))

@@ -3,10 +3,11 @@
 //! module of the crate with `unsafe` code.
 //!
 //! Declarations follow librealsense's `rs.h`, `rs_types.h`, `rs_context.h`, `rs_device.h`,
-//! `rs_pipeline.h`, `rs_config.h`, `rs_frame.h`, `rs_sensor.h` and `rs_record_playback.h`
-//! (API 2.x; every function used exists since 2.16 or earlier). Each function takes a
-//! trailing `rs2_error**`: a non-null error after the call means it failed, and its message
-//! is carried into [`Rs2Error`].
+//! `rs_pipeline.h`, `rs_config.h`, `rs_frame.h`, `rs_processing.h` and
+//! `rs_record_playback.h` (API 2.x; the context asks for 2.50 or newer, and the tests run
+//! 2.59). Every call but the deleters and releases takes a trailing `rs2_error**`: a
+//! non-null error after the call means it failed, and its message is carried into
+//! [`Rs2Error`]. A function missing from the loaded library is a typed error at load time.
 //!
 //! The library is loaded once per process and never unloaded: librealsense starts its own
 //! threads (device watcher, USB transfer and frame dispatch threads per streaming sensor),
@@ -29,10 +30,14 @@ const API_VERSION: c_int = 25000;
 
 /// `rs2_stream`: depth.
 pub const STREAM_DEPTH: c_int = 1;
+/// `rs2_stream`: colour.
+pub const STREAM_COLOR: c_int = 2;
 /// `rs2_stream`: infrared.
 pub const STREAM_INFRARED: c_int = 3;
 /// `rs2_format`: 16-bit depth.
 pub const FORMAT_Z16: c_int = 1;
+/// `rs2_format`: 8-bit RGB.
+pub const FORMAT_RGB8: c_int = 5;
 /// `rs2_format`: 8-bit luminance.
 pub const FORMAT_Y8: c_int = 9;
 /// `rs2_camera_info`: device name.
@@ -59,7 +64,9 @@ opaque!(
     RsPipelineProfile,
     RsStreamProfileList,
     RsStreamProfile,
-    RsFrame
+    RsFrame,
+    RsProcessingBlock,
+    RsFrameQueue
 );
 
 /// `rs2_intrinsics`.
@@ -150,6 +157,14 @@ struct Api {
     get_frame_bits_per_pixel: unsafe extern "C" fn(*const RsFrame, Err) -> c_int,
     get_frame_timestamp: unsafe extern "C" fn(*const RsFrame, Err) -> c_double,
     depth_frame_get_units: unsafe extern "C" fn(*const RsFrame, Err) -> c_float,
+    frame_add_ref: unsafe extern "C" fn(*mut RsFrame, Err),
+    create_align: unsafe extern "C" fn(c_int, Err) -> *mut RsProcessingBlock,
+    delete_processing_block: unsafe extern "C" fn(*mut RsProcessingBlock),
+    create_frame_queue: unsafe extern "C" fn(c_int, Err) -> *mut RsFrameQueue,
+    delete_frame_queue: unsafe extern "C" fn(*mut RsFrameQueue),
+    start_processing_queue: unsafe extern "C" fn(*mut RsProcessingBlock, *mut RsFrameQueue, Err),
+    process_frame: unsafe extern "C" fn(*mut RsProcessingBlock, *mut RsFrame, Err),
+    poll_for_frame: unsafe extern "C" fn(*mut RsFrameQueue, *mut *mut RsFrame, Err) -> c_int,
     /// Keeps the code behind the pointers mapped.
     _lib: Library,
 }
@@ -298,6 +313,14 @@ fn load_from(path: &Path) -> Result<Api, RealSenseError> {
         get_frame_bits_per_pixel: sym!("rs2_get_frame_bits_per_pixel"),
         get_frame_timestamp: sym!("rs2_get_frame_timestamp"),
         depth_frame_get_units: sym!("rs2_depth_frame_get_units"),
+        frame_add_ref: sym!("rs2_frame_add_ref"),
+        create_align: sym!("rs2_create_align"),
+        delete_processing_block: sym!("rs2_delete_processing_block"),
+        create_frame_queue: sym!("rs2_create_frame_queue"),
+        delete_frame_queue: sym!("rs2_delete_frame_queue"),
+        start_processing_queue: sym!("rs2_start_processing_queue"),
+        process_frame: sym!("rs2_process_frame"),
+        poll_for_frame: sym!("rs2_poll_for_frame"),
         _lib: lib,
     })
 }
@@ -677,6 +700,68 @@ impl Drop for Pipeline {
         unsafe { (api.delete_pipeline_profile)(self.profile) };
         // SAFETY: the pipeline came from rs2_create_pipeline; deleted once, after stop.
         unsafe { (api.delete_pipeline)(self.raw) };
+    }
+}
+
+/// librealsense's `align` processing block to the depth stream, with its output queue.
+/// It runs on the calling thread inside `rs2_process_frame`.
+pub struct Align {
+    api: &'static Api,
+    block: *mut RsProcessingBlock,
+    queue: *mut RsFrameQueue,
+}
+
+// SAFETY: the block and queue are owned here and used through `&mut self` only.
+unsafe impl Send for Align {}
+
+impl Align {
+    /// An align-to-depth block (the library must be loaded: a pipeline exists).
+    pub fn to_depth() -> Result<Self, RealSenseError> {
+        let api = api(None)?;
+        let err = |e: Rs2Error| RealSenseError::call(&e, "creating the align-to-depth block");
+        let block = Owned(
+            call!(api, create_align(STREAM_DEPTH)).map_err(err)?,
+            api.delete_processing_block,
+        );
+        let queue = Owned(
+            call!(api, create_frame_queue(1)).map_err(err)?,
+            api.delete_frame_queue,
+        );
+        call!(api, start_processing_queue(block.0, queue.0)).map_err(err)?;
+        let out = Self {
+            api,
+            block: block.0,
+            queue: queue.0,
+        };
+        // `out` owns both handles now.
+        std::mem::forget(block);
+        std::mem::forget(queue);
+        Ok(out)
+    }
+
+    /// The frameset with its colour frame resampled onto the depth pixels.
+    pub fn process(&mut self, set: &Frame) -> Result<Option<Frame>, Rs2Error> {
+        let api = self.api;
+        // rs2_process_frame takes over one reference: give it its own.
+        call!(api, frame_add_ref(set.raw))?;
+        call!(api, process_frame(self.block, set.raw))?;
+        let mut out: *mut RsFrame = ptr::null_mut();
+        let got = call!(api, poll_for_frame(self.queue, &mut out))?;
+        if got == 0 || out.is_null() {
+            return Ok(None);
+        }
+        Ok(Some(Frame { api, raw: out }))
+    }
+}
+
+impl Drop for Align {
+    fn drop(&mut self) {
+        // SAFETY: both came from their rs2_create_ calls and are deleted once, the block
+        // (which writes into the queue) first.
+        unsafe {
+            (self.api.delete_processing_block)(self.block);
+            (self.api.delete_frame_queue)(self.queue);
+        }
     }
 }
 

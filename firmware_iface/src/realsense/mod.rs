@@ -31,7 +31,10 @@
 //! intrinsics) stream at the requested mode and rate. Depth is converted to millimetres
 //! from the device's depth units (each frame carries them; the D455's default is 0.001 m,
 //! where the raw values are copied unchanged); a value that would not fit in u16
-//! millimetres becomes 0 ("no depth"). Colour is not streamed yet (`colour: None`).
+//! millimetres becomes 0 ("no depth"). With [`RealSenseCamera::open_with_colour`] (or a
+//! recording with colour) the RGB8 colour stream is resampled onto the depth pixels by
+//! librealsense's `align` processing block (on the capturing thread), which is what
+//! `CameraFrame::colour` means; otherwise `colour` is `None`.
 
 mod ffi;
 
@@ -40,13 +43,13 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 
 use cell_types::config::DepthMode;
-use cell_types::{CameraFrame, DepthImage, Image};
+use cell_types::{CameraFrame, DepthImage, Image, Rgb};
 use thiserror::Error;
 
 use crate::camera::{CameraError, DepthCamera};
 
 pub use ffi::{preload_global, LIBRARY_ENV};
-use ffi::{Context, Pipeline, Rs2Error, Source, StreamRequest};
+use ffi::{Align, Context, Pipeline, Rs2Error, Source, StreamRequest};
 
 /// The depth unit frames are delivered in (m per count): millimetres.
 pub const DEPTH_SCALE_MM: f32 = 0.001;
@@ -296,6 +299,9 @@ fn list(ctx: &Context) -> Result<Vec<DeviceInfo>, RealSenseError> {
 pub struct RealSenseCamera {
     id: u8,
     source: String,
+    /// Resamples colour onto depth when a colour stream runs; dropped before the pipeline.
+    align: Option<Align>,
+    colour: Option<StreamIntrinsics>,
     pipeline: Pipeline,
     depth: StreamIntrinsics,
     ir: Option<StreamIntrinsics>,
@@ -349,6 +355,27 @@ impl RealSenseCamera {
     /// Opens the connected device with `serial` and starts depth (Z16) and left IR (Y8) at
     /// `mode` and `fps`.
     pub fn open(id: u8, serial: &str, mode: DepthMode, fps: u32) -> Result<Self, RealSenseError> {
+        Self::open_streams(id, serial, mode, fps, false)
+    }
+
+    /// [`open`](Self::open), plus colour (RGB8, same size and rate) aligned to depth pixel
+    /// for pixel by librealsense's `align` block.
+    pub fn open_with_colour(
+        id: u8,
+        serial: &str,
+        mode: DepthMode,
+        fps: u32,
+    ) -> Result<Self, RealSenseError> {
+        Self::open_streams(id, serial, mode, fps, true)
+    }
+
+    fn open_streams(
+        id: u8,
+        serial: &str,
+        mode: DepthMode,
+        fps: u32,
+        colour: bool,
+    ) -> Result<Self, RealSenseError> {
         let ctx = Context::live()?;
         let found = list(ctx)?;
         if !found.iter().any(|d| d.serial == serial) {
@@ -362,10 +389,13 @@ impl RealSenseCamera {
         }
         let (w, h) = mode.size();
         let (wi, hi, f) = (w as i32, h as i32, i32::try_from(fps).unwrap_or(i32::MAX));
-        let streams: [StreamRequest; 2] = [
+        let mut streams: Vec<StreamRequest> = vec![
             (ffi::STREAM_DEPTH, 0, wi, hi, ffi::FORMAT_Z16, f),
             (ffi::STREAM_INFRARED, 1, wi, hi, ffi::FORMAT_Y8, f),
         ];
+        if colour {
+            streams.push((ffi::STREAM_COLOR, 0, wi, hi, ffi::FORMAT_RGB8, f));
+        }
         let pipeline =
             Pipeline::start(Source::Device(serial), &streams, |e| RealSenseError::Mode {
                 serial: serial.to_string(),
@@ -378,8 +408,8 @@ impl RealSenseCamera {
     }
 
     /// Plays a librealsense recording (`.bag` or, from 2.59 on, `.db3`) once, as fast as
-    /// frames are captured, through the same pipeline as a live device; past the last frame
-    /// `capture` times out. One recording plays at a time per process
+    /// frames are captured, through the same pipeline as a live device (colour, when
+    /// recorded, aligned to depth); past the last frame `capture` times out. One recording plays at a time per process
     /// ([`RealSenseError::PlaybackBusy`] otherwise).
     pub fn open_recording(id: u8, path: &Path) -> Result<Self, RealSenseError> {
         let slot = PlaybackSlot::take(path)?;
@@ -406,9 +436,19 @@ impl RealSenseCamera {
             .iter()
             .filter(|s| s.stream == ffi::STREAM_INFRARED && s.format == ffi::FORMAT_Y8)
             .min_by_key(|s| s.index);
+        let colour = streams
+            .iter()
+            .find(|s| s.stream == ffi::STREAM_COLOR && s.format == ffi::FORMAT_RGB8)
+            .map(|s| StreamIntrinsics::from_raw(&s.intrinsics));
+        let align = match colour {
+            Some(_) => Some(Align::to_depth()?),
+            None => None,
+        };
         Ok(Self {
             id,
             source,
+            align,
+            colour,
             depth: StreamIntrinsics::from_raw(&depth.intrinsics),
             ir: ir.map(|s| StreamIntrinsics::from_raw(&s.intrinsics)),
             fps: u32::try_from(depth.fps).unwrap_or(0),
@@ -426,6 +466,12 @@ impl RealSenseCamera {
     /// Left IR intrinsics (the same as depth on a D455), when the IR stream runs.
     pub fn ir_intrinsics(&self) -> Option<&StreamIntrinsics> {
         self.ir.as_ref()
+    }
+
+    /// Colour intrinsics (before alignment; aligned frames use the depth intrinsics), when
+    /// the colour stream runs.
+    pub fn colour_intrinsics(&self) -> Option<&StreamIntrinsics> {
+        self.colour.as_ref()
     }
 
     /// The depth stream's frame rate (Hz).
@@ -455,7 +501,15 @@ impl RealSenseCamera {
                 timeout_ms: u64::from(self.timeout_ms),
             })?;
         let bad = |what: String| RealSenseError::BadFrame { camera, what };
+        let set = match &mut self.align {
+            Some(align) => align
+                .process(&set)
+                .map_err(call("aligning colour to depth"))?
+                .ok_or_else(|| bad("the align block returned no frameset".into()))?,
+            None => set,
+        };
         let mut depth = None;
+        let mut colour: Option<Image<Rgb>> = None;
         let mut ir: Option<(i32, Image<u8>)> = None;
         for part in set.parts().map_err(call("splitting the frameset"))? {
             let p = part.profile().map_err(call("reading a frame's profile"))?;
@@ -472,6 +526,17 @@ impl RealSenseCamera {
                 let img = Image::new(px.width, px.height, px.bytes)
                     .map_err(|e| bad(format!("IR image: {e}")))?;
                 ir = Some((p.index, img));
+            } else if p.stream == ffi::STREAM_COLOR && p.format == ffi::FORMAT_RGB8 {
+                let px = part.pixels().map_err(call("reading colour pixels"))?;
+                let rgb = px
+                    .bytes
+                    .chunks_exact(3)
+                    .map(|c| [c[0], c[1], c[2]])
+                    .collect();
+                colour = Some(
+                    Image::new(px.width, px.height, rgb)
+                        .map_err(|e| bad(format!("colour image: {e}")))?,
+                );
             }
         }
         let (raw, ts) = depth.ok_or_else(|| bad("the frameset has no Z16 depth frame".into()))?;
@@ -483,7 +548,7 @@ impl RealSenseCamera {
                 depth_scale: DEPTH_SCALE_MM,
             },
             ir: ir.map(|(_, img)| img),
-            colour: None,
+            colour,
         })
     }
 }
