@@ -103,6 +103,7 @@ pub fn capture_in_sim(
         seed,
         config: sim.clone(),
         base_from_flange: Vec::new(),
+        intrinsics: Vec::new(),
     };
     let truth_path = dir.join(calibration::simulate::TRUTH_FILE);
     calibration::capture::write_atomic(

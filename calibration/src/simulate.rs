@@ -25,7 +25,7 @@ use rand_distr::{Distribution, Normal, StandardNormal};
 use serde::{Deserialize, Serialize};
 
 use crate::board::BoardConfig;
-use crate::camera::{DepthMode, Intrinsics, D455_BASELINE_M, D455_DEPTH_SCALE};
+use crate::camera::{DepthCorrection, DepthMode, Intrinsics, D455_BASELINE_M, D455_DEPTH_SCALE};
 use crate::capture::{
     write_atomic, write_captures, CameraInfo, CameraView, Capture, CaptureSet, Corner, DepthSample,
     Session,
@@ -83,6 +83,58 @@ impl SimNoise {
     }
 }
 
+/// How far the simulated cameras differ from what the captures record: the true
+/// intrinsics differ from the recorded (factory) ones the solver starts from, and the
+/// depth has a linear error. The default is none.
+#[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraErrors {
+    /// Relative error of the true `fx` and `fy` (each `+-` this, the sign drawn per camera
+    /// and axis from the seed).
+    pub focal_rel: f64,
+    /// Error of the true `ppx` and `ppy` (px, each `+-` this, signs drawn likewise).
+    pub principal_px: f64,
+    /// The depth every camera measures: `scale * true + offset`.
+    pub depth: DepthCorrection,
+}
+
+impl Default for CameraErrors {
+    fn default() -> Self {
+        Self {
+            focal_rel: 0.0,
+            principal_px: 0.0,
+            depth: DepthCorrection::default(),
+        }
+    }
+}
+
+impl CameraErrors {
+    /// The example: `fx`, `fy` 1 % off, `ppx`, `ppy` 3 px off, depth scale 1.002
+    /// and offset 2 mm.
+    pub fn typical() -> Self {
+        Self {
+            focal_rel: 0.01,
+            principal_px: 3.0,
+            depth: DepthCorrection {
+                scale: 1.002,
+                offset_m: 0.002,
+            },
+        }
+    }
+
+    /// The true intrinsics behind `factory`, drawn for the camera at `index` (seeded
+    /// apart from the poses and noise, so adding camera errors keeps the same poses).
+    pub fn true_intrinsics(&self, factory: &Intrinsics, seed: u64, index: usize) -> Intrinsics {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x1a7e_c0de_0000_0000 ^ index as u64);
+        let mut sign = || if rng.random::<bool>() { 1.0 } else { -1.0 };
+        let mut k = *factory;
+        k.fx *= 1.0 + sign() * self.focal_rel;
+        k.fy *= 1.0 + sign() * self.focal_rel;
+        k.ppx += sign() * self.principal_px;
+        k.ppy += sign() * self.principal_px;
+        k
+    }
+}
+
 /// What to simulate.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SimConfig {
@@ -117,6 +169,9 @@ pub struct SimConfig {
     /// corners in it ([`crate::detect`]) instead of projecting them with `noise.corner_px`.
     #[serde(default)]
     pub ir_noise: Option<f64>,
+    /// True intrinsics and depth unlike the recorded ones (none by default).
+    #[serde(default)]
+    pub camera_errors: CameraErrors,
 }
 
 /// The optical frame at `eye` looking at `target`, image "up" along +z of the base (the
@@ -172,6 +227,7 @@ impl SimConfig {
             min_cameras_per_pose: 3,
             candidates_per_pose: 3,
             ir_noise: None,
+            camera_errors: CameraErrors::default(),
         }
     }
 
@@ -200,6 +256,10 @@ pub struct Truth {
     pub config: SimConfig,
     /// The true flange pose of every capture (the captures hold the noisy ones).
     pub base_from_flange: Vec<Transform<Base, Flange>>,
+    /// The true intrinsics of every camera, in the configuration's order (empty: the
+    /// recorded ones are true).
+    #[serde(default)]
+    pub intrinsics: Vec<Intrinsics>,
 }
 
 impl Truth {
@@ -210,6 +270,22 @@ impl Truth {
             .iter()
             .find(|c| c.id == id)
             .map(|c| c.base_from_camera)
+    }
+
+    /// The true intrinsics of camera `id`.
+    pub fn intrinsics(&self, id: u8) -> Option<Intrinsics> {
+        let i = self.config.cameras.iter().position(|c| c.id == id)?;
+        Some(
+            self.intrinsics
+                .get(i)
+                .copied()
+                .unwrap_or(self.config.cameras[i].intrinsics),
+        )
+    }
+
+    /// The true depth error of every camera.
+    pub fn depth(&self) -> DepthCorrection {
+        self.config.camera_errors.depth
     }
 }
 
@@ -254,13 +330,38 @@ pub fn simulate_set_with(
     for c in &cfg.cameras {
         c.intrinsics.validate()?;
     }
+    let errs = &cfg.camera_errors;
+    if !(errs.focal_rel.is_finite() && errs.focal_rel.abs() < 0.2) {
+        return bad(
+            "camera_errors.focal_rel",
+            errs.focal_rel,
+            "use |error| < 0.2",
+        );
+    }
+    if !(errs.principal_px.is_finite() && errs.principal_px.abs() < 50.0) {
+        return bad(
+            "camera_errors.principal_px",
+            errs.principal_px,
+            "use |error| < 50 px",
+        );
+    }
+    errs.depth.validate()?;
+    // The cameras as they truly are; the session records the factory intrinsics.
+    let true_cams: Vec<SimCamera> = cfg
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| SimCamera {
+            intrinsics: errs.true_intrinsics(&c.intrinsics, seed, i),
+            ..c.clone()
+        })
+        .collect();
     let session = cfg.session();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let lo = Vector3::from(cfg.region_min);
     let hi = Vector3::from(cfg.region_max);
     let centre = Point3::from((lo + hi) / 2.0);
-    let mean_dir = cfg
-        .cameras
+    let mean_dir = true_cams
         .iter()
         .map(|c| (Point3::from(c.base_from_camera.translation()) - centre).normalize())
         .sum::<Vector3<f64>>()
@@ -309,8 +410,8 @@ pub fn simulate_set_with(
         }
         // Every camera must see every corner, not too obliquely.
         // Which cameras see every corner, not too obliquely.
-        let mut pixels = Vec::with_capacity(cfg.cameras.len());
-        for cam in &cfg.cameras {
+        let mut pixels = Vec::with_capacity(true_cams.len());
+        for cam in &true_cams {
             let camera_from_board = cam.base_from_camera.isometry().inverse() * base_from_board;
             let to_cam = cam.base_from_camera.translation() - pos;
             if normal.dot(&to_cam.normalize()) < cos_obl {
@@ -332,7 +433,7 @@ pub fn simulate_set_with(
             pixels.push(px.map(|px| (camera_from_board, px)));
         }
         let seen = pixels.iter().filter(|p| p.is_some()).count();
-        if seen < cfg.min_cameras_per_pose.clamp(1, cfg.cameras.len()) {
+        if seen < cfg.min_cameras_per_pose.clamp(1, true_cams.len()) {
             continue;
         }
         let base_from_flange_true: Transform<Base, Flange> =
@@ -370,8 +471,8 @@ pub fn simulate_set_with(
             };
         }
         let recorded = Transform::from_isometry(base_from_flange_true.isometry() * exp6(&n));
-        let mut views = Vec::with_capacity(cfg.cameras.len());
-        for (cam, seen) in cfg.cameras.iter().zip(pixels) {
+        let mut views = Vec::with_capacity(true_cams.len());
+        for (cam, seen) in true_cams.iter().zip(pixels) {
             let Some((camera_from_board, px)) = seen else {
                 continue;
             };
@@ -414,6 +515,7 @@ pub fn simulate_set_with(
                     &camera_from_board,
                     &px,
                     cfg.noise.depth_subpixel,
+                    &errs.depth,
                     &mut rng,
                 )
             } else {
@@ -440,6 +542,7 @@ pub fn simulate_set_with(
             seed,
             config: cfg.clone(),
             base_from_flange: truths,
+            intrinsics: true_cams.iter().map(|c| c.intrinsics).collect(),
         },
     ))
 }
@@ -486,12 +589,13 @@ fn farthest_poses(boards: &[Isometry3<f64>], n: usize) -> Vec<usize> {
 }
 
 /// Depth samples at the integer pixels nearest the corners: the board plane's depth along
-/// each pixel's ray, D455 axial noise, 1 mm quantisation.
+/// each pixel's ray, the camera's depth error, D455 axial noise, 1 mm quantisation.
 fn depth_samples(
     k: &Intrinsics,
     camera_from_board: &Isometry3<f64>,
     pixels: &[nalgebra::Point2<f64>],
     subpixel: f64,
+    error: &DepthCorrection,
     rng: &mut ChaCha8Rng,
 ) -> Vec<DepthSample> {
     let n = camera_from_board.rotation * Vector3::z();
@@ -507,7 +611,7 @@ fn depth_samples(
         if denom.abs() < 1e-9 {
             continue;
         }
-        let z = n.dot(&p0) / denom;
+        let z = error.measured(n.dot(&p0) / denom);
         let sigma = z * z * subpixel / (f * D455_BASELINE_M);
         let noisy = if sigma > 0.0 {
             Normal::new(z, sigma).map_or(z, |d| d.sample(rng))

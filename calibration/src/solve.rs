@@ -24,7 +24,7 @@ use nalgebra::{
 };
 use serde::{Deserialize, Serialize};
 
-use crate::camera::Intrinsics;
+use crate::camera::{DepthCorrection, Intrinsics};
 use crate::capture::CaptureSet;
 use crate::error::CalibrationError;
 use crate::geometry::{
@@ -67,6 +67,11 @@ pub struct SolveOptions {
     /// A pose whose corners reproject worse than this (px RMS, with its recorded flange
     /// pose) after the solve is reported as inconsistent.
     pub max_pose_rms_px: f64,
+    /// Also solve each camera's `fx, fy, ppx, ppy` (starting from the captures' factory
+    /// values); off by default because factory intrinsics of a D455 are usually good and
+    /// four more unknowns per camera widen the extrinsics' uncertainty a little.
+    #[serde(default)]
+    pub refine_intrinsics: bool,
 }
 
 impl Default for SolveOptions {
@@ -86,6 +91,7 @@ impl Default for SolveOptions {
             max_view_rms_px: 5.0,
             holdout_folds: 5,
             max_pose_rms_px: 5.0,
+            refine_intrinsics: false,
         }
     }
 }
@@ -99,10 +105,13 @@ pub struct DepthResidual {
     pub mean_mm: f64,
     /// RMS of measured minus predicted depth (mm).
     pub rms_mm: f64,
-    /// Least-squares depth scale `a` of `measured = a * predicted + b`.
+    /// Depth scale `a` of `measured = a * predicted + b` (least squares weighted by the
+    /// D455's axial noise, which grows as depth squared).
     pub scale: f64,
-    /// Least-squares depth offset `b` (mm) of that fit.
+    /// Depth offset `b` (mm) of that fit.
     pub offset_mm: f64,
+    /// RMS of the residual after removing that fit (mm).
+    pub corrected_rms_mm: f64,
 }
 
 /// One camera's result.
@@ -112,8 +121,12 @@ pub struct CameraResult {
     pub id: u8,
     /// Camera name.
     pub name: String,
-    /// Intrinsics used.
+    /// Intrinsics used (refined when [`SolveOptions::refine_intrinsics`] is on, else the
+    /// captures' own).
     pub intrinsics: Intrinsics,
+    /// One-sigma uncertainty of the refined `[fx, fy, ppx, ppy]` (px); `None` when the
+    /// intrinsics were held fixed.
+    pub intrinsics_sigma_px: Option<[f64; 4]>,
     /// The calibrated pose.
     pub base_from_camera: Transform<Base, Camera>,
     /// The closed-form start (for comparison).
@@ -135,6 +148,9 @@ pub struct CameraResult {
     pub heldout_corners: usize,
     /// Depth residual on the board plane, when the captures hold depth samples.
     pub depth: Option<DepthResidual>,
+    /// The depth correction the fusion applies: the fit of `depth` when it is plausible
+    /// ([`DepthCorrection::validate`]), else none.
+    pub depth_correction: DepthCorrection,
 }
 
 /// A view left out of the solution, and why.
@@ -208,7 +224,11 @@ struct Obs {
 /// marginal covariance as the full problem, at the cost of a 6k+6-column dense QR.
 #[derive(Clone)]
 struct Ba<'a> {
-    intr: &'a [Intrinsics],
+    /// Intrinsics at the linearisation point (the `p` perturbation adds to them when
+    /// `refine` is on).
+    intr: Vec<Intrinsics>,
+    /// Whether `fx, fy, ppx, ppy` of every camera are unknowns (after the board's 6).
+    refine: bool,
     obs: &'a [Obs],
     frames: &'a [Isometry3<f64>],
     /// Observation indices per frame.
@@ -232,6 +252,8 @@ struct Lin {
     jcam: nalgebra::Matrix2x6<f64>,
     jx: nalgebra::Matrix2x6<f64>,
     jeta: nalgebra::Matrix2x6<f64>,
+    /// With respect to `[fx, fy, ppx, ppy]`.
+    jk: nalgebra::Matrix2x4<f64>,
 }
 
 impl<'a> Ba<'a> {
@@ -239,7 +261,26 @@ impl<'a> Ba<'a> {
         self.cams0.len()
     }
     fn ntheta(&self) -> usize {
-        6 * self.ncam() + 6
+        6 * self.ncam() + 6 + if self.refine { 4 * self.ncam() } else { 0 }
+    }
+    /// Column of camera `k`'s first intrinsic unknown.
+    fn intr_col(&self, k: usize) -> usize {
+        6 * self.ncam() + 6 + 4 * k
+    }
+    /// Camera `k`'s intrinsics at the current estimate.
+    fn intrinsics(&self, k: usize) -> Intrinsics {
+        let mut i = self.intr[k];
+        if self.refine {
+            let o = self.intr_col(k);
+            i.fx += self.p[o];
+            i.fy += self.p[o + 1];
+            i.ppx += self.p[o + 2];
+            i.ppy += self.p[o + 3];
+        }
+        i
+    }
+    fn all_intrinsics(&self) -> Vec<Intrinsics> {
+        (0..self.ncam()).map(|k| self.intrinsics(k)).collect()
     }
     fn cam(&self, k: usize) -> Isometry3<f64> {
         self.cams0[k] * exp6(&self.p.as_slice()[6 * k..6 * k + 6])
@@ -278,11 +319,18 @@ impl<'a> Ba<'a> {
             self.frames[o.frame]
         };
         let c = self.cam(o.cam).inverse() * f * self.x() * Point3::from(o.board);
-        let (pred, _) = project_with_jacobian(&self.intr[o.cam], &c.coords);
+        let (pred, _) = project_with_jacobian(&self.intrinsics(o.cam), &c.coords);
         pred - o.px
     }
-    /// Linearises observation `i` at the current estimate (`cams`, `x` precomputed).
-    fn linearise(&self, i: usize, cams: &[Isometry3<f64>], x: &Isometry3<f64>) -> Lin {
+    /// Linearises observation `i` at the current estimate (`cams`, `x`, `intr`
+    /// precomputed).
+    fn linearise(
+        &self,
+        i: usize,
+        cams: &[Isometry3<f64>],
+        x: &Isometry3<f64>,
+        intr: &[Intrinsics],
+    ) -> Lin {
         let o = &self.obs[i];
         let s = self.weights[i].sqrt() / self.sigma_px;
         let eta = self.eta[o.frame];
@@ -291,7 +339,11 @@ impl<'a> Ba<'a> {
         let q = x * Point3::from(o.board);
         let cam_inv = cams[o.cam].inverse();
         let c = cam_inv * f * q;
-        let (pred, jp) = project_with_jacobian(&self.intr[o.cam], &c.coords);
+        let k = &intr[o.cam];
+        let (pred, jp) = project_with_jacobian(k, &c.coords);
+        // u = fx * xd + ppx with xd the distorted normalised coordinate.
+        let (xd, yd) = ((pred.x - k.ppx) / k.fx, (pred.y - k.ppy) / k.fy);
+        let jk = nalgebra::Matrix2x4::new(xd, 0.0, 1.0, 0.0, 0.0, yd, 0.0, 1.0) * s;
         let jp = jp * s;
         // Camera: c = exp(-d) c0  =>  dc/dd = [skew(c) | -I].
         let mut jc = nalgebra::Matrix3x6::zeros();
@@ -309,6 +361,7 @@ impl<'a> Ba<'a> {
             jcam: jp * jc,
             jx: jp * r_cf * r_x * point_jacobian(&o.board),
             jeta: jp * r_cfrec * point_jacobian(&q_local),
+            jk,
         }
     }
     /// Solves every active frame's correction for the current cameras and board.
@@ -318,6 +371,7 @@ impl<'a> Ba<'a> {
         }
         let cams: Vec<Isometry3<f64>> = (0..self.ncam()).map(|k| self.cam(k)).collect();
         let x = self.x();
+        let intr = self.all_intrinsics();
         for f in 0..self.frames.len() {
             if !self.active[f] {
                 continue;
@@ -326,7 +380,7 @@ impl<'a> Ba<'a> {
                 let mut h = Matrix6::<f64>::zeros();
                 let mut g = nalgebra::Vector6::<f64>::zeros();
                 for &i in &self.by_frame[f] {
-                    let l = self.linearise(i, &cams, &x);
+                    let l = self.linearise(i, &cams, &x, &intr);
                     h += l.jeta.transpose() * l.jeta;
                     g += l.jeta.transpose() * l.r;
                 }
@@ -356,6 +410,7 @@ impl<'a> Ba<'a> {
         for k in 0..self.ncam() {
             self.cams0[k] = self.cam(k);
         }
+        self.intr = self.all_intrinsics();
         self.x0 = self.x();
         for v in self.p.iter_mut() {
             step = step.max(v.abs());
@@ -414,6 +469,7 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Ba<'_> {
         let mut j = DMatrix::zeros(self.nrows(), nt);
         let x = self.x();
         let cams: Vec<Isometry3<f64>> = (0..self.ncam()).map(|k| self.cam(k)).collect();
+        let intr = self.all_intrinsics();
         let xo = 6 * self.ncam();
         let mut n = 0;
         for f in 0..self.frames.len() {
@@ -424,10 +480,14 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Ba<'_> {
             let mut jt = DMatrix::zeros(rows, nt);
             let mut je = DMatrix::zeros(rows, 6);
             for (m, &i) in self.by_frame[f].iter().enumerate() {
-                let l = self.linearise(i, &cams, &x);
+                let l = self.linearise(i, &cams, &x, &intr);
                 let k = self.obs[i].cam;
                 jt.fixed_view_mut::<2, 6>(2 * m, 6 * k).copy_from(&l.jcam);
                 jt.fixed_view_mut::<2, 6>(2 * m, xo).copy_from(&l.jx);
+                if self.refine {
+                    jt.fixed_view_mut::<2, 4>(2 * m, self.intr_col(k))
+                        .copy_from(&l.jk);
+                }
                 je.fixed_view_mut::<2, 6>(2 * m, 0).copy_from(&l.jeta);
             }
             if self.prior.is_some() {
@@ -690,9 +750,16 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
     for (i, o) in prep.obs.iter().enumerate() {
         by_frame[o.frame].push(i);
     }
-    let ntheta = 6 * cams0.len() + 6;
+    let ntheta = 6 * cams0.len()
+        + 6
+        + if opts.refine_intrinsics {
+            4 * cams0.len()
+        } else {
+            0
+        };
     let mut ba = Ba {
-        intr: &intr,
+        intr,
+        refine: opts.refine_intrinsics,
         obs: &prep.obs,
         frames: &prep.frames,
         by_frame,
@@ -790,7 +857,7 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
         }
     }
     let mut cameras = Vec::with_capacity(prep.cams.len());
-    for (k, (id, name, intrinsics)) in prep.cams.iter().enumerate() {
+    for (k, (id, name, _)) in prep.cams.iter().enumerate() {
         let pose = ba.cam(k);
         let c6 = to_base(&pose, 6 * k);
         let mut covariance = [[0.0; 6]; 6];
@@ -807,10 +874,22 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
                 n += 1;
             }
         }
+        let depth = depth_residual(&ba, k, &prep.depth[k]);
+        let depth_correction = depth
+            .map(|d| DepthCorrection {
+                scale: d.scale,
+                offset_m: d.offset_mm * 1e-3,
+            })
+            .filter(|c| c.validate().is_ok())
+            .unwrap_or_default();
         cameras.push(CameraResult {
             id: *id,
             name: name.clone(),
-            intrinsics: *intrinsics,
+            intrinsics: ba.intrinsics(k),
+            intrinsics_sigma_px: ba.refine.then(|| {
+                let o = ba.intr_col(k);
+                [0, 1, 2, 3].map(|a| cov[(o + a, o + a)].max(0.0).sqrt())
+            }),
             base_from_camera: Transform::from_isometry(pose),
             closed_form: Transform::from_isometry(closed_form[k]),
             views: prep.pnp[k].len(),
@@ -820,7 +899,8 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
             fit_rms_px: (ss / (2.0 * n.max(1) as f64)).sqrt(),
             heldout_rms_px: (held_n[k] > 0).then(|| (held_ss[k] / (2.0 * held_n[k] as f64)).sqrt()),
             heldout_corners: held_n[k],
-            depth: depth_residual(&ba, k, &prep.depth[k]),
+            depth,
+            depth_correction,
         });
     }
     let xo = 6 * prep.cams.len();
@@ -858,7 +938,7 @@ fn depth_residual(
     k: usize,
     samples: &[(usize, Vec<crate::capture::DepthSample>)],
 ) -> Option<DepthResidual> {
-    let intr = &ba.intr[k];
+    let intr = &ba.intrinsics(k);
     let cam_inv = ba.cam(k).inverse();
     let x = ba.x();
     let mut pairs = Vec::new();
@@ -883,24 +963,37 @@ fn depth_residual(
     let n = pairs.len() as f64;
     let mean = pairs.iter().map(|(p, m)| m - p).sum::<f64>() / n;
     let rms = (pairs.iter().map(|(p, m)| (m - p).powi(2)).sum::<f64>() / n).sqrt();
-    // measured = a * predicted + b
-    let (sp, sm) = pairs
-        .iter()
-        .fold((0.0, 0.0), |(a, b), (p, m)| (a + p, b + m));
-    let (mp, mm) = (sp / n, sm / n);
-    let (mut cov, mut var) = (0.0, 0.0);
+    // measured = a * predicted + b, weighted by 1 / sigma_z^2 with sigma_z ~ z^2.
+    let (mut sw, mut sp, mut spp, mut sm, mut spm) = (0.0, 0.0, 0.0, 0.0, 0.0);
     for (p, m) in &pairs {
-        cov += (p - mp) * (m - mm);
-        var += (p - mp) * (p - mp);
+        let w = 1.0 / p.powi(4);
+        sw += w;
+        sp += w * p;
+        spp += w * p * p;
+        sm += w * m;
+        spm += w * p * m;
     }
-    let scale = if var > 0.0 { cov / var } else { 1.0 };
-    let offset = mm - scale * mp;
+    let det = sw * spp - sp * sp;
+    // Depths spread over less than 5 cm cannot separate a scale from an offset.
+    let spread = (det / (sw * sw)).max(0.0).sqrt();
+    let (scale, offset) = if spread >= 0.05 {
+        ((sw * spm - sp * sm) / det, (spp * sm - sp * spm) / det)
+    } else {
+        (1.0, (sm - sp) / sw)
+    };
+    let corrected_rms = (pairs
+        .iter()
+        .map(|(p, m)| (m - scale * p - offset).powi(2))
+        .sum::<f64>()
+        / n)
+        .sqrt();
     Some(DepthResidual {
         samples: pairs.len(),
         mean_mm: mean * 1e3,
         rms_mm: rms * 1e3,
         scale,
         offset_mm: offset * 1e3,
+        corrected_rms_mm: corrected_rms * 1e3,
     })
 }
 
@@ -920,9 +1013,13 @@ mod tests {
         let mut cfg = SimConfig::default_cell();
         cfg.noise = SimNoise::none();
         // Seed 3 once ended in LM's "trust-region reduction" at the exact optimum.
-        for seed in [11, 3] {
+        for (seed, refine_intrinsics) in [(11, false), (3, false), (11, true)] {
             let (set, truth) = simulate_set(&cfg, seed).unwrap();
-            let sol = solve(&set, &SolveOptions::default()).unwrap();
+            let opts = SolveOptions {
+                refine_intrinsics,
+                ..SolveOptions::default()
+            };
+            let sol = solve(&set, &opts).unwrap();
             for (dt, dr) in errors(&sol, &truth) {
                 assert!(dt < 1e-6 && dr < 1e-6, "seed {seed}: {dt} m {dr} rad");
             }
@@ -930,6 +1027,9 @@ mod tests {
             assert!(dt < 1e-6 && dr < 1e-6);
             for c in &sol.cameras {
                 assert!(c.fit_rms_px < 1e-6 && c.heldout_rms_px.unwrap() < 1e-6);
+                let k = c.intrinsics;
+                let t = truth.intrinsics(c.id).unwrap();
+                assert!((k.fx - t.fx).abs() < 1e-6 && (k.ppy - t.ppy).abs() < 1e-6);
             }
         }
     }
@@ -1013,6 +1113,77 @@ mod tests {
         assert!(mt < 0.6e-3 && mr.to_degrees() < 0.035);
         assert!(within * 10 >= n * 9, "{within}/{n}");
         assert!(mt < mc);
+    }
+
+    #[test]
+    fn refining_intrinsics_recovers_perturbed_cameras_and_depth_error() {
+        // True intrinsics 1 % / 3 px from the recorded factory ones, depth 1.002 z + 2 mm.
+        let mut cfg = SimConfig::default_cell();
+        cfg.camera_errors = crate::simulate::CameraErrors::typical();
+        let (set, truth) = simulate_set(&cfg, 31).unwrap();
+        let opts = SolveOptions {
+            holdout_folds: 0,
+            ..SolveOptions::default()
+        };
+        let off = solve(&set, &opts).unwrap();
+        let on = solve(
+            &set,
+            &SolveOptions {
+                refine_intrinsics: true,
+                ..opts
+            },
+        )
+        .unwrap();
+        let worst = |sol: &Solution| {
+            sol.errors_to(&truth)
+                .iter()
+                .fold((0.0, 0.0), |(t, r): (f64, f64), e| (t.max(e.1), r.max(e.2)))
+        };
+        let best_off = off
+            .errors_to(&truth)
+            .iter()
+            .fold((f64::MAX, f64::MAX), |(t, r), e| (t.min(e.1), r.min(e.2)));
+        let (on_t, on_r) = worst(&on);
+        eprintln!(
+            "refined: worst {:.3} mm {:.4} deg; fixed factory intrinsics: best {:.3} mm {:.4} deg",
+            on_t * 1e3,
+            on_r.to_degrees(),
+            best_off.0 * 1e3,
+            best_off.1.to_degrees()
+        );
+        // Refined: within 2 mm / 0.1 deg (the four extra unknowns per camera cost some
+        // precision along the optical axis); fixed wrong intrinsics: every camera several
+        // times worse than that.
+        assert!(on_t < 2e-3 && on_r.to_degrees() < 0.1);
+        assert!(
+            best_off.0 > 3.0 * on_t && best_off.1 > 3.0 * on_r,
+            "{best_off:?}"
+        );
+        let depth = truth.depth();
+        for c in &on.cameras {
+            let t = truth.intrinsics(c.id).unwrap();
+            let k = c.intrinsics;
+            let d = [k.fx - t.fx, k.fy - t.fy, k.ppx - t.ppx, k.ppy - t.ppy];
+            eprintln!(
+                "camera {}: intrinsics error {d:.3?} px (1-sigma {:.3?}); depth {:?}",
+                c.id,
+                c.intrinsics_sigma_px.unwrap(),
+                c.depth_correction
+            );
+            // fx, fy within 1.5 px (0.35 %, of a 4.25 px error), ppx, ppy within 1 px.
+            assert!(d[0].abs() < 1.5 && d[1].abs() < 1.5, "{d:?}");
+            assert!(d[2].abs() < 1.0 && d[3].abs() < 1.0, "{d:?}");
+            // Depth scale within 1.5e-3, offset within 1.5 mm.
+            let dc = c.depth_correction;
+            assert!((dc.scale - depth.scale).abs() < 1.5e-3, "{dc:?}");
+            assert!((dc.offset_m - depth.offset_m).abs() < 1.5e-3, "{dc:?}");
+            // After the correction the depth residual is the sensor noise (~2 mm at 1 m).
+            assert!(c.depth.unwrap().corrected_rms_mm < 2.5, "{:?}", c.depth);
+        }
+        for c in &off.cameras {
+            assert_eq!(c.intrinsics, set.session.camera(c.id).unwrap().intrinsics);
+            assert!(c.intrinsics_sigma_px.is_none());
+        }
     }
 
     #[test]

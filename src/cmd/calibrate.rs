@@ -77,6 +77,9 @@ pub enum CalibrateCommand {
         /// Print the report as JSON.
         #[arg(long)]
         json: bool,
+        /// Also solve each camera's fx, fy, ppx, ppy instead of trusting the factory values.
+        #[arg(long)]
+        refine_intrinsics: bool,
     },
 }
 
@@ -153,6 +156,7 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             captures,
             out,
             json,
+            refine_intrinsics,
         } => {
             let set = calibration::capture::load_captures(&captures)?;
             eprintln!(
@@ -160,7 +164,11 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
                 set.captures.len(),
                 captures.display()
             );
-            let solution = solve(&set, &SolveOptions::default())?;
+            let opts = SolveOptions {
+                refine_intrinsics,
+                ..SolveOptions::default()
+            };
+            let solution = solve(&set, &opts)?;
             let mut report = solution.report();
             let truth = load_truth(&captures).ok();
             if let Some(truth) = &truth {
