@@ -18,7 +18,9 @@
 use std::path::Path;
 
 use cell_types::{Base, Board, Camera, Flange, Joints, Transform};
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    DMatrix, Isometry3, Matrix3, Matrix3x6, Matrix6, Point3, Rotation3, UnitQuaternion, Vector3,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal, StandardNormal};
@@ -32,7 +34,7 @@ use crate::capture::{
 };
 use crate::detect::{detect_chessboard, render_board_ir, DetectParams, IrLevels};
 use crate::error::CalibrationError;
-use crate::geometry::exp6;
+use crate::geometry::{exp6, point_jacobian, project_with_jacobian, skew};
 
 /// A simulated camera: its intrinsics and true pose.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -135,6 +137,21 @@ impl CameraErrors {
     }
 }
 
+/// How the robot poses are chosen from the feasible candidates.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseSelection {
+    /// Greedy farthest-point in pose space (10 cm or 20 deg count as 1): spread out, but
+    /// blind to what each pose tells about the cameras.
+    #[default]
+    FarthestPoint,
+    /// Greedy optimal design: each next pose is the candidate that most reduces the worst
+    /// camera's predicted error (rotation variance over (0.05 deg)^2 plus position variance
+    /// over (1 mm)^2, from the bundle adjustment's information at the nominal camera poses
+    /// with the robot noise and corner noise of the configuration).
+    Information,
+}
+
 /// What to simulate.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct SimConfig {
@@ -172,6 +189,10 @@ pub struct SimConfig {
     /// True intrinsics and depth unlike the recorded ones (none by default).
     #[serde(default)]
     pub camera_errors: CameraErrors,
+    /// How the kept poses are chosen from the candidates (configurations written before
+    /// this existed used farthest-point).
+    #[serde(default)]
+    pub selection: PoseSelection,
 }
 
 /// The optical frame at `eye` looking at `target`, image "up" along +z of the base (the
@@ -228,6 +249,7 @@ impl SimConfig {
             candidates_per_pose: 3,
             ir_noise: None,
             camera_errors: CameraErrors::default(),
+            selection: PoseSelection::Information,
         }
     }
 
@@ -452,10 +474,32 @@ pub fn simulate_set_with(
             more: cfg.poses - candidates.len(),
         });
     }
-    let chosen = farthest_poses(
-        &candidates.iter().map(|c| c.0).collect::<Vec<_>>(),
-        cfg.poses,
-    );
+    let chosen = match cfg.selection {
+        PoseSelection::FarthestPoint => farthest_poses(
+            &candidates.iter().map(|c| c.0).collect::<Vec<_>>(),
+            cfg.poses,
+        ),
+        PoseSelection::Information => {
+            let sigma_px = cfg.noise.corner_px.max(0.05);
+            let robot = (cfg.noise.robot_rad, cfg.noise.robot_m);
+            let infos: Vec<DMatrix<f64>> = candidates
+                .iter()
+                .map(|(_, flange, _, pixels)| {
+                    let seen: Vec<bool> = pixels.iter().map(Option::is_some).collect();
+                    pose_information(
+                        &true_cams,
+                        &x,
+                        flange.isometry(),
+                        &seen,
+                        &corners,
+                        sigma_px,
+                        robot,
+                    )
+                })
+                .collect();
+            informative_poses(&infos, true_cams.len(), cfg.poses)
+        }
+    };
     let mut captures = Vec::new();
     let mut truths: Vec<Transform<Base, Flange>> = Vec::new();
     for ci in chosen {
@@ -545,6 +589,110 @@ pub fn simulate_set_with(
             intrinsics: true_cams.iter().map(|c| c.intrinsics).collect(),
         },
     ))
+}
+
+/// The Fisher information of one robot pose about the cameras and the board on the flange
+/// (`6 k + 6` unknowns: per camera and for the board a rotation and a translation
+/// perturbation, as in the bundle adjustment), with the pose's own flange error
+/// (`robot`: rad, m per axis) marginalised out; `seen` says which cameras see the board.
+fn pose_information(
+    cams: &[SimCamera],
+    x: &Isometry3<f64>,
+    flange: &Isometry3<f64>,
+    seen: &[bool],
+    corners: &[Point3<f64>],
+    sigma_px: f64,
+    robot: (f64, f64),
+) -> DMatrix<f64> {
+    let n = 6 * cams.len() + 6;
+    let mut htt = DMatrix::<f64>::zeros(n, n);
+    let mut hte = DMatrix::<f64>::zeros(n, 6);
+    let mut hee = Matrix6::<f64>::zeros();
+    let r_x = x.rotation.to_rotation_matrix().into_inner();
+    for (k, cam) in cams.iter().enumerate() {
+        if !seen.get(k).copied().unwrap_or(false) {
+            continue;
+        }
+        let cf = cam.base_from_camera.isometry().inverse() * flange;
+        let r_cf = cf.rotation.to_rotation_matrix().into_inner();
+        for b in corners {
+            let q = x * b;
+            let c = cf * q;
+            let (_, jp) = project_with_jacobian(&cam.intrinsics, &c.coords);
+            let jp = jp / sigma_px;
+            let mut jc = Matrix3x6::zeros();
+            jc.fixed_view_mut::<3, 3>(0, 0).copy_from(&skew(&c.coords));
+            jc.fixed_view_mut::<3, 3>(0, 3)
+                .copy_from(&(-Matrix3::identity()));
+            let mut jt = DMatrix::<f64>::zeros(2, n);
+            jt.fixed_view_mut::<2, 6>(0, 6 * k).copy_from(&(jp * jc));
+            jt.fixed_view_mut::<2, 6>(0, n - 6)
+                .copy_from(&(jp * r_cf * r_x * point_jacobian(&b.coords)));
+            let je = jp * r_cf * point_jacobian(&q.coords);
+            htt += jt.transpose() * &jt;
+            hte += jt.transpose() * je;
+            hee += je.transpose() * je;
+        }
+    }
+    if robot.0 <= 0.0 || robot.1 <= 0.0 {
+        // An exact robot: nothing to marginalise.
+        return htt;
+    }
+    for a in 0..6 {
+        let s = if a < 3 { robot.0 } else { robot.1 };
+        hee[(a, a)] += 1.0 / (s * s);
+    }
+    match hee.cholesky() {
+        Some(ch) => {
+            let mut solved = DMatrix::<f64>::zeros(6, n);
+            for col in 0..n {
+                let v = nalgebra::Vector6::from_iterator(hte.row(col).iter().copied());
+                solved.column_mut(col).copy_from(&ch.solve(&v));
+            }
+            htt - hte * solved
+        }
+        None => htt,
+    }
+}
+
+/// Greedy optimal design over the candidates' information matrices (see
+/// [`PoseSelection::Information`]): `n` candidate indices.
+fn informative_poses(infos: &[DMatrix<f64>], ncam: usize, n: usize) -> Vec<usize> {
+    let Some(dim) = infos.first().map(|m| m.nrows()) else {
+        return Vec::new();
+    };
+    let rot = 0.05_f64.to_radians().powi(2);
+    let pos = 1e-3_f64.powi(2);
+    // A weak prior (1 rad, 1 m) keeps the first few sums invertible.
+    let mut total = DMatrix::<f64>::identity(dim, dim);
+    let score = |m: &DMatrix<f64>| -> f64 {
+        let Some(cov) = m.clone().cholesky().map(|c| c.inverse()) else {
+            return f64::INFINITY;
+        };
+        (0..ncam)
+            .map(|k| {
+                let o = 6 * k;
+                let r: f64 = (0..3).map(|a| cov[(o + a, o + a)]).sum();
+                let t: f64 = (3..6).map(|a| cov[(o + a, o + a)]).sum();
+                r / rot + t / pos
+            })
+            .fold(0.0, f64::max)
+    };
+    let mut chosen = Vec::with_capacity(n);
+    let mut used = vec![false; infos.len()];
+    while chosen.len() < n.min(infos.len()) {
+        let best = (0..infos.len())
+            .filter(|&i| !used[i])
+            .map(|i| (i, score(&(&total + &infos[i]))))
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        let Some((i, _)) = best else {
+            break;
+        };
+        used[i] = true;
+        total += &infos[i];
+        chosen.push(i);
+    }
+    chosen
 }
 
 /// Greedy farthest-point selection of `n` board poses (distance: 10 cm of position or 20°

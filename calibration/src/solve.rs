@@ -1082,22 +1082,33 @@ mod tests {
     }
 
     #[test]
-    fn realistic_noise_holds_over_seeds_and_beats_the_closed_form() {
-        // Robot noise is per axis (0.5 mm, 0.05 deg each), so single trials sit near the
-        // 1 mm / 0.05 deg limit now and then: check the distribution over seeds.
+    fn realistic_noise_every_camera_within_1mm_and_005deg_over_10_seeds() {
+        // Robot noise is per axis (0.5 mm, 0.05 deg each). With poses spread only in pose
+        // space (farthest-point) the predicted error is about 0.025 deg (RMS of the rotation
+        // error's norm) and about 1 camera in 150 lands above 0.05 deg (a ~3-sigma tail:
+        // the estimate is consistent, the information is short). Choosing the poses for
+        // what they tell about the cameras (`PoseSelection::Information`) lowers that by
+        // about 10 %, enough for every camera of these trials.
         let cfg = SimConfig::default_cell();
+        assert_eq!(cfg.selection, crate::simulate::PoseSelection::Information);
         let opts = SolveOptions {
             holdout_folds: 0,
             ..SolveOptions::default()
         };
-        let (mut ba_t, mut ba_r, mut cf_t, mut within) = (Vec::new(), Vec::new(), Vec::new(), 0);
-        for seed in 100..106 {
+        let (mut ba_t, mut ba_r, mut cf_t) = (Vec::new(), Vec::new(), Vec::new());
+        for seed in 100..110 {
             let (set, truth) = simulate_set(&cfg, seed).unwrap();
             let sol = solve(&set, &opts).unwrap();
             for c in &sol.cameras {
                 let t = truth.base_from_camera(c.id).unwrap();
                 let (dt, dr) = c.base_from_camera.error_to(&t);
-                within += usize::from(dt < 1e-3 && dr.to_degrees() < 0.05);
+                assert!(
+                    dt < 1e-3 && dr.to_degrees() < 0.05,
+                    "seed {seed} camera {}: {:.3} mm {:.4} deg",
+                    c.id,
+                    dt * 1e3,
+                    dr.to_degrees()
+                );
                 ba_t.push(dt);
                 ba_r.push(dr);
                 cf_t.push(c.closed_form.error_to(&t).0);
@@ -1107,11 +1118,14 @@ mod tests {
             v.sort_by(f64::total_cmp);
             v[v.len() / 2]
         };
-        let n = ba_t.len();
         let (mt, mr, mc) = (median(&mut ba_t), median(&mut ba_r), median(&mut cf_t));
-        eprintln!("median BA {:.3} mm {:.4} deg, closed form {:.3} mm; {within}/{n} within 1 mm / 0.05 deg", mt * 1e3, mr.to_degrees(), mc * 1e3);
+        eprintln!(
+            "median BA {:.3} mm {:.4} deg, closed form {:.3} mm",
+            mt * 1e3,
+            mr.to_degrees(),
+            mc * 1e3
+        );
         assert!(mt < 0.6e-3 && mr.to_degrees() < 0.035);
-        assert!(within * 10 >= n * 9, "{within}/{n}");
         assert!(mt < mc);
     }
 
