@@ -58,19 +58,27 @@ pub struct SimNoise {
     pub robot_m: f64,
     /// Robot flange rotation noise (rad, per axis).
     pub robot_rad: f64,
-    /// D455 stereo subpixel error `s` for the board depth samples (0: exact depth, still
-    /// quantised to 1 mm).
+    /// D455 stereo subpixel error `s` for the board depth samples (0: no depth noise;
+    /// the quantum below still applies).
     pub depth_subpixel: f64,
+    /// Depth quantum (m; the D455 reports millimetres; 0: exact depth).
+    #[serde(default = "d455_depth_quantum")]
+    pub depth_quantum_m: f64,
+}
+
+fn d455_depth_quantum() -> f64 {
+    D455_DEPTH_SCALE
 }
 
 impl SimNoise {
-    /// No noise at all (depth still quantised).
+    /// No noise at all (exact, unquantised depth).
     pub fn none() -> Self {
         Self {
             corner_px: 0.0,
             robot_m: 0.0,
             robot_rad: 0.0,
             depth_subpixel: 0.0,
+            depth_quantum_m: 0.0,
         }
     }
 
@@ -81,6 +89,7 @@ impl SimNoise {
             robot_m: 0.5e-3,
             robot_rad: 0.05_f64.to_radians(),
             depth_subpixel: 0.08,
+            depth_quantum_m: D455_DEPTH_SCALE,
         }
     }
 }
@@ -341,6 +350,7 @@ pub fn simulate_set_with(
         ("noise.robot_m", cfg.noise.robot_m),
         ("noise.robot_rad", cfg.noise.robot_rad),
         ("noise.depth_subpixel", cfg.noise.depth_subpixel),
+        ("noise.depth_quantum_m", cfg.noise.depth_quantum_m),
     ] {
         if !(v.is_finite() && v >= 0.0) {
             return bad(what, v, "a standard deviation must be finite and >= 0");
@@ -559,6 +569,7 @@ pub fn simulate_set_with(
                     &camera_from_board,
                     &px,
                     cfg.noise.depth_subpixel,
+                    cfg.noise.depth_quantum_m,
                     &errs.depth,
                     &mut rng,
                 )
@@ -743,6 +754,7 @@ fn depth_samples(
     camera_from_board: &Isometry3<f64>,
     pixels: &[nalgebra::Point2<f64>],
     subpixel: f64,
+    quantum: f64,
     error: &DepthCorrection,
     rng: &mut ChaCha8Rng,
 ) -> Vec<DepthSample> {
@@ -766,7 +778,11 @@ fn depth_samples(
         } else {
             z
         };
-        let q = (noisy / D455_DEPTH_SCALE).round() * D455_DEPTH_SCALE;
+        let q = if quantum > 0.0 {
+            (noisy / quantum).round() * quantum
+        } else {
+            noisy
+        };
         if q > 0.0 {
             out.push(DepthSample { u, v, depth_m: q });
         }
