@@ -858,6 +858,9 @@ fn check_options(opts: &SolveOptions) -> Result<(), CalibrationError> {
     if !(opts.corner_sigma_px.is_finite() && opts.corner_sigma_px > 0.0) {
         return bad("corner_sigma_px", opts.corner_sigma_px, "must be > 0 (px)");
     }
+    if !(opts.depth_sigma_1m_m.is_finite() && opts.depth_sigma_1m_m > 0.0) {
+        return bad("depth_sigma_1m_m", opts.depth_sigma_1m_m, "must be > 0 (m)");
+    }
     if !(opts.huber_px.is_finite() && opts.huber_px > 0.0) {
         return bad("huber_px", opts.huber_px, "must be > 0 (px)");
     }
@@ -882,6 +885,59 @@ fn check_options(opts: &SolveOptions) -> Result<(), CalibrationError> {
         );
     }
     Ok(())
+}
+
+/// The depth samples that go into the adjustment (with the D455's axial noise, growing as
+/// depth squared, and its 1 mm steps), their indices per frame, each camera's depth
+/// `(scale, offset)` column from `first_col` on (cameras with too few samples get none),
+/// and the number of unknowns.
+#[allow(clippy::type_complexity)]
+fn depth_observations(
+    prep: &Prepared,
+    opts: &SolveOptions,
+    first_col: usize,
+) -> (Vec<DObs>, Vec<Vec<usize>>, Vec<Option<usize>>, usize) {
+    let nframes = prep.frames.len();
+    let ncam = prep.cams.len();
+    // Depth samples, with the D455's axial noise (grows as depth squared) and 1 mm steps.
+    let mut dobs = Vec::new();
+    let mut by_frame_d = vec![Vec::new(); nframes];
+    if opts.depth_residuals {
+        for (k, per_frame) in prep.depth.iter().enumerate() {
+            for (frame, samples) in per_frame {
+                for d in samples {
+                    if !(d.depth_m.is_finite() && d.depth_m > 0.0) {
+                        continue;
+                    }
+                    let sz = opts.depth_sigma_1m_m * d.depth_m * d.depth_m;
+                    by_frame_d[*frame].push(dobs.len());
+                    dobs.push(DObs {
+                        cam: k,
+                        frame: *frame,
+                        px: Point2::new(d.u, d.v),
+                        depth: d.depth_m,
+                        sigma: (sz * sz + 1e-6 / 12.0).sqrt(),
+                    });
+                }
+            }
+        }
+    }
+    let mut dcol = vec![None; ncam];
+    let mut next = first_col;
+    for (k, col) in dcol.iter_mut().enumerate() {
+        // Fewer samples than this cannot separate a scale from an offset reliably.
+        if dobs.iter().filter(|d| d.cam == k).count() >= 20 {
+            *col = Some(next);
+            next += 2;
+        }
+    }
+    let ntheta = next;
+    // Samples of a camera without depth unknowns stay out.
+    let keep: Vec<bool> = dobs.iter().map(|d| dcol[d.cam].is_some()).collect();
+    for rows in &mut by_frame_d {
+        rows.retain(|&i| keep[i]);
+    }
+    (dobs, by_frame_d, dcol, ntheta)
 }
 
 /// Calibrates every camera of `set` to the robot base (see the module docs).
@@ -910,46 +966,9 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
     for (i, o) in prep.obs.iter().enumerate() {
         by_frame[o.frame].push(i);
     }
-    // Depth samples, with the D455's axial noise (grows as depth squared) and 1 mm steps.
-    let mut dobs = Vec::new();
-    let mut by_frame_d = vec![Vec::new(); nframes];
-    if opts.depth_residuals {
-        for (k, per_frame) in prep.depth.iter().enumerate() {
-            for (frame, samples) in per_frame {
-                for d in samples {
-                    if !(d.depth_m.is_finite() && d.depth_m > 0.0) {
-                        continue;
-                    }
-                    let sz = opts.depth_sigma_1m_m * d.depth_m * d.depth_m;
-                    by_frame_d[*frame].push(dobs.len());
-                    dobs.push(DObs {
-                        cam: k,
-                        frame: *frame,
-                        px: Point2::new(d.u, d.v),
-                        depth: d.depth_m,
-                        sigma: (sz * sz + 1e-6 / 12.0).sqrt(),
-                    });
-                }
-            }
-        }
-    }
     let ncam = cams0.len();
     let first_dcol = 6 * ncam + 6 + if opts.refine_intrinsics { 4 * ncam } else { 0 };
-    let mut dcol = vec![None; ncam];
-    let mut next = first_dcol;
-    for (k, col) in dcol.iter_mut().enumerate() {
-        // Fewer samples than this cannot separate a scale from an offset reliably.
-        if dobs.iter().filter(|d| d.cam == k).count() >= 20 {
-            *col = Some(next);
-            next += 2;
-        }
-    }
-    let ntheta = next;
-    // Samples of a camera without depth unknowns stay out.
-    let keep: Vec<bool> = dobs.iter().map(|d| dcol[d.cam].is_some()).collect();
-    for rows in &mut by_frame_d {
-        rows.retain(|&i| keep[i]);
-    }
+    let (dobs, by_frame_d, dcol, ntheta) = depth_observations(&prep, opts, first_dcol);
     let mut ba = Ba {
         dweights: vec![1.0; dobs.len()],
         dobs: &dobs,
@@ -1243,6 +1262,111 @@ mod tests {
                 let (dc, td) = (c.depth_correction, truth.depth());
                 assert!((dc.scale - td.scale).abs() < 1e-9, "{dc:?}");
                 assert!((dc.offset_m - td.offset_m).abs() < 1e-9, "{dc:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_jacobian_matches_finite_differences() {
+        // Every unknown (cameras, board, intrinsics, depth scale and offset) on corner and
+        // depth rows, away from the optimum, and the flange correction's depth rows.
+        let mut cfg = SimConfig {
+            poses: 10,
+            ..SimConfig::default_cell()
+        };
+        cfg.camera_errors = crate::simulate::CameraErrors::typical();
+        let (set, truth) = simulate_set(&cfg, 5).unwrap();
+        let opts = SolveOptions {
+            refine_intrinsics: true,
+            ..SolveOptions::default()
+        };
+        let prep = prepare(&set, &opts).unwrap();
+        let ncam = prep.cams.len();
+        let (dobs, by_frame_d, dcol, ntheta) =
+            depth_observations(&prep, &opts, 6 * ncam + 6 + 4 * ncam);
+        assert_eq!(ntheta, 6 * ncam + 6 + 4 * ncam + 2 * ncam);
+        let mut by_frame = vec![Vec::new(); prep.frames.len()];
+        for (i, o) in prep.obs.iter().enumerate() {
+            by_frame[o.frame].push(i);
+        }
+        let mut ba = Ba {
+            intr: prep.cams.iter().map(|c| c.2).collect(),
+            refine: true,
+            obs: &prep.obs,
+            frames: &prep.frames,
+            by_frame,
+            active: vec![true; prep.frames.len()],
+            cams0: (0..ncam)
+                .map(|k| {
+                    *truth.base_from_camera(k as u8).unwrap().isometry()
+                        * exp6(&[0.01, -0.02, 0.01, 0.003, 0.002, -0.004])
+                })
+                .collect(),
+            x0: *cfg.flange_from_board.isometry()
+                * exp6(&[0.02, 0.01, -0.01, 0.002, -0.001, 0.003]),
+            eta: (0..prep.frames.len())
+                .map(|f| [1e-3 * f as f64, -2e-3, 1e-3, 1e-3, 0.0, -1e-3])
+                .collect(),
+            weights: vec![1.0; prep.obs.len()],
+            dweights: vec![1.0; dobs.len()],
+            dobs: &dobs,
+            by_frame_d,
+            dcol,
+            depth0: vec![(1.003, 0.004); ncam],
+            sigma_px: 0.5,
+            prior: None,
+            p: DVector::zeros(ntheta),
+        };
+        let j = ba.jacobian().unwrap();
+        for col in 0..ntheta {
+            let h = if col >= 6 * ncam + 6 && col < 10 * ncam + 6 {
+                1e-4
+            } else {
+                1e-7
+            };
+            let mut p = DVector::zeros(ntheta);
+            p[col] = h;
+            ba.set_params(&p);
+            let rp = ba.residuals().unwrap();
+            p[col] = -h;
+            ba.set_params(&p);
+            let rm = ba.residuals().unwrap();
+            let fd = (rp - rm) / (2.0 * h);
+            let err = (&fd - j.column(col)).amax();
+            assert!(
+                err < 1e-4 * fd.amax().max(1.0),
+                "column {col}: {err} of {}",
+                fd.amax()
+            );
+        }
+        ba.set_params(&DVector::zeros(ntheta));
+        // The flange correction on depth rows (a rotation about the recorded flange).
+        let cams: Vec<Isometry3<f64>> = (0..ncam).map(|k| ba.cam(k)).collect();
+        let (x, intr) = (ba.x(), ba.all_intrinsics());
+        for i in (0..dobs.len()).step_by(97) {
+            let l = ba.linearise_depth(i, &cams, &x, &intr);
+            let f = dobs[i].frame;
+            let e0 = ba.eta[f];
+            let h = 1e-7;
+            let mut fd = [0.0; 6];
+            for (a, v) in fd.iter_mut().enumerate() {
+                ba.eta[f][a] = e0[a] + h;
+                let rp = ba.linearise_depth(i, &cams, &x, &intr).r;
+                ba.eta[f][a] = e0[a] - h;
+                let rm = ba.linearise_depth(i, &cams, &x, &intr).r;
+                ba.eta[f] = e0;
+                *v = (rp - rm) / (2.0 * h);
+            }
+            // Exact at a zero correction; at this one (|eta| ~ 2e-3 rad) the corners' and
+            // the depth rows' rotation about the recorded flange mixes the components by
+            // about |eta| / 2 of the largest.
+            let big = fd.iter().fold(1.0_f64, |m, v| m.max(v.abs()));
+            for (a, v) in fd.iter().enumerate() {
+                assert!(
+                    (v - l.jeta[a]).abs() < 5e-3 * big,
+                    "sample {i} eta {a}: {v} vs {}",
+                    l.jeta[a]
+                );
             }
         }
     }
