@@ -2,14 +2,20 @@
 //! hand-eye start per camera, then one joint bundle adjustment over all cameras.
 //!
 //! Unknowns of the bundle adjustment: `base_from_camera` of every camera, the shared
-//! `flange_from_board`, and (with [`SolveOptions::robot_prior`]) a small correction of every
-//! recorded flange pose, held to the robot's stated accuracy by a Gaussian prior. Residuals:
-//! every board corner in every camera, `(projected - detected) / corner_sigma`, Huber-weighted
-//! (iteratively reweighted), plus the priors. The robot's FK poses are the only link to the
-//! base frame, so there is no gauge freedom. Everything is solved by the `levenberg-marquardt`
-//! crate (a MINPACK port on nalgebra) on a dense Jacobian (for 3 cameras and 30 poses:
-//! about 11 000 rows, 204 columns), re-linearised around the new estimate a few times
-//! so that the final Jacobian is exact at the optimum.
+//! `flange_from_board`, with [`SolveOptions::refine_intrinsics`] each camera's `fx, fy,
+//! ppx, ppy`, with depth samples each camera's depth scale and offset (`measured = scale *
+//! true + offset`), and (with [`SolveOptions::robot_prior`]) a small correction of every
+//! recorded flange pose, held to the robot's stated accuracy by a Gaussian prior.
+//! Residuals: every board corner in every camera, `(projected - detected) / corner_sigma`,
+//! Huber-weighted (iteratively reweighted); every depth sample against the board plane
+//! along its pixel's ray, over the D455's axial noise (growing as depth squared), Huber at
+//! 3 sigma; plus the priors. The depth rows matter beyond the depth error: they pin each
+//! camera's distance to the board, which the corners alone trade against its rotation. The
+//! robot's FK poses are the only link to the base frame, so there is no gauge freedom.
+//! Everything is solved by the `levenberg-marquardt` crate (a MINPACK port on nalgebra) on
+//! a dense Jacobian (for 3 cameras and 30 poses: about 19 000 rows, 24 to 42 columns after
+//! the flange corrections are eliminated), re-linearised around the new estimate a few
+//! times so that the final Jacobian is exact at the optimum.
 //!
 //! Uncertainty: the covariance of the unknowns is `s^2 (J^T J)^-1` from the final whitened
 //! Jacobian, with `s^2` the residual variance factor (about 1 when `corner_sigma_px` and
