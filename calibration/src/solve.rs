@@ -134,7 +134,8 @@ pub struct DepthResidual {
     pub scale: f64,
     /// Depth offset `b` (mm) of that fit.
     pub offset_mm: f64,
-    /// RMS of the residual after removing that fit (mm).
+    /// RMS of the residual after removing that fit (mm; 0 in reports written before it).
+    #[serde(default)]
     pub corrected_rms_mm: f64,
 }
 
