@@ -335,6 +335,7 @@ pub fn capture_in_sim(
         seed: plan.seed,
         config: sim.clone(),
         base_from_flange: Vec::new(),
+        intrinsics: Vec::new(),
     };
     calibration::capture::write_atomic(
         &dir.join(calibration::simulate::TRUTH_FILE),

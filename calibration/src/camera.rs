@@ -211,6 +211,58 @@ impl Intrinsics {
     }
 }
 
+/// A camera's linear depth error, `measured = scale * true + offset`, as the calibration
+/// estimates it on the board; the fusion undoes it when deprojecting. The identity (scale
+/// 1, offset 0) is the default, so calibration files written before it existed still read.
+#[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DepthCorrection {
+    /// Depth scale (1: none).
+    pub scale: f64,
+    /// Depth offset (m).
+    pub offset_m: f64,
+}
+
+impl Default for DepthCorrection {
+    fn default() -> Self {
+        Self {
+            scale: 1.0,
+            offset_m: 0.0,
+        }
+    }
+}
+
+impl DepthCorrection {
+    /// The depth a camera with this error reports for a true depth `z` (m).
+    pub fn measured(&self, z: f64) -> f64 {
+        self.scale * z + self.offset_m
+    }
+
+    /// The true depth (m) behind a measured depth `d` (m).
+    pub fn true_depth(&self, d: f64) -> f64 {
+        (d - self.offset_m) / self.scale
+    }
+
+    /// Checks that the correction is plausible: a scale within 10 % of 1 and an offset
+    /// under 10 cm (larger ones mean a broken camera or a broken fit, not a bias).
+    pub fn validate(&self) -> Result<(), CalibrationError> {
+        if !(self.scale.is_finite() && (0.9..=1.1).contains(&self.scale)) {
+            return Err(CalibrationError::InvalidParameter {
+                what: "depth correction scale",
+                value: self.scale,
+                why: "must be within 0.9..1.1; re-run the calibration or delete the entry to use 1",
+            });
+        }
+        if !(self.offset_m.is_finite() && self.offset_m.abs() <= 0.1) {
+            return Err(CalibrationError::InvalidParameter {
+                what: "depth correction offset_m",
+                value: self.offset_m,
+                why: "must be within +-0.1 m; re-run the calibration or delete the entry to use 0",
+            });
+        }
+        Ok(())
+    }
+}
+
 /// The Brown-Conrady polynomial of librealsense (coefficients `[k1, k2, p1, p2, k3]`).
 fn brown_conrady(c: &[f64; 5], p: Vector2<f64>) -> Vector2<f64> {
     let (x, y) = (p.x, p.y);

@@ -24,7 +24,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
-use crate::camera::Intrinsics;
+use crate::camera::{DepthCorrection, Intrinsics};
 use crate::error::CalibrationError;
 
 /// One camera's calibration: intrinsics of its depth stream and its pose in the base frame.
@@ -36,6 +36,9 @@ pub struct CameraCalibration {
     pub intrinsics: Intrinsics,
     /// The optical frame's pose in the base frame.
     pub base_from_camera: Transform<Base, Camera>,
+    /// The depth error undone on deprojection (older files without it: none).
+    #[serde(default)]
+    pub depth_correction: DepthCorrection,
 }
 
 /// The calibration of every camera of the cell (what `calibration.toml` holds).
@@ -63,6 +66,7 @@ impl CellCalibration {
                 return Err(CalibrationError::BadExtrinsics { camera: c.id });
             }
             c.intrinsics.validate()?;
+            c.depth_correction.validate()?;
         }
         Ok(())
     }
@@ -418,6 +422,9 @@ impl FusionPipeline {
         let r = iso.rotation.to_rotation_matrix().into_inner().cast::<f32>();
         let t = iso.translation.vector.cast::<f32>();
         let scale = frame.depth.depth_scale;
+        // The calibrated depth error: true = (measured - offset) / scale.
+        let dc = cam.depth_correction;
+        let (gain, bias) = ((1.0 / dc.scale) as f32, (-dc.offset_m / dc.scale) as f32);
         let ws = &self.params.workspace;
         let (lo, hi) = (
             Vector3::new(ws.min[0] as f32, ws.min[1] as f32, ws.min[2] as f32),
@@ -435,7 +442,7 @@ impl FusionPipeline {
             if raw == 0 {
                 continue;
             }
-            let z = f32::from(raw) * scale;
+            let z = f32::from(raw) * scale * gain + bias;
             if !(z.is_finite() && z > 0.0) {
                 continue;
             }
@@ -942,6 +949,7 @@ mod tests {
                         [0.57, 0.0, 0.9],
                         [std::f64::consts::PI, 0.0, -std::f64::consts::FRAC_PI_2],
                     ),
+                    depth_correction: DepthCorrection::default(),
                 })
                 .collect(),
         }
@@ -984,6 +992,28 @@ mod tests {
         }
         // All inside the focus box (z >= -0.06): no point outside to sample from.
         assert!(out.sampled.rgb.is_none());
+    }
+
+    #[test]
+    fn the_calibrated_depth_error_is_undone_on_deprojection() {
+        let mut cal = calib(&[0]);
+        let dc = DepthCorrection {
+            scale: 1.01,
+            offset_m: 0.0094,
+        };
+        cal.cameras[0].depth_correction = dc;
+        let pipe = FusionPipeline::new(cal, FusionParams::default()).unwrap();
+        let (pts, _) = pipe.camera_points(&frame(0, 950)).unwrap();
+        // The camera is 0.9 m above z = 0, looking down.
+        let z = 0.9 - dc.true_depth(0.95);
+        assert!(!pts.xyz.is_empty());
+        for p in &pts.xyz {
+            assert!((f64::from(p.z) - z).abs() < 1e-5, "{p:?} vs {z}");
+        }
+        let mut bad = calib(&[0]);
+        bad.cameras[0].depth_correction.scale = 0.0;
+        assert!(FusionPipeline::new(bad.clone(), FusionParams::default()).is_err());
+        assert!(bad.validate_against(&[0]).is_err());
     }
 
     #[test]

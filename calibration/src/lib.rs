@@ -50,7 +50,7 @@ pub mod solve;
 pub mod view;
 
 pub use board::{BoardConfig, BoardKind};
-pub use camera::{DepthMode, Distortion, Intrinsics};
+pub use camera::{DepthCorrection, DepthMode, Distortion, Intrinsics};
 pub use capture::{
     load_captures, CameraInfo, CameraView, Capture, CaptureFolder, CaptureSet, Corner, DepthSample,
     PixelConvention, Session,

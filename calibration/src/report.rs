@@ -16,6 +16,7 @@ use serde::{Deserialize, Serialize};
 use cell_types::{CameraFrame, FrameId, Image, PointCloud, Rgb};
 use nalgebra::Point3;
 
+use crate::camera::DepthCorrection;
 use crate::capture::write_atomic;
 use crate::error::CalibrationError;
 use crate::fusion::{overlap_residual, Bounds, CameraCalibration, CellCalibration, FusionPipeline};
@@ -47,6 +48,13 @@ pub struct CameraReport {
     pub sigma_rot_deg: [f64; 3],
     /// Depth measured on the board minus the calibrated board plane.
     pub depth: Option<DepthResidual>,
+    /// The depth correction written to `calibration.toml` (identity when none was fitted).
+    #[serde(default)]
+    pub depth_correction: DepthCorrection,
+    /// Refined `[fx, fy, ppx, ppy]` (px) and their one-sigma, when the intrinsics were
+    /// refined.
+    #[serde(default)]
+    pub refined_intrinsics: Option<([f64; 4], [f64; 4])>,
 }
 
 /// A calibration's report.
@@ -188,6 +196,11 @@ impl Solution {
                         sigma_pos_mm: c.sigma_pos_mm,
                         sigma_rot_deg: c.sigma_rot_deg,
                         depth: c.depth,
+                        depth_correction: c.depth_correction,
+                        refined_intrinsics: c.intrinsics_sigma_px.map(|s| {
+                            let k = &c.intrinsics;
+                            ([k.fx, k.fy, k.ppx, k.ppy], s)
+                        }),
                     }
                 })
                 .collect(),
@@ -212,6 +225,7 @@ impl Solution {
                     id: c.id,
                     intrinsics: c.intrinsics,
                     base_from_camera: c.base_from_camera,
+                    depth_correction: c.depth_correction,
                 })
                 .collect(),
         }
@@ -261,6 +275,7 @@ pub fn read_calibration_toml(path: &Path) -> Result<CellCalibration, Calibration
             return Err(CalibrationError::BadExtrinsics { camera: c.id });
         }
         c.intrinsics.validate()?;
+        c.depth_correction.validate()?;
     }
     Ok(cal)
 }
@@ -323,6 +338,20 @@ impl fmt::Display for Report {
                     d.mean_mm, d.rms_mm, d.samples, d.scale, d.offset_mm
                 )?,
                 None => writeln!(f, "  depth vs board plane: no depth samples captured")?,
+            }
+            let dc = c.depth_correction;
+            writeln!(
+                f,
+                "  depth correction applied by the fusion: true = (measured {:+.2} mm) / {:.5}",
+                -dc.offset_m * 1e3,
+                dc.scale
+            )?;
+            if let Some((k, s)) = c.refined_intrinsics {
+                writeln!(
+                    f,
+                    "  refined intrinsics: fx {:.2}+-{:.2}, fy {:.2}+-{:.2}, ppx {:.2}+-{:.2}, ppy {:.2}+-{:.2} px",
+                    k[0], s[0], k[1], s[1], k[2], s[2], k[3], s[3]
+                )?;
             }
         }
         if let Some((t, r)) = self.robot_correction_rms {
@@ -403,6 +432,23 @@ mod tests {
             text.contains("[[cameras]]") && text.contains("[[quality]]"),
             "{text}"
         );
+        // A file written before the depth correction existed reads as no correction.
+        let old: String = text
+            .lines()
+            .filter(|l| {
+                !(l.contains("depth_correction]")
+                    || l.starts_with("scale =")
+                    || l.starts_with("offset_m ="))
+            })
+            .map(|l| format!("{l}\n"))
+            .collect();
+        assert!(!old.contains("depth_correction]"));
+        std::fs::write(&path, &old).unwrap();
+        let back = read_calibration_toml(&path).unwrap();
+        for (b, c) in back.cameras.iter().zip(&cal.cameras) {
+            assert_eq!(b.depth_correction, DepthCorrection::default());
+            assert_eq!(b.base_from_camera, c.base_from_camera);
+        }
         // A broken file is a typed error naming it.
         std::fs::write(&path, "cameras = 3").unwrap();
         let err = read_calibration_toml(&path).unwrap_err();

@@ -18,21 +18,23 @@
 use std::path::Path;
 
 use cell_types::{Base, Board, Camera, Flange, Joints, Transform};
-use nalgebra::{Isometry3, Matrix3, Point3, Rotation3, UnitQuaternion, Vector3};
+use nalgebra::{
+    DMatrix, Isometry3, Matrix3, Matrix3x6, Matrix6, Point3, Rotation3, UnitQuaternion, Vector3,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal, StandardNormal};
 use serde::{Deserialize, Serialize};
 
 use crate::board::BoardConfig;
-use crate::camera::{DepthMode, Intrinsics, D455_BASELINE_M, D455_DEPTH_SCALE};
+use crate::camera::{DepthCorrection, DepthMode, Intrinsics, D455_BASELINE_M, D455_DEPTH_SCALE};
 use crate::capture::{
     write_atomic, write_captures, CameraInfo, CameraView, Capture, CaptureSet, Corner, DepthSample,
     Session,
 };
 use crate::detect::{detect_chessboard, render_board_ir, DetectParams, IrLevels};
 use crate::error::CalibrationError;
-use crate::geometry::exp6;
+use crate::geometry::{exp6, point_jacobian, project_with_jacobian, skew};
 
 /// A simulated camera: its intrinsics and true pose.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -56,19 +58,27 @@ pub struct SimNoise {
     pub robot_m: f64,
     /// Robot flange rotation noise (rad, per axis).
     pub robot_rad: f64,
-    /// D455 stereo subpixel error `s` for the board depth samples (0: exact depth, still
-    /// quantised to 1 mm).
+    /// D455 stereo subpixel error `s` for the board depth samples (0: no depth noise;
+    /// the quantum below still applies).
     pub depth_subpixel: f64,
+    /// Depth quantum (m; the D455 reports millimetres; 0: exact depth).
+    #[serde(default = "d455_depth_quantum")]
+    pub depth_quantum_m: f64,
+}
+
+fn d455_depth_quantum() -> f64 {
+    D455_DEPTH_SCALE
 }
 
 impl SimNoise {
-    /// No noise at all (depth still quantised).
+    /// No noise at all (exact, unquantised depth).
     pub fn none() -> Self {
         Self {
             corner_px: 0.0,
             robot_m: 0.0,
             robot_rad: 0.0,
             depth_subpixel: 0.0,
+            depth_quantum_m: 0.0,
         }
     }
 
@@ -79,8 +89,76 @@ impl SimNoise {
             robot_m: 0.5e-3,
             robot_rad: 0.05_f64.to_radians(),
             depth_subpixel: 0.08,
+            depth_quantum_m: D455_DEPTH_SCALE,
         }
     }
+}
+
+/// How far the simulated cameras differ from what the captures record: the true
+/// intrinsics differ from the recorded (factory) ones the solver starts from, and the
+/// depth has a linear error. The default is none.
+#[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct CameraErrors {
+    /// Relative error of the true `fx` and `fy` (each `+-` this, the sign drawn per camera
+    /// and axis from the seed).
+    pub focal_rel: f64,
+    /// Error of the true `ppx` and `ppy` (px, each `+-` this, signs drawn likewise).
+    pub principal_px: f64,
+    /// The depth every camera measures: `scale * true + offset`.
+    pub depth: DepthCorrection,
+}
+
+impl Default for CameraErrors {
+    fn default() -> Self {
+        Self {
+            focal_rel: 0.0,
+            principal_px: 0.0,
+            depth: DepthCorrection::default(),
+        }
+    }
+}
+
+impl CameraErrors {
+    /// The example: `fx`, `fy` 1 % off, `ppx`, `ppy` 3 px off, depth scale 1.002
+    /// and offset 2 mm.
+    pub fn typical() -> Self {
+        Self {
+            focal_rel: 0.01,
+            principal_px: 3.0,
+            depth: DepthCorrection {
+                scale: 1.002,
+                offset_m: 0.002,
+            },
+        }
+    }
+
+    /// The true intrinsics behind `factory`, drawn for the camera at `index` (seeded
+    /// apart from the poses and noise, so adding camera errors keeps the same poses).
+    pub fn true_intrinsics(&self, factory: &Intrinsics, seed: u64, index: usize) -> Intrinsics {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x1a7e_c0de_0000_0000 ^ index as u64);
+        let mut sign = || if rng.random::<bool>() { 1.0 } else { -1.0 };
+        let mut k = *factory;
+        k.fx *= 1.0 + sign() * self.focal_rel;
+        k.fy *= 1.0 + sign() * self.focal_rel;
+        k.ppx += sign() * self.principal_px;
+        k.ppy += sign() * self.principal_px;
+        k
+    }
+}
+
+/// How the robot poses are chosen from the feasible candidates.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseSelection {
+    /// Greedy farthest-point in pose space (10 cm or 20 deg count as 1): spread out, but
+    /// blind to what each pose tells about the cameras.
+    #[default]
+    FarthestPoint,
+    /// Greedy optimal design: each next pose is the candidate that most reduces the worst
+    /// camera's predicted error (rotation variance over (0.05 deg)^2 plus position variance
+    /// over (1 mm)^2, from the bundle adjustment's information at the nominal camera poses
+    /// with the robot noise and corner noise of the configuration).
+    Information,
 }
 
 /// What to simulate.
@@ -117,6 +195,13 @@ pub struct SimConfig {
     /// corners in it ([`crate::detect`]) instead of projecting them with `noise.corner_px`.
     #[serde(default)]
     pub ir_noise: Option<f64>,
+    /// True intrinsics and depth unlike the recorded ones (none by default).
+    #[serde(default)]
+    pub camera_errors: CameraErrors,
+    /// How the kept poses are chosen from the candidates (configurations written before
+    /// this existed used farthest-point).
+    #[serde(default)]
+    pub selection: PoseSelection,
 }
 
 /// The optical frame at `eye` looking at `target`, image "up" along +z of the base (the
@@ -172,6 +257,8 @@ impl SimConfig {
             min_cameras_per_pose: 3,
             candidates_per_pose: 3,
             ir_noise: None,
+            camera_errors: CameraErrors::default(),
+            selection: PoseSelection::Information,
         }
     }
 
@@ -200,6 +287,10 @@ pub struct Truth {
     pub config: SimConfig,
     /// The true flange pose of every capture (the captures hold the noisy ones).
     pub base_from_flange: Vec<Transform<Base, Flange>>,
+    /// The true intrinsics of every camera, in the configuration's order (empty: the
+    /// recorded ones are true).
+    #[serde(default)]
+    pub intrinsics: Vec<Intrinsics>,
 }
 
 impl Truth {
@@ -210,6 +301,22 @@ impl Truth {
             .iter()
             .find(|c| c.id == id)
             .map(|c| c.base_from_camera)
+    }
+
+    /// The true intrinsics of camera `id`.
+    pub fn intrinsics(&self, id: u8) -> Option<Intrinsics> {
+        let i = self.config.cameras.iter().position(|c| c.id == id)?;
+        Some(
+            self.intrinsics
+                .get(i)
+                .copied()
+                .unwrap_or(self.config.cameras[i].intrinsics),
+        )
+    }
+
+    /// The true depth error of every camera.
+    pub fn depth(&self) -> DepthCorrection {
+        self.config.camera_errors.depth
     }
 }
 
@@ -243,6 +350,7 @@ pub fn simulate_set_with(
         ("noise.robot_m", cfg.noise.robot_m),
         ("noise.robot_rad", cfg.noise.robot_rad),
         ("noise.depth_subpixel", cfg.noise.depth_subpixel),
+        ("noise.depth_quantum_m", cfg.noise.depth_quantum_m),
     ] {
         if !(v.is_finite() && v >= 0.0) {
             return bad(what, v, "a standard deviation must be finite and >= 0");
@@ -254,13 +362,38 @@ pub fn simulate_set_with(
     for c in &cfg.cameras {
         c.intrinsics.validate()?;
     }
+    let errs = &cfg.camera_errors;
+    if !(errs.focal_rel.is_finite() && errs.focal_rel.abs() < 0.2) {
+        return bad(
+            "camera_errors.focal_rel",
+            errs.focal_rel,
+            "use |error| < 0.2",
+        );
+    }
+    if !(errs.principal_px.is_finite() && errs.principal_px.abs() < 50.0) {
+        return bad(
+            "camera_errors.principal_px",
+            errs.principal_px,
+            "use |error| < 50 px",
+        );
+    }
+    errs.depth.validate()?;
+    // The cameras as they truly are; the session records the factory intrinsics.
+    let true_cams: Vec<SimCamera> = cfg
+        .cameras
+        .iter()
+        .enumerate()
+        .map(|(i, c)| SimCamera {
+            intrinsics: errs.true_intrinsics(&c.intrinsics, seed, i),
+            ..c.clone()
+        })
+        .collect();
     let session = cfg.session();
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let lo = Vector3::from(cfg.region_min);
     let hi = Vector3::from(cfg.region_max);
     let centre = Point3::from((lo + hi) / 2.0);
-    let mean_dir = cfg
-        .cameras
+    let mean_dir = true_cams
         .iter()
         .map(|c| (Point3::from(c.base_from_camera.translation()) - centre).normalize())
         .sum::<Vector3<f64>>()
@@ -309,8 +442,8 @@ pub fn simulate_set_with(
         }
         // Every camera must see every corner, not too obliquely.
         // Which cameras see every corner, not too obliquely.
-        let mut pixels = Vec::with_capacity(cfg.cameras.len());
-        for cam in &cfg.cameras {
+        let mut pixels = Vec::with_capacity(true_cams.len());
+        for cam in &true_cams {
             let camera_from_board = cam.base_from_camera.isometry().inverse() * base_from_board;
             let to_cam = cam.base_from_camera.translation() - pos;
             if normal.dot(&to_cam.normalize()) < cos_obl {
@@ -332,7 +465,7 @@ pub fn simulate_set_with(
             pixels.push(px.map(|px| (camera_from_board, px)));
         }
         let seen = pixels.iter().filter(|p| p.is_some()).count();
-        if seen < cfg.min_cameras_per_pose.clamp(1, cfg.cameras.len()) {
+        if seen < cfg.min_cameras_per_pose.clamp(1, true_cams.len()) {
             continue;
         }
         let base_from_flange_true: Transform<Base, Flange> =
@@ -351,10 +484,32 @@ pub fn simulate_set_with(
             more: cfg.poses - candidates.len(),
         });
     }
-    let chosen = farthest_poses(
-        &candidates.iter().map(|c| c.0).collect::<Vec<_>>(),
-        cfg.poses,
-    );
+    let chosen = match cfg.selection {
+        PoseSelection::FarthestPoint => farthest_poses(
+            &candidates.iter().map(|c| c.0).collect::<Vec<_>>(),
+            cfg.poses,
+        ),
+        PoseSelection::Information => {
+            let sigma_px = cfg.noise.corner_px.max(0.05);
+            let robot = (cfg.noise.robot_rad, cfg.noise.robot_m);
+            let infos: Vec<DMatrix<f64>> = candidates
+                .iter()
+                .map(|(_, flange, _, pixels)| {
+                    let seen: Vec<bool> = pixels.iter().map(Option::is_some).collect();
+                    pose_information(
+                        &true_cams,
+                        &x,
+                        flange.isometry(),
+                        &seen,
+                        &corners,
+                        sigma_px,
+                        robot,
+                    )
+                })
+                .collect();
+            informative_poses(&infos, true_cams.len(), cfg.poses)
+        }
+    };
     let mut captures = Vec::new();
     let mut truths: Vec<Transform<Base, Flange>> = Vec::new();
     for ci in chosen {
@@ -370,8 +525,8 @@ pub fn simulate_set_with(
             };
         }
         let recorded = Transform::from_isometry(base_from_flange_true.isometry() * exp6(&n));
-        let mut views = Vec::with_capacity(cfg.cameras.len());
-        for (cam, seen) in cfg.cameras.iter().zip(pixels) {
+        let mut views = Vec::with_capacity(true_cams.len());
+        for (cam, seen) in true_cams.iter().zip(pixels) {
             let Some((camera_from_board, px)) = seen else {
                 continue;
             };
@@ -414,6 +569,8 @@ pub fn simulate_set_with(
                     &camera_from_board,
                     &px,
                     cfg.noise.depth_subpixel,
+                    cfg.noise.depth_quantum_m,
+                    &errs.depth,
                     &mut rng,
                 )
             } else {
@@ -440,8 +597,113 @@ pub fn simulate_set_with(
             seed,
             config: cfg.clone(),
             base_from_flange: truths,
+            intrinsics: true_cams.iter().map(|c| c.intrinsics).collect(),
         },
     ))
+}
+
+/// The Fisher information of one robot pose about the cameras and the board on the flange
+/// (`6 k + 6` unknowns: per camera and for the board a rotation and a translation
+/// perturbation, as in the bundle adjustment), with the pose's own flange error
+/// (`robot`: rad, m per axis) marginalised out; `seen` says which cameras see the board.
+fn pose_information(
+    cams: &[SimCamera],
+    x: &Isometry3<f64>,
+    flange: &Isometry3<f64>,
+    seen: &[bool],
+    corners: &[Point3<f64>],
+    sigma_px: f64,
+    robot: (f64, f64),
+) -> DMatrix<f64> {
+    let n = 6 * cams.len() + 6;
+    let mut htt = DMatrix::<f64>::zeros(n, n);
+    let mut hte = DMatrix::<f64>::zeros(n, 6);
+    let mut hee = Matrix6::<f64>::zeros();
+    let r_x = x.rotation.to_rotation_matrix().into_inner();
+    for (k, cam) in cams.iter().enumerate() {
+        if !seen.get(k).copied().unwrap_or(false) {
+            continue;
+        }
+        let cf = cam.base_from_camera.isometry().inverse() * flange;
+        let r_cf = cf.rotation.to_rotation_matrix().into_inner();
+        for b in corners {
+            let q = x * b;
+            let c = cf * q;
+            let (_, jp) = project_with_jacobian(&cam.intrinsics, &c.coords);
+            let jp = jp / sigma_px;
+            let mut jc = Matrix3x6::zeros();
+            jc.fixed_view_mut::<3, 3>(0, 0).copy_from(&skew(&c.coords));
+            jc.fixed_view_mut::<3, 3>(0, 3)
+                .copy_from(&(-Matrix3::identity()));
+            let mut jt = DMatrix::<f64>::zeros(2, n);
+            jt.fixed_view_mut::<2, 6>(0, 6 * k).copy_from(&(jp * jc));
+            jt.fixed_view_mut::<2, 6>(0, n - 6)
+                .copy_from(&(jp * r_cf * r_x * point_jacobian(&b.coords)));
+            let je = jp * r_cf * point_jacobian(&q.coords);
+            htt += jt.transpose() * &jt;
+            hte += jt.transpose() * je;
+            hee += je.transpose() * je;
+        }
+    }
+    if robot.0 <= 0.0 || robot.1 <= 0.0 {
+        // An exact robot: nothing to marginalise.
+        return htt;
+    }
+    for a in 0..6 {
+        let s = if a < 3 { robot.0 } else { robot.1 };
+        hee[(a, a)] += 1.0 / (s * s);
+    }
+    match hee.cholesky() {
+        Some(ch) => {
+            let mut solved = DMatrix::<f64>::zeros(6, n);
+            for col in 0..n {
+                let v = nalgebra::Vector6::from_iterator(hte.row(col).iter().copied());
+                solved.column_mut(col).copy_from(&ch.solve(&v));
+            }
+            htt - hte * solved
+        }
+        None => htt,
+    }
+}
+
+/// Greedy optimal design over the candidates' information matrices (see
+/// [`PoseSelection::Information`]): `n` candidate indices.
+fn informative_poses(infos: &[DMatrix<f64>], ncam: usize, n: usize) -> Vec<usize> {
+    let Some(dim) = infos.first().map(|m| m.nrows()) else {
+        return Vec::new();
+    };
+    let rot = 0.05_f64.to_radians().powi(2);
+    let pos = 1e-3_f64.powi(2);
+    // A weak prior (1 rad, 1 m) keeps the first few sums invertible.
+    let mut total = DMatrix::<f64>::identity(dim, dim);
+    let score = |m: &DMatrix<f64>| -> f64 {
+        let Some(cov) = m.clone().cholesky().map(|c| c.inverse()) else {
+            return f64::INFINITY;
+        };
+        (0..ncam)
+            .map(|k| {
+                let o = 6 * k;
+                let r: f64 = (0..3).map(|a| cov[(o + a, o + a)]).sum();
+                let t: f64 = (3..6).map(|a| cov[(o + a, o + a)]).sum();
+                r / rot + t / pos
+            })
+            .fold(0.0, f64::max)
+    };
+    let mut chosen = Vec::with_capacity(n);
+    let mut used = vec![false; infos.len()];
+    while chosen.len() < n.min(infos.len()) {
+        let best = (0..infos.len())
+            .filter(|&i| !used[i])
+            .map(|i| (i, score(&(&total + &infos[i]))))
+            .min_by(|a, b| a.1.total_cmp(&b.1));
+        let Some((i, _)) = best else {
+            break;
+        };
+        used[i] = true;
+        total += &infos[i];
+        chosen.push(i);
+    }
+    chosen
 }
 
 /// Greedy farthest-point selection of `n` board poses (distance: 10 cm of position or 20°
@@ -486,12 +748,14 @@ fn farthest_poses(boards: &[Isometry3<f64>], n: usize) -> Vec<usize> {
 }
 
 /// Depth samples at the integer pixels nearest the corners: the board plane's depth along
-/// each pixel's ray, D455 axial noise, 1 mm quantisation.
+/// each pixel's ray, the camera's depth error, D455 axial noise, 1 mm quantisation.
 fn depth_samples(
     k: &Intrinsics,
     camera_from_board: &Isometry3<f64>,
     pixels: &[nalgebra::Point2<f64>],
     subpixel: f64,
+    quantum: f64,
+    error: &DepthCorrection,
     rng: &mut ChaCha8Rng,
 ) -> Vec<DepthSample> {
     let n = camera_from_board.rotation * Vector3::z();
@@ -507,14 +771,18 @@ fn depth_samples(
         if denom.abs() < 1e-9 {
             continue;
         }
-        let z = n.dot(&p0) / denom;
+        let z = error.measured(n.dot(&p0) / denom);
         let sigma = z * z * subpixel / (f * D455_BASELINE_M);
         let noisy = if sigma > 0.0 {
             Normal::new(z, sigma).map_or(z, |d| d.sample(rng))
         } else {
             z
         };
-        let q = (noisy / D455_DEPTH_SCALE).round() * D455_DEPTH_SCALE;
+        let q = if quantum > 0.0 {
+            (noisy / quantum).round() * quantum
+        } else {
+            noisy
+        };
         if q > 0.0 {
             out.push(DepthSample { u, v, depth_m: q });
         }

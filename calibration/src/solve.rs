@@ -2,14 +2,20 @@
 //! hand-eye start per camera, then one joint bundle adjustment over all cameras.
 //!
 //! Unknowns of the bundle adjustment: `base_from_camera` of every camera, the shared
-//! `flange_from_board`, and (with [`SolveOptions::robot_prior`]) a small correction of every
-//! recorded flange pose, held to the robot's stated accuracy by a Gaussian prior. Residuals:
-//! every board corner in every camera, `(projected - detected) / corner_sigma`, Huber-weighted
-//! (iteratively reweighted), plus the priors. The robot's FK poses are the only link to the
-//! base frame, so there is no gauge freedom. Everything is solved by the `levenberg-marquardt`
-//! crate (a MINPACK port on nalgebra) on a dense Jacobian (for 3 cameras and 30 poses:
-//! about 11 000 rows, 204 columns), re-linearised around the new estimate a few times
-//! so that the final Jacobian is exact at the optimum.
+//! `flange_from_board`, with [`SolveOptions::refine_intrinsics`] each camera's `fx, fy,
+//! ppx, ppy`, with depth samples each camera's depth scale and offset (`measured = scale *
+//! true + offset`), and (with [`SolveOptions::robot_prior`]) a small correction of every
+//! recorded flange pose, held to the robot's stated accuracy by a Gaussian prior.
+//! Residuals: every board corner in every camera, `(projected - detected) / corner_sigma`,
+//! Huber-weighted (iteratively reweighted); every depth sample against the board plane
+//! along its pixel's ray, over the D455's axial noise (growing as depth squared), Huber at
+//! 3 sigma; plus the priors. The depth rows matter beyond the depth error: they pin each
+//! camera's distance to the board, which the corners alone trade against its rotation. The
+//! robot's FK poses are the only link to the base frame, so there is no gauge freedom.
+//! Everything is solved by the `levenberg-marquardt` crate (a MINPACK port on nalgebra) on
+//! a dense Jacobian (for 3 cameras and 30 poses: about 19 000 rows, 24 to 42 columns after
+//! the flange corrections are eliminated), re-linearised around the new estimate a few
+//! times so that the final Jacobian is exact at the optimum.
 //!
 //! Uncertainty: the covariance of the unknowns is `s^2 (J^T J)^-1` from the final whitened
 //! Jacobian, with `s^2` the residual variance factor (about 1 when `corner_sigma_px` and
@@ -24,7 +30,7 @@ use nalgebra::{
 };
 use serde::{Deserialize, Serialize};
 
-use crate::camera::Intrinsics;
+use crate::camera::{DepthCorrection, Intrinsics};
 use crate::capture::CaptureSet;
 use crate::error::CalibrationError;
 use crate::geometry::{
@@ -67,6 +73,27 @@ pub struct SolveOptions {
     /// A pose whose corners reproject worse than this (px RMS, with its recorded flange
     /// pose) after the solve is reported as inconsistent.
     pub max_pose_rms_px: f64,
+    /// Also solve each camera's `fx, fy, ppx, ppy` (starting from the captures' factory
+    /// values); off by default because factory intrinsics of a D455 are usually good and
+    /// four more unknowns per camera widen the extrinsics' uncertainty a little.
+    #[serde(default)]
+    pub refine_intrinsics: bool,
+    /// Put the depth samples on the board into the adjustment (one residual each, against
+    /// the board plane, with an unknown depth scale and offset per camera), so that the
+    /// depth error is estimated jointly with the poses; off: it is fitted afterwards.
+    #[serde(default = "yes")]
+    pub depth_residuals: bool,
+    /// Depth noise at 1 m (m, one sigma); it grows as depth squared (D455 stereo).
+    #[serde(default = "d455_depth_sigma_1m")]
+    pub depth_sigma_1m_m: f64,
+}
+
+fn yes() -> bool {
+    true
+}
+
+fn d455_depth_sigma_1m() -> f64 {
+    0.002
 }
 
 impl Default for SolveOptions {
@@ -86,6 +113,9 @@ impl Default for SolveOptions {
             max_view_rms_px: 5.0,
             holdout_folds: 5,
             max_pose_rms_px: 5.0,
+            refine_intrinsics: false,
+            depth_residuals: true,
+            depth_sigma_1m_m: d455_depth_sigma_1m(),
         }
     }
 }
@@ -99,10 +129,14 @@ pub struct DepthResidual {
     pub mean_mm: f64,
     /// RMS of measured minus predicted depth (mm).
     pub rms_mm: f64,
-    /// Least-squares depth scale `a` of `measured = a * predicted + b`.
+    /// Depth scale `a` of `measured = a * predicted + b` (least squares weighted by the
+    /// D455's axial noise, which grows as depth squared).
     pub scale: f64,
-    /// Least-squares depth offset `b` (mm) of that fit.
+    /// Depth offset `b` (mm) of that fit.
     pub offset_mm: f64,
+    /// RMS of the residual after removing that fit (mm; 0 in reports written before it).
+    #[serde(default)]
+    pub corrected_rms_mm: f64,
 }
 
 /// One camera's result.
@@ -112,8 +146,12 @@ pub struct CameraResult {
     pub id: u8,
     /// Camera name.
     pub name: String,
-    /// Intrinsics used.
+    /// Intrinsics used (refined when [`SolveOptions::refine_intrinsics`] is on, else the
+    /// captures' own).
     pub intrinsics: Intrinsics,
+    /// One-sigma uncertainty of the refined `[fx, fy, ppx, ppy]` (px); `None` when the
+    /// intrinsics were held fixed.
+    pub intrinsics_sigma_px: Option<[f64; 4]>,
     /// The calibrated pose.
     pub base_from_camera: Transform<Base, Camera>,
     /// The closed-form start (for comparison).
@@ -135,6 +173,9 @@ pub struct CameraResult {
     pub heldout_corners: usize,
     /// Depth residual on the board plane, when the captures hold depth samples.
     pub depth: Option<DepthResidual>,
+    /// The depth correction the fusion applies: the fit of `depth` when it is plausible
+    /// ([`DepthCorrection::validate`]), else none.
+    pub depth_correction: DepthCorrection,
 }
 
 /// A view left out of the solution, and why.
@@ -191,6 +232,16 @@ impl Solution {
     }
 }
 
+/// One depth sample on the board.
+#[derive(Copy, Clone, Debug)]
+struct DObs {
+    cam: usize,
+    frame: usize,
+    px: Point2<f64>,
+    depth: f64,
+    sigma: f64,
+}
+
 /// One corner observation.
 #[derive(Copy, Clone, Debug)]
 struct Obs {
@@ -208,7 +259,11 @@ struct Obs {
 /// marginal covariance as the full problem, at the cost of a 6k+6-column dense QR.
 #[derive(Clone)]
 struct Ba<'a> {
-    intr: &'a [Intrinsics],
+    /// Intrinsics at the linearisation point (the `p` perturbation adds to them when
+    /// `refine` is on).
+    intr: Vec<Intrinsics>,
+    /// Whether `fx, fy, ppx, ppy` of every camera are unknowns (after the board's 6).
+    refine: bool,
     obs: &'a [Obs],
     frames: &'a [Isometry3<f64>],
     /// Observation indices per frame.
@@ -220,10 +275,29 @@ struct Ba<'a> {
     /// Per-frame corrections `(rotation vector, translation)`, flange frame.
     eta: Vec<[f64; 6]>,
     weights: Vec<f64>,
+    /// Depth samples in the adjustment (empty when it is off), their indices per frame,
+    /// their Huber weights.
+    dobs: &'a [DObs],
+    by_frame_d: Vec<Vec<usize>>,
+    dweights: Vec<f64>,
+    /// Per camera: its depth `(scale, offset)` column, when it has depth samples.
+    dcol: Vec<Option<usize>>,
+    /// Depth `(scale, offset)` per camera at the linearisation point.
+    depth0: Vec<(f64, f64)>,
     sigma_px: f64,
     prior: Option<RobotPrior>,
     /// Current perturbations of the cameras and the board: [cams 6k][x 6].
     p: DVector<f64>,
+}
+
+/// One depth sample's whitened residual and Jacobian rows.
+struct DLin {
+    r: f64,
+    jcam: nalgebra::RowVector6<f64>,
+    jx: nalgebra::RowVector6<f64>,
+    jeta: nalgebra::RowVector6<f64>,
+    jk: nalgebra::RowVector4<f64>,
+    jab: nalgebra::RowVector2<f64>,
 }
 
 /// One observation's whitened residual and its Jacobian blocks (camera, board, correction).
@@ -232,6 +306,8 @@ struct Lin {
     jcam: nalgebra::Matrix2x6<f64>,
     jx: nalgebra::Matrix2x6<f64>,
     jeta: nalgebra::Matrix2x6<f64>,
+    /// With respect to `[fx, fy, ppx, ppy]`.
+    jk: nalgebra::Matrix2x4<f64>,
 }
 
 impl<'a> Ba<'a> {
@@ -239,7 +315,101 @@ impl<'a> Ba<'a> {
         self.cams0.len()
     }
     fn ntheta(&self) -> usize {
-        6 * self.ncam() + 6
+        6 * self.ncam()
+            + 6
+            + if self.refine { 4 * self.ncam() } else { 0 }
+            + 2 * self.dcol.iter().flatten().count()
+    }
+    /// Camera `k`'s depth `(scale, offset)` at the current estimate.
+    fn depth_ab(&self, k: usize) -> (f64, f64) {
+        let (a, b) = self.depth0[k];
+        match self.dcol[k] {
+            Some(o) => (a + self.p[o], b + self.p[o + 1]),
+            None => (a, b),
+        }
+    }
+    /// Depth sample `i`: whitened residual (predicted - measured) and its Jacobian rows
+    /// (camera, board, flange correction, intrinsics, depth scale and offset).
+    fn linearise_depth(
+        &self,
+        i: usize,
+        cams: &[Isometry3<f64>],
+        x: &Isometry3<f64>,
+        intr: &[Intrinsics],
+    ) -> DLin {
+        let o = &self.dobs[i];
+        let k = &intr[o.cam];
+        let s = self.dweights[i].sqrt() / o.sigma;
+        let eta = self.eta[o.frame];
+        let f_rec = self.frames[o.frame];
+        let rot_eta = exp6(&[eta[0], eta[1], eta[2], 0.0, 0.0, 0.0]);
+        let cam_inv = cams[o.cam].inverse();
+        let cb = cam_inv * f_rec * exp6(&eta) * x;
+        let r_cb = cb.rotation.to_rotation_matrix().into_inner();
+        let n = r_cb * Vector3::z();
+        let p = cb.translation.vector;
+        let ray = Vector3::new((o.px.x - k.ppx) / k.fx, (o.px.y - k.ppy) / k.fy, 1.0);
+        let nr = n.dot(&ray);
+        let nr = if nr.abs() < 1e-9 { 1e-9 } else { nr };
+        let z = n.dot(&p) / nr;
+        let w = p - ray * z;
+        let (a, b) = self.depth_ab(o.cam);
+        // dz = (w . dn + n . dp) / (n . ray) for a change of the plane (dn, dp).
+        let g = |dn: Matrix3<f64>, dp: Matrix3<f64>| (w.transpose() * dn + n.transpose() * dp) / nr;
+        let mut jcam = nalgebra::RowVector6::zeros();
+        jcam.fixed_view_mut::<1, 3>(0, 0)
+            .copy_from(&g(skew(&n), skew(&p)));
+        jcam.fixed_view_mut::<1, 3>(0, 3)
+            .copy_from(&(-n.transpose() / nr));
+        let mut jx = nalgebra::RowVector6::zeros();
+        jx.fixed_view_mut::<1, 3>(0, 0)
+            .copy_from(&g(-r_cb * skew(&Vector3::z()), Matrix3::zeros()));
+        jx.fixed_view_mut::<1, 3>(0, 3)
+            .copy_from(&((n.transpose() * r_cb) / nr));
+        // The correction as the corners take it: a rotation about the recorded flange.
+        let r_crec = (cam_inv * f_rec).rotation.to_rotation_matrix().into_inner();
+        let n_r = rot_eta.rotation * (x.rotation * Vector3::z());
+        let p_r = rot_eta.rotation * x.translation.vector;
+        let mut jeta = nalgebra::RowVector6::zeros();
+        jeta.fixed_view_mut::<1, 3>(0, 0)
+            .copy_from(&g(-r_crec * skew(&n_r), -r_crec * skew(&p_r)));
+        jeta.fixed_view_mut::<1, 3>(0, 3)
+            .copy_from(&((n.transpose() * r_crec) / nr));
+        // The ray moves with the intrinsics: dz = -z (n . dray) / (n . ray).
+        let jk = nalgebra::RowVector4::new(
+            n.x * ray.x / k.fx,
+            n.y * ray.y / k.fy,
+            n.x / k.fx,
+            n.y / k.fy,
+        ) * (z / nr);
+        let sa = s * a;
+        DLin {
+            r: (a * z + b - o.depth) * s,
+            jcam: jcam * sa,
+            jx: jx * sa,
+            jeta: jeta * sa,
+            jk: jk * sa,
+            jab: nalgebra::RowVector2::new(z * s, s),
+        }
+    }
+    /// Column of camera `k`'s first intrinsic unknown.
+    fn intr_col(&self, k: usize) -> usize {
+        6 * self.ncam() + 6 + 4 * k
+    }
+    /// Camera `k`'s intrinsics at the current estimate.
+    fn intrinsics(&self, k: usize) -> Intrinsics {
+        let mut i = self.intr[k];
+        if self.refine {
+            let o = self.intr_col(k);
+            i.fx += self.p[o];
+            i.fy += self.p[o + 1];
+            i.ppx += self.p[o + 2];
+            i.ppy += self.p[o + 3];
+        }
+        i
+    }
+    fn all_intrinsics(&self) -> Vec<Intrinsics> {
+        (0..self.ncam()).map(|k| self.intrinsics(k)).collect()
     }
     fn cam(&self, k: usize) -> Isometry3<f64> {
         self.cams0[k] * exp6(&self.p.as_slice()[6 * k..6 * k + 6])
@@ -260,7 +430,9 @@ impl<'a> Ba<'a> {
         }
     }
     fn rows_of(&self, f: usize) -> usize {
-        2 * self.by_frame[f].len() + if self.prior.is_some() { 6 } else { 0 }
+        2 * self.by_frame[f].len()
+            + self.by_frame_d[f].len()
+            + if self.prior.is_some() { 6 } else { 0 }
     }
     fn nrows(&self) -> usize {
         (0..self.frames.len())
@@ -278,11 +450,18 @@ impl<'a> Ba<'a> {
             self.frames[o.frame]
         };
         let c = self.cam(o.cam).inverse() * f * self.x() * Point3::from(o.board);
-        let (pred, _) = project_with_jacobian(&self.intr[o.cam], &c.coords);
+        let (pred, _) = project_with_jacobian(&self.intrinsics(o.cam), &c.coords);
         pred - o.px
     }
-    /// Linearises observation `i` at the current estimate (`cams`, `x` precomputed).
-    fn linearise(&self, i: usize, cams: &[Isometry3<f64>], x: &Isometry3<f64>) -> Lin {
+    /// Linearises observation `i` at the current estimate (`cams`, `x`, `intr`
+    /// precomputed).
+    fn linearise(
+        &self,
+        i: usize,
+        cams: &[Isometry3<f64>],
+        x: &Isometry3<f64>,
+        intr: &[Intrinsics],
+    ) -> Lin {
         let o = &self.obs[i];
         let s = self.weights[i].sqrt() / self.sigma_px;
         let eta = self.eta[o.frame];
@@ -291,7 +470,11 @@ impl<'a> Ba<'a> {
         let q = x * Point3::from(o.board);
         let cam_inv = cams[o.cam].inverse();
         let c = cam_inv * f * q;
-        let (pred, jp) = project_with_jacobian(&self.intr[o.cam], &c.coords);
+        let k = &intr[o.cam];
+        let (pred, jp) = project_with_jacobian(k, &c.coords);
+        // u = fx * xd + ppx with xd the distorted normalised coordinate.
+        let (xd, yd) = ((pred.x - k.ppx) / k.fx, (pred.y - k.ppy) / k.fy);
+        let jk = nalgebra::Matrix2x4::new(xd, 0.0, 1.0, 0.0, 0.0, yd, 0.0, 1.0) * s;
         let jp = jp * s;
         // Camera: c = exp(-d) c0  =>  dc/dd = [skew(c) | -I].
         let mut jc = nalgebra::Matrix3x6::zeros();
@@ -309,6 +492,7 @@ impl<'a> Ba<'a> {
             jcam: jp * jc,
             jx: jp * r_cf * r_x * point_jacobian(&o.board),
             jeta: jp * r_cfrec * point_jacobian(&q_local),
+            jk,
         }
     }
     /// Solves every active frame's correction for the current cameras and board.
@@ -318,6 +502,7 @@ impl<'a> Ba<'a> {
         }
         let cams: Vec<Isometry3<f64>> = (0..self.ncam()).map(|k| self.cam(k)).collect();
         let x = self.x();
+        let intr = self.all_intrinsics();
         for f in 0..self.frames.len() {
             if !self.active[f] {
                 continue;
@@ -326,7 +511,12 @@ impl<'a> Ba<'a> {
                 let mut h = Matrix6::<f64>::zeros();
                 let mut g = nalgebra::Vector6::<f64>::zeros();
                 for &i in &self.by_frame[f] {
-                    let l = self.linearise(i, &cams, &x);
+                    let l = self.linearise(i, &cams, &x, &intr);
+                    h += l.jeta.transpose() * l.jeta;
+                    g += l.jeta.transpose() * l.r;
+                }
+                for &i in &self.by_frame_d[f] {
+                    let l = self.linearise_depth(i, &cams, &x, &intr);
                     h += l.jeta.transpose() * l.jeta;
                     g += l.jeta.transpose() * l.r;
                 }
@@ -356,6 +546,8 @@ impl<'a> Ba<'a> {
         for k in 0..self.ncam() {
             self.cams0[k] = self.cam(k);
         }
+        self.intr = self.all_intrinsics();
+        self.depth0 = (0..self.ncam()).map(|k| self.depth_ab(k)).collect();
         self.x0 = self.x();
         for v in self.p.iter_mut() {
             step = step.max(v.abs());
@@ -368,6 +560,14 @@ impl<'a> Ba<'a> {
         for i in 0..self.obs.len() {
             let e = self.pixel_error(i, true).norm();
             self.weights[i] = if e <= huber_px { 1.0 } else { huber_px / e };
+        }
+        // Depth: the same robust loss at 3 sigma (flying pixels at the board's edges).
+        let cams: Vec<Isometry3<f64>> = (0..self.ncam()).map(|k| self.cam(k)).collect();
+        let (x, intr) = (self.x(), self.all_intrinsics());
+        for i in 0..self.dobs.len() {
+            self.dweights[i] = 1.0;
+            let e = self.linearise_depth(i, &cams, &x, &intr).r.abs();
+            self.dweights[i] = if e <= 3.0 { 1.0 } else { 3.0 / e };
         }
     }
 }
@@ -387,6 +587,8 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Ba<'_> {
     }
 
     fn residuals(&self) -> Option<DVector<f64>> {
+        let cams: Vec<Isometry3<f64>> = (0..self.ncam()).map(|k| self.cam(k)).collect();
+        let (x, intr) = (self.x(), self.all_intrinsics());
         let mut r = DVector::zeros(self.nrows());
         let mut n = 0;
         for f in 0..self.frames.len() {
@@ -398,6 +600,10 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Ba<'_> {
                 r[n] = e.x;
                 r[n + 1] = e.y;
                 n += 2;
+            }
+            for &i in &self.by_frame_d[f] {
+                r[n] = self.linearise_depth(i, &cams, &x, &intr).r;
+                n += 1;
             }
             if self.prior.is_some() {
                 for a in 0..6 {
@@ -414,6 +620,7 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Ba<'_> {
         let mut j = DMatrix::zeros(self.nrows(), nt);
         let x = self.x();
         let cams: Vec<Isometry3<f64>> = (0..self.ncam()).map(|k| self.cam(k)).collect();
+        let intr = self.all_intrinsics();
         let xo = 6 * self.ncam();
         let mut n = 0;
         for f in 0..self.frames.len() {
@@ -424,14 +631,34 @@ impl LeastSquaresProblem<f64, Dyn, Dyn> for Ba<'_> {
             let mut jt = DMatrix::zeros(rows, nt);
             let mut je = DMatrix::zeros(rows, 6);
             for (m, &i) in self.by_frame[f].iter().enumerate() {
-                let l = self.linearise(i, &cams, &x);
+                let l = self.linearise(i, &cams, &x, &intr);
                 let k = self.obs[i].cam;
                 jt.fixed_view_mut::<2, 6>(2 * m, 6 * k).copy_from(&l.jcam);
                 jt.fixed_view_mut::<2, 6>(2 * m, xo).copy_from(&l.jx);
+                if self.refine {
+                    jt.fixed_view_mut::<2, 4>(2 * m, self.intr_col(k))
+                        .copy_from(&l.jk);
+                }
                 je.fixed_view_mut::<2, 6>(2 * m, 0).copy_from(&l.jeta);
             }
+            let nc = 2 * self.by_frame[f].len();
+            for (m, &i) in self.by_frame_d[f].iter().enumerate() {
+                let l = self.linearise_depth(i, &cams, &x, &intr);
+                let k = self.dobs[i].cam;
+                let row = nc + m;
+                jt.fixed_view_mut::<1, 6>(row, 6 * k).copy_from(&l.jcam);
+                jt.fixed_view_mut::<1, 6>(row, xo).copy_from(&l.jx);
+                if self.refine {
+                    jt.fixed_view_mut::<1, 4>(row, self.intr_col(k))
+                        .copy_from(&l.jk);
+                }
+                if let Some(o) = self.dcol[k] {
+                    jt.fixed_view_mut::<1, 2>(row, o).copy_from(&l.jab);
+                }
+                je.fixed_view_mut::<1, 6>(row, 0).copy_from(&l.jeta);
+            }
             if self.prior.is_some() {
-                let base = 2 * self.by_frame[f].len();
+                let base = nc + self.by_frame_d[f].len();
                 for a in 0..6 {
                     je[(base + a, a)] = 1.0 / self.prior_sigma(a);
                 }
@@ -638,6 +865,9 @@ fn check_options(opts: &SolveOptions) -> Result<(), CalibrationError> {
     if !(opts.corner_sigma_px.is_finite() && opts.corner_sigma_px > 0.0) {
         return bad("corner_sigma_px", opts.corner_sigma_px, "must be > 0 (px)");
     }
+    if !(opts.depth_sigma_1m_m.is_finite() && opts.depth_sigma_1m_m > 0.0) {
+        return bad("depth_sigma_1m_m", opts.depth_sigma_1m_m, "must be > 0 (m)");
+    }
     if !(opts.huber_px.is_finite() && opts.huber_px > 0.0) {
         return bad("huber_px", opts.huber_px, "must be > 0 (px)");
     }
@@ -662,6 +892,59 @@ fn check_options(opts: &SolveOptions) -> Result<(), CalibrationError> {
         );
     }
     Ok(())
+}
+
+/// The depth samples that go into the adjustment (with the D455's axial noise, growing as
+/// depth squared, and its 1 mm steps), their indices per frame, each camera's depth
+/// `(scale, offset)` column from `first_col` on (cameras with too few samples get none),
+/// and the number of unknowns.
+#[allow(clippy::type_complexity)]
+fn depth_observations(
+    prep: &Prepared,
+    opts: &SolveOptions,
+    first_col: usize,
+) -> (Vec<DObs>, Vec<Vec<usize>>, Vec<Option<usize>>, usize) {
+    let nframes = prep.frames.len();
+    let ncam = prep.cams.len();
+    // Depth samples, with the D455's axial noise (grows as depth squared) and 1 mm steps.
+    let mut dobs = Vec::new();
+    let mut by_frame_d = vec![Vec::new(); nframes];
+    if opts.depth_residuals {
+        for (k, per_frame) in prep.depth.iter().enumerate() {
+            for (frame, samples) in per_frame {
+                for d in samples {
+                    if !(d.depth_m.is_finite() && d.depth_m > 0.0) {
+                        continue;
+                    }
+                    let sz = opts.depth_sigma_1m_m * d.depth_m * d.depth_m;
+                    by_frame_d[*frame].push(dobs.len());
+                    dobs.push(DObs {
+                        cam: k,
+                        frame: *frame,
+                        px: Point2::new(d.u, d.v),
+                        depth: d.depth_m,
+                        sigma: (sz * sz + 1e-6 / 12.0).sqrt(),
+                    });
+                }
+            }
+        }
+    }
+    let mut dcol = vec![None; ncam];
+    let mut next = first_col;
+    for (k, col) in dcol.iter_mut().enumerate() {
+        // Fewer samples than this cannot separate a scale from an offset reliably.
+        if dobs.iter().filter(|d| d.cam == k).count() >= 20 {
+            *col = Some(next);
+            next += 2;
+        }
+    }
+    let ntheta = next;
+    // Samples of a camera without depth unknowns stay out.
+    let keep: Vec<bool> = dobs.iter().map(|d| dcol[d.cam].is_some()).collect();
+    for rows in &mut by_frame_d {
+        rows.retain(|&i| keep[i]);
+    }
+    (dobs, by_frame_d, dcol, ntheta)
 }
 
 /// Calibrates every camera of `set` to the robot base (see the module docs).
@@ -690,9 +973,17 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
     for (i, o) in prep.obs.iter().enumerate() {
         by_frame[o.frame].push(i);
     }
-    let ntheta = 6 * cams0.len() + 6;
+    let ncam = cams0.len();
+    let first_dcol = 6 * ncam + 6 + if opts.refine_intrinsics { 4 * ncam } else { 0 };
+    let (dobs, by_frame_d, dcol, ntheta) = depth_observations(&prep, opts, first_dcol);
     let mut ba = Ba {
-        intr: &intr,
+        dweights: vec![1.0; dobs.len()],
+        dobs: &dobs,
+        by_frame_d,
+        dcol,
+        depth0: vec![(1.0, 0.0); ncam],
+        intr,
+        refine: opts.refine_intrinsics,
         obs: &prep.obs,
         frames: &prep.frames,
         by_frame,
@@ -773,6 +1064,7 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
             let mut fb = ba.clone();
             fb.active = (0..nframes).map(|f| f % folds != fold).collect();
             fb.weights = vec![1.0; prep.obs.len()];
+            fb.dweights = vec![1.0; fb.dobs.len()];
             // Every camera must keep enough training views.
             let enough = (0..prep.cams.len())
                 .all(|k| prep.pnp[k].iter().filter(|(f, _)| fb.active[*f]).count() >= 3);
@@ -790,7 +1082,7 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
         }
     }
     let mut cameras = Vec::with_capacity(prep.cams.len());
-    for (k, (id, name, intrinsics)) in prep.cams.iter().enumerate() {
+    for (k, (id, name, _)) in prep.cams.iter().enumerate() {
         let pose = ba.cam(k);
         let c6 = to_base(&pose, 6 * k);
         let mut covariance = [[0.0; 6]; 6];
@@ -807,10 +1099,23 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
                 n += 1;
             }
         }
+        let joint = ba.dcol[k].map(|_| ba.depth_ab(k));
+        let depth = depth_residual(&ba, k, &prep.depth[k], joint);
+        let depth_correction = depth
+            .map(|d| DepthCorrection {
+                scale: d.scale,
+                offset_m: d.offset_mm * 1e-3,
+            })
+            .filter(|c| c.validate().is_ok())
+            .unwrap_or_default();
         cameras.push(CameraResult {
             id: *id,
             name: name.clone(),
-            intrinsics: *intrinsics,
+            intrinsics: ba.intrinsics(k),
+            intrinsics_sigma_px: ba.refine.then(|| {
+                let o = ba.intr_col(k);
+                [0, 1, 2, 3].map(|a| cov[(o + a, o + a)].max(0.0).sqrt())
+            }),
             base_from_camera: Transform::from_isometry(pose),
             closed_form: Transform::from_isometry(closed_form[k]),
             views: prep.pnp[k].len(),
@@ -820,7 +1125,8 @@ pub fn solve(set: &CaptureSet, opts: &SolveOptions) -> Result<Solution, Calibrat
             fit_rms_px: (ss / (2.0 * n.max(1) as f64)).sqrt(),
             heldout_rms_px: (held_n[k] > 0).then(|| (held_ss[k] / (2.0 * held_n[k] as f64)).sqrt()),
             heldout_corners: held_n[k],
-            depth: depth_residual(&ba, k, &prep.depth[k]),
+            depth,
+            depth_correction,
         });
     }
     let xo = 6 * prep.cams.len();
@@ -857,8 +1163,9 @@ fn depth_residual(
     ba: &Ba<'_>,
     k: usize,
     samples: &[(usize, Vec<crate::capture::DepthSample>)],
+    joint: Option<(f64, f64)>,
 ) -> Option<DepthResidual> {
-    let intr = &ba.intr[k];
+    let intr = &ba.intrinsics(k);
     let cam_inv = ba.cam(k).inverse();
     let x = ba.x();
     let mut pairs = Vec::new();
@@ -883,24 +1190,40 @@ fn depth_residual(
     let n = pairs.len() as f64;
     let mean = pairs.iter().map(|(p, m)| m - p).sum::<f64>() / n;
     let rms = (pairs.iter().map(|(p, m)| (m - p).powi(2)).sum::<f64>() / n).sqrt();
-    // measured = a * predicted + b
-    let (sp, sm) = pairs
-        .iter()
-        .fold((0.0, 0.0), |(a, b), (p, m)| (a + p, b + m));
-    let (mp, mm) = (sp / n, sm / n);
-    let (mut cov, mut var) = (0.0, 0.0);
+    // measured = a * predicted + b, weighted by 1 / sigma_z^2 with sigma_z ~ z^2.
+    let (mut sw, mut sp, mut spp, mut sm, mut spm) = (0.0, 0.0, 0.0, 0.0, 0.0);
     for (p, m) in &pairs {
-        cov += (p - mp) * (m - mm);
-        var += (p - mp) * (p - mp);
+        let w = 1.0 / p.powi(4);
+        sw += w;
+        sp += w * p;
+        spp += w * p * p;
+        sm += w * m;
+        spm += w * p * m;
     }
-    let scale = if var > 0.0 { cov / var } else { 1.0 };
-    let offset = mm - scale * mp;
+    let det = sw * spp - sp * sp;
+    // Depths spread over less than 5 cm cannot separate a scale from an offset.
+    let spread = (det / (sw * sw)).max(0.0).sqrt();
+    let (scale, offset) = if let Some(ab) = joint {
+        // Estimated in the adjustment, jointly with the poses.
+        ab
+    } else if spread >= 0.05 {
+        ((sw * spm - sp * sm) / det, (spp * sm - sp * spm) / det)
+    } else {
+        (1.0, (sm - sp) / sw)
+    };
+    let corrected_rms = (pairs
+        .iter()
+        .map(|(p, m)| (m - scale * p - offset).powi(2))
+        .sum::<f64>()
+        / n)
+        .sqrt();
     Some(DepthResidual {
         samples: pairs.len(),
         mean_mm: mean * 1e3,
         rms_mm: rms * 1e3,
         scale,
         offset_mm: offset * 1e3,
+        corrected_rms_mm: corrected_rms * 1e3,
     })
 }
 
@@ -919,10 +1242,20 @@ mod tests {
     fn noise_free_captures_recover_every_camera_to_1e6() {
         let mut cfg = SimConfig::default_cell();
         cfg.noise = SimNoise::none();
-        // Seed 3 once ended in LM's "trust-region reduction" at the exact optimum.
-        for seed in [11, 3] {
+        // Seed 3 once ended in LM's "trust-region reduction" at the exact optimum. With
+        // refinement, the true intrinsics and depth differ from the recorded ones.
+        for (seed, refine_intrinsics) in [(11, false), (3, false), (11, true)] {
+            cfg.camera_errors = if refine_intrinsics {
+                crate::simulate::CameraErrors::typical()
+            } else {
+                crate::simulate::CameraErrors::default()
+            };
             let (set, truth) = simulate_set(&cfg, seed).unwrap();
-            let sol = solve(&set, &SolveOptions::default()).unwrap();
+            let opts = SolveOptions {
+                refine_intrinsics,
+                ..SolveOptions::default()
+            };
+            let sol = solve(&set, &opts).unwrap();
             for (dt, dr) in errors(&sol, &truth) {
                 assert!(dt < 1e-6 && dr < 1e-6, "seed {seed}: {dt} m {dr} rad");
             }
@@ -930,6 +1263,117 @@ mod tests {
             assert!(dt < 1e-6 && dr < 1e-6);
             for c in &sol.cameras {
                 assert!(c.fit_rms_px < 1e-6 && c.heldout_rms_px.unwrap() < 1e-6);
+                let k = c.intrinsics;
+                let t = truth.intrinsics(c.id).unwrap();
+                assert!((k.fx - t.fx).abs() < 1e-6 && (k.ppy - t.ppy).abs() < 1e-6);
+                let (dc, td) = (c.depth_correction, truth.depth());
+                assert!((dc.scale - td.scale).abs() < 1e-9, "{dc:?}");
+                assert!((dc.offset_m - td.offset_m).abs() < 1e-9, "{dc:?}");
+            }
+        }
+    }
+
+    #[test]
+    fn the_jacobian_matches_finite_differences() {
+        // Every unknown (cameras, board, intrinsics, depth scale and offset) on corner and
+        // depth rows, away from the optimum, and the flange correction's depth rows.
+        let mut cfg = SimConfig {
+            poses: 10,
+            ..SimConfig::default_cell()
+        };
+        cfg.camera_errors = crate::simulate::CameraErrors::typical();
+        let (set, truth) = simulate_set(&cfg, 5).unwrap();
+        let opts = SolveOptions {
+            refine_intrinsics: true,
+            ..SolveOptions::default()
+        };
+        let prep = prepare(&set, &opts).unwrap();
+        let ncam = prep.cams.len();
+        let (dobs, by_frame_d, dcol, ntheta) =
+            depth_observations(&prep, &opts, 6 * ncam + 6 + 4 * ncam);
+        assert_eq!(ntheta, 6 * ncam + 6 + 4 * ncam + 2 * ncam);
+        let mut by_frame = vec![Vec::new(); prep.frames.len()];
+        for (i, o) in prep.obs.iter().enumerate() {
+            by_frame[o.frame].push(i);
+        }
+        let mut ba = Ba {
+            intr: prep.cams.iter().map(|c| c.2).collect(),
+            refine: true,
+            obs: &prep.obs,
+            frames: &prep.frames,
+            by_frame,
+            active: vec![true; prep.frames.len()],
+            cams0: (0..ncam)
+                .map(|k| {
+                    *truth.base_from_camera(k as u8).unwrap().isometry()
+                        * exp6(&[0.01, -0.02, 0.01, 0.003, 0.002, -0.004])
+                })
+                .collect(),
+            x0: *cfg.flange_from_board.isometry()
+                * exp6(&[0.02, 0.01, -0.01, 0.002, -0.001, 0.003]),
+            eta: (0..prep.frames.len())
+                .map(|f| [1e-3 * f as f64, -2e-3, 1e-3, 1e-3, 0.0, -1e-3])
+                .collect(),
+            weights: vec![1.0; prep.obs.len()],
+            dweights: vec![1.0; dobs.len()],
+            dobs: &dobs,
+            by_frame_d,
+            dcol,
+            depth0: vec![(1.003, 0.004); ncam],
+            sigma_px: 0.5,
+            prior: None,
+            p: DVector::zeros(ntheta),
+        };
+        let j = ba.jacobian().unwrap();
+        for col in 0..ntheta {
+            let h = if col >= 6 * ncam + 6 && col < 10 * ncam + 6 {
+                1e-4
+            } else {
+                1e-7
+            };
+            let mut p = DVector::zeros(ntheta);
+            p[col] = h;
+            ba.set_params(&p);
+            let rp = ba.residuals().unwrap();
+            p[col] = -h;
+            ba.set_params(&p);
+            let rm = ba.residuals().unwrap();
+            let fd = (rp - rm) / (2.0 * h);
+            let err = (&fd - j.column(col)).amax();
+            assert!(
+                err < 1e-4 * fd.amax().max(1.0),
+                "column {col}: {err} of {}",
+                fd.amax()
+            );
+        }
+        ba.set_params(&DVector::zeros(ntheta));
+        // The flange correction on depth rows (a rotation about the recorded flange).
+        let cams: Vec<Isometry3<f64>> = (0..ncam).map(|k| ba.cam(k)).collect();
+        let (x, intr) = (ba.x(), ba.all_intrinsics());
+        for i in (0..dobs.len()).step_by(97) {
+            let l = ba.linearise_depth(i, &cams, &x, &intr);
+            let f = dobs[i].frame;
+            let e0 = ba.eta[f];
+            let h = 1e-7;
+            let mut fd = [0.0; 6];
+            for (a, v) in fd.iter_mut().enumerate() {
+                ba.eta[f][a] = e0[a] + h;
+                let rp = ba.linearise_depth(i, &cams, &x, &intr).r;
+                ba.eta[f][a] = e0[a] - h;
+                let rm = ba.linearise_depth(i, &cams, &x, &intr).r;
+                ba.eta[f] = e0;
+                *v = (rp - rm) / (2.0 * h);
+            }
+            // Exact at a zero correction; at this one (|eta| ~ 2e-3 rad) the corners' and
+            // the depth rows' rotation about the recorded flange mixes the components by
+            // about |eta| / 2 of the largest.
+            let big = fd.iter().fold(1.0_f64, |m, v| m.max(v.abs()));
+            for (a, v) in fd.iter().enumerate() {
+                assert!(
+                    (v - l.jeta[a]).abs() < 5e-3 * big,
+                    "sample {i} eta {a}: {v} vs {}",
+                    l.jeta[a]
+                );
             }
         }
     }
@@ -982,22 +1426,34 @@ mod tests {
     }
 
     #[test]
-    fn realistic_noise_holds_over_seeds_and_beats_the_closed_form() {
-        // Robot noise is per axis (0.5 mm, 0.05 deg each), so single trials sit near the
-        // 1 mm / 0.05 deg limit now and then: check the distribution over seeds.
+    fn realistic_noise_every_camera_within_1mm_and_005deg_over_10_seeds() {
+        // Robot noise is per axis (0.5 mm, 0.05 deg each). With poses spread only in pose
+        // space (farthest-point) the predicted error is about 0.025 deg (RMS of the rotation
+        // error's norm) and about 1 camera in 150 lands above 0.05 deg (a ~3-sigma tail:
+        // the estimate is consistent, the information is short). Choosing the poses for
+        // what they tell about the cameras (`PoseSelection::Information`) and putting the
+        // depth samples into the adjustment (they pin the camera's position, which trades
+        // against its rotation in the corners alone) lower it to about 0.018 deg.
         let cfg = SimConfig::default_cell();
+        assert_eq!(cfg.selection, crate::simulate::PoseSelection::Information);
         let opts = SolveOptions {
             holdout_folds: 0,
             ..SolveOptions::default()
         };
-        let (mut ba_t, mut ba_r, mut cf_t, mut within) = (Vec::new(), Vec::new(), Vec::new(), 0);
-        for seed in 100..106 {
+        let (mut ba_t, mut ba_r, mut cf_t) = (Vec::new(), Vec::new(), Vec::new());
+        for seed in 100..110 {
             let (set, truth) = simulate_set(&cfg, seed).unwrap();
             let sol = solve(&set, &opts).unwrap();
             for c in &sol.cameras {
                 let t = truth.base_from_camera(c.id).unwrap();
                 let (dt, dr) = c.base_from_camera.error_to(&t);
-                within += usize::from(dt < 1e-3 && dr.to_degrees() < 0.05);
+                assert!(
+                    dt < 1e-3 && dr.to_degrees() < 0.05,
+                    "seed {seed} camera {}: {:.3} mm {:.4} deg",
+                    c.id,
+                    dt * 1e3,
+                    dr.to_degrees()
+                );
                 ba_t.push(dt);
                 ba_r.push(dr);
                 cf_t.push(c.closed_form.error_to(&t).0);
@@ -1007,12 +1463,85 @@ mod tests {
             v.sort_by(f64::total_cmp);
             v[v.len() / 2]
         };
-        let n = ba_t.len();
         let (mt, mr, mc) = (median(&mut ba_t), median(&mut ba_r), median(&mut cf_t));
-        eprintln!("median BA {:.3} mm {:.4} deg, closed form {:.3} mm; {within}/{n} within 1 mm / 0.05 deg", mt * 1e3, mr.to_degrees(), mc * 1e3);
+        eprintln!(
+            "median BA {:.3} mm {:.4} deg, closed form {:.3} mm",
+            mt * 1e3,
+            mr.to_degrees(),
+            mc * 1e3
+        );
         assert!(mt < 0.6e-3 && mr.to_degrees() < 0.035);
-        assert!(within * 10 >= n * 9, "{within}/{n}");
         assert!(mt < mc);
+    }
+
+    #[test]
+    fn refining_intrinsics_recovers_perturbed_cameras_and_depth_error() {
+        // True intrinsics 1 % / 3 px from the recorded factory ones, depth 1.002 z + 2 mm.
+        let mut cfg = SimConfig::default_cell();
+        cfg.camera_errors = crate::simulate::CameraErrors::typical();
+        let (set, truth) = simulate_set(&cfg, 31).unwrap();
+        let opts = SolveOptions {
+            holdout_folds: 0,
+            ..SolveOptions::default()
+        };
+        let off = solve(&set, &opts).unwrap();
+        let on = solve(
+            &set,
+            &SolveOptions {
+                refine_intrinsics: true,
+                ..opts
+            },
+        )
+        .unwrap();
+        let worst = |sol: &Solution| {
+            sol.errors_to(&truth)
+                .iter()
+                .fold((0.0, 0.0), |(t, r): (f64, f64), e| (t.max(e.1), r.max(e.2)))
+        };
+        let best_off = off
+            .errors_to(&truth)
+            .iter()
+            .fold((f64::MAX, f64::MAX), |(t, r), e| (t.min(e.1), r.min(e.2)));
+        let (on_t, on_r) = worst(&on);
+        eprintln!(
+            "refined: worst {:.3} mm {:.4} deg; fixed factory intrinsics: best {:.3} mm {:.4} deg",
+            on_t * 1e3,
+            on_r.to_degrees(),
+            best_off.0 * 1e3,
+            best_off.1.to_degrees()
+        );
+        // Refined: the goal, 1 mm / 0.05 deg; fixed wrong intrinsics: every camera several
+        // times worse than that.
+        assert!(on_t < 1e-3 && on_r.to_degrees() < 0.05);
+        assert!(
+            best_off.0 > 3.0 * on_t && best_off.1 > 3.0 * on_r,
+            "{best_off:?}"
+        );
+        let depth = truth.depth();
+        for c in &on.cameras {
+            let t = truth.intrinsics(c.id).unwrap();
+            let k = c.intrinsics;
+            let d = [k.fx - t.fx, k.fy - t.fy, k.ppx - t.ppx, k.ppy - t.ppy];
+            eprintln!(
+                "camera {}: intrinsics error {d:.3?} px (1-sigma {:.3?}); depth {:?}",
+                c.id,
+                c.intrinsics_sigma_px.unwrap(),
+                c.depth_correction
+            );
+            // fx, fy within 1 px (0.24 %, of a 4.25 px error), ppx, ppy within 0.6 px (of 3).
+            assert!(d[0].abs() < 1.0 && d[1].abs() < 1.0, "{d:?}");
+            assert!(d[2].abs() < 0.6 && d[3].abs() < 0.6, "{d:?}");
+            // Depth scale within 1e-3 (of a 2e-3 error), offset within 1 mm (of 2 mm).
+            let dc = c.depth_correction;
+            assert!((dc.scale - depth.scale).abs() < 1e-3, "{dc:?}");
+            assert!((dc.offset_m - depth.offset_m).abs() < 1e-3, "{dc:?}");
+            // After the correction the depth residual is the sensor noise (~2 mm at 1 m).
+            assert!(c.depth.unwrap().corrected_rms_mm < 2.5, "{:?}", c.depth);
+        }
+        for c in &off.cameras {
+            assert_eq!(c.intrinsics, set.session.camera(c.id).unwrap().intrinsics);
+            assert!(c.intrinsics_sigma_px.is_none());
+        }
     }
 
     #[test]

@@ -174,6 +174,7 @@ pub fn rig_calibration(rig: &[SimDepthCamera]) -> calibration::CellCalibration {
                 id: c.id,
                 intrinsics: c.intrinsics,
                 base_from_camera: c.base_from_camera,
+                depth_correction: calibration::DepthCorrection::default(),
             })
             .collect(),
     }

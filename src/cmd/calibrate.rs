@@ -45,6 +45,10 @@ pub enum CalibrateCommand {
         /// Noise model.
         #[arg(long, value_enum, default_value_t = NoiseChoice::Realistic)]
         noise: NoiseChoice,
+        /// Cameras unlike their recorded factory values: fx, fy 1 % and ppx, ppy 3 px off,
+        /// depth 1.002 z + 2 mm (solve with --refine-intrinsics to recover them).
+        #[arg(long)]
+        camera_errors: bool,
     },
     /// Move the arm through planned board poses and capture the board in every camera's IR
     /// image (the built-in simulated cell, or the real cell of --config; resumes an
@@ -81,6 +85,9 @@ pub enum CalibrateCommand {
         /// Print the report as JSON.
         #[arg(long)]
         json: bool,
+        /// Also solve each camera's fx, fy, ppx, ppy instead of trusting the factory values.
+        #[arg(long)]
+        refine_intrinsics: bool,
     },
 }
 
@@ -92,9 +99,13 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             seed,
             poses,
             noise,
+            camera_errors,
         } => {
             let mut cfg = SimConfig::default_cell();
             cfg.poses = poses;
+            if camera_errors {
+                cfg.camera_errors = calibration::simulate::CameraErrors::typical();
+            }
             match noise {
                 NoiseChoice::None => cfg.noise = SimNoise::none(),
                 NoiseChoice::Realistic => cfg.noise = SimNoise::realistic(),
@@ -179,6 +190,7 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             captures,
             out,
             json,
+            refine_intrinsics,
         } => {
             let set = calibration::capture::load_captures(&captures)?;
             eprintln!(
@@ -186,10 +198,22 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
                 set.captures.len(),
                 captures.display()
             );
-            let solution = solve(&set, &SolveOptions::default())?;
+            let opts = SolveOptions {
+                refine_intrinsics,
+                ..SolveOptions::default()
+            };
+            let solution = solve(&set, &opts)?;
             let mut report = solution.report();
             let truth = load_truth(&captures).ok();
-            if let Some(truth) = &truth {
+            let camera_errors = truth.as_ref().is_some_and(|t| {
+                t.config.camera_errors != calibration::simulate::CameraErrors::default()
+            });
+            if camera_errors {
+                eprintln!(
+                    "no overlap check or picture: the captures were simulated with camera \
+                     errors, which the simulated cell's rendered depth frames do not have"
+                );
+            } else if let Some(truth) = &truth {
                 // Simulated captures: render the simulated cell's cameras at their true poses
                 // and check and draw the calibrated clouds' overlap.
                 let picture = out.with_extension("overlay.png");
@@ -215,6 +239,22 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
                         "camera {id}: {:.3} mm, {:.4} deg from the simulated truth",
                         m * 1e3,
                         rad.to_degrees()
+                    );
+                }
+                let depth = truth.depth();
+                for c in &solution.cameras {
+                    let (Some(t), k) = (truth.intrinsics(c.id), c.intrinsics) else {
+                        continue;
+                    };
+                    eprintln!(
+                        "camera {}: intrinsics off the truth by fx {:+.2}, fy {:+.2}, ppx {:+.2}, ppy {:+.2} px; depth scale {:+.5}, offset {:+.2} mm",
+                        c.id,
+                        k.fx - t.fx,
+                        k.fy - t.fy,
+                        k.ppx - t.ppx,
+                        k.ppy - t.ppy,
+                        c.depth_correction.scale - depth.scale,
+                        (c.depth_correction.offset_m - depth.offset_m) * 1e3
                     );
                 }
             }
