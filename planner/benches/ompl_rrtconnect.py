@@ -6,8 +6,8 @@ The checker comes from the `planner_ffi` cdylib (libplanner_ffi.so, a C ABI over
 planner::checker::Checker) loaded with ctypes, so OMPL and our RRT-Connect query exactly the
 same robot spheres, the same world (exact primitives, or the distance field over the 1 cm
 surface cloud, built before timing starts) and the same motion check: OMPL's MotionValidator
-is replaced by one that calls the planner's `motion_free` (lever-bound spacing of 2 cm,
-bisection order), so edge checking has the same resolution on both sides. OMPL's sampled
+is replaced by one that calls the planner's `motion_free` (lever-bound spacing of the
+planner's search, 4 cm, bisection order), so edge checking has the same resolution on both sides. OMPL's sampled
 states are not checked on their own (RRTConnect only checks motions); start and goal are
 valid by construction of the problems.
 

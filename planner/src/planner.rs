@@ -113,7 +113,11 @@ impl Default for PlannerConfig {
     fn default() -> Self {
         Self {
             rrt: RrtParams::default(),
-            check_resolution: 0.02,
+            // The search's spacing is a speed setting, not the guarantee: the dense re-checks
+            // (1 cm, spheres and exact shapes) are, and a contact they find sends the search
+            // back at half the spacing. 4 cm halves the search's checks against 2 cm on the
+            // MBM problems (median 0.56 vs 0.91 ms on 140 of them) for a few more replans.
+            check_resolution: 0.04,
             validate_resolution: 0.01,
             goal_weights: [3.0, 3.0, 2.0, 1.0, 1.0, 1.0],
             closing_volume: ClosingVolume::default(),

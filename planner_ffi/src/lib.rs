@@ -2,8 +2,8 @@
 //! MotionBenchMaker problem, so that OMPL's RRTConnect (from Python, via ctypes) plans with
 //! exactly the checker our RRT-Connect uses: the same robot spheres, the same world (exact
 //! primitives or the 1 cm surface cloud's distance field) and the same motion check (lever
-//! bound, 2 cm search resolution, bisection order). `equact bench planner --ompl` drives it
-//! through `planner/benches/ompl_rrtconnect.py`.
+//! bound, the planner's search spacing, bisection order). `equact bench planner --ompl`
+//! drives it through `planner/benches/ompl_rrtconnect.py`.
 //!
 //! Protocol: `eqp_suite_open(path)` parses the problems file once; `eqp_problem_open(suite,
 //! scene, index, mode)` builds one problem's world (the cloud build is not part of any

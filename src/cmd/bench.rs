@@ -74,6 +74,10 @@ pub struct PlannerBenchArgs {
     /// RRT-Connect extension step (rad, max-norm); the planner's default when absent.
     #[arg(long)]
     pub range: Option<f64>,
+    /// Largest motion of any robot point between two checks during the search (m); the
+    /// planner's default when absent (the dense re-checks keep their own spacing).
+    #[arg(long)]
+    pub check_resolution: Option<f64>,
     /// Only the scenes whose name contains this.
     #[arg(long)]
     pub scene: Option<String>,
@@ -176,6 +180,9 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
     config.rrt.seed = a.seed;
     if let Some(r) = a.range {
         config.rrt.range = r;
+    }
+    if let Some(r) = a.check_resolution {
+        config.check_resolution = r;
     }
     // Thread CPU time: other processes on the machine do not inflate the stage times.
     config.clock = planner::StageClock::ThreadCpu;
