@@ -7,6 +7,7 @@
 //! accumulate in `f64`.
 
 use crate::error::{PolicyError, Result};
+use crate::matmul::{gemm_acc, Strided};
 use crate::so3::num_coefficients;
 use crate::weights::Scope;
 
@@ -136,69 +137,28 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
 const ROW_BLOCK: usize = 8;
 
 /// `y[r, :] += Σ_i x[r, i] · wt[i, :]` for every row r of `x` `[rows, inp]`, with `wt`
-/// `[inp, out]` and `y` `[rows, out]`, in f32, summing in input order. Dense inputs go
-/// through a register-tiled kernel (4 rows × 8 outputs held in registers over the whole
-/// input); mostly-zero inputs (the narrow field radial basis) through a kernel that skips
-/// the zeros.
-pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
+/// `[inp, out]` and `y` `[rows, out]`, in f32. Dense inputs go through one cache-blocked
+/// matrix product ([`crate::matmul::gemm_acc`]); mostly-zero inputs (the narrow field
+/// radial basis) through a kernel that skips the zeros.
+pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) -> Result<()> {
     if inp == 0 || out == 0 {
-        return;
+        return Ok(());
     }
+    let rows = rows_of("matrix product input", x.len(), inp)?;
     // Sparse or dense: judged on the first rows.
     let probe = &x[..x.len().min(4 * inp)];
     let zeros = probe.iter().filter(|v| **v == 0.0).count();
-    if 2 * zeros > probe.len() || out < 8 {
+    if 2 * zeros > probe.len() {
         axpy_rows_sparse(x, inp, wt, out, y);
-        return;
+        return Ok(());
     }
-    const R: usize = 4;
-    const T: usize = 8;
-    // Panels of 32 rows: the panel stays in L2 while each 8-column weight tile streams over
-    // it, so the weights are read once per 32 rows.
-    const P: usize = 32;
-    let tiles = out / T;
-    let mut pad = vec![0.0f32; R * inp];
-    for (xp, yp) in x.chunks(P * inp).zip(y.chunks_mut(P * out)) {
-        for tile in 0..tiles {
-            let o0 = tile * T;
-            for (xb, yb) in xp.chunks(R * inp).zip(yp.chunks_mut(R * out)) {
-                let rows = xb.len() / inp;
-                let xb: &[f32] = if rows == R {
-                    xb
-                } else {
-                    pad[..xb.len()].copy_from_slice(xb);
-                    pad[xb.len()..].iter_mut().for_each(|v| *v = 0.0);
-                    &pad
-                };
-                let mut acc = [[0.0f32; T]; R];
-                for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
-                    let w = &wrow[o0..o0 + T];
-                    for (r, a) in acc.iter_mut().enumerate() {
-                        let xi = xb[r * inp + i];
-                        for (al, wl) in a.iter_mut().zip(w) {
-                            *al += xi * wl;
-                        }
-                    }
-                }
-                for (r, a) in acc.iter().enumerate().take(rows) {
-                    for (yl, al) in yb[r * out + o0..r * out + o0 + T].iter_mut().zip(a) {
-                        *yl += al;
-                    }
-                }
-            }
-        }
-        // Remaining outputs (out not a multiple of 8).
-        let rows = xp.len() / inp;
-        for o in tiles * T..out {
-            for r in 0..rows {
-                let mut a = 0.0f32;
-                for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
-                    a += xp[r * inp + i] * wrow[o];
-                }
-                yp[r * out + o] += a;
-            }
-        }
-    }
+    gemm_acc(
+        Strided::row_major(x, 0, rows, inp),
+        Strided::row_major(wt, 0, inp, out),
+        y,
+        0,
+        out,
+    )
 }
 
 /// [`axpy_rows`] skipping zero inputs, rows in blocks of 8 so each weight row is read once
@@ -307,7 +267,7 @@ impl Linear {
                     yr.copy_from_slice(b);
                 }
             }
-            axpy_rows(x, self.inp, wt, self.out, &mut y);
+            axpy_rows(x, self.inp, wt, self.out, &mut y)?;
             return Ok(y);
         }
         for r in 0..rows {
@@ -386,20 +346,22 @@ fn per_degree_apply(
     let k = num_coefficients(lmax);
     let n = rows_of("SO3 linear input", x.len(), k * cin)?;
     let mut y = vec![0.0; n * k * cout];
-    for node in 0..n {
-        let xn = &x[node * k * cin..(node + 1) * k * cin];
-        let yn = &mut y[node * k * cout..(node + 1) * k * cout];
+    for yn in y.chunks_exact_mut(k * cout) {
         yn[..cout].copy_from_slice(bias);
-        for l in 0..=lmax {
-            let (a, b) = (l * l, (l + 1) * (l + 1));
-            axpy_rows(
-                &xn[a * cin..b * cin],
-                cin,
-                &wt[l * cin * cout..(l + 1) * cin * cout],
-                cout,
-                &mut yn[a * cout..b * cout],
-            );
-        }
+    }
+    // One product per coefficient row i over all nodes: x[:, i, :] · wt[degree(i)].
+    for i in 0..k {
+        let l = degree_of(i);
+        gemm_acc(
+            Strided {
+                row_stride: k * cin,
+                ..Strided::row_major(x, i * cin, n, cin)
+            },
+            Strided::row_major(wt, l * cin * cout, cin, cout),
+            &mut y,
+            i * cout,
+            k * cout,
+        )?;
     }
     Ok(y)
 }

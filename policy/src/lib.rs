@@ -24,8 +24,11 @@
 //!   instruction-embedding file;
 //! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`).
 //!
-//! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit),
-//! `safetensors` to read the reference's tensor files, `serde_json` for their sidecars.
+//! - [`matmul`]: the dense f32 matrix products the batched layers run on.
+//!
+//! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit) and,
+//! through its `gemm` on strided views, `matrixmultiply`'s cache-blocked sgemm for the large
+//! batched products (run-time AVX2/FMA/AVX-512 kernels, single-threaded); `safetensors` to read the reference's tensor files, `serde_json` for their sidecars.
 
 pub mod attention;
 pub mod error;
@@ -35,6 +38,7 @@ pub mod heads;
 pub mod init;
 pub mod language;
 pub mod layers;
+pub mod matmul;
 pub mod model;
 pub mod points;
 pub mod predict;
