@@ -356,7 +356,7 @@ impl GraphAttention {
 }
 
 /// Edges per chunk of the attention (whole destination groups are never split).
-const EDGE_CHUNK: usize = 4096;
+const EDGE_CHUNK: usize = 512;
 
 /// Ranges of about `chunk` edges that end at destination changes; one range over all edges
 /// when the edges are not grouped by destination.

@@ -28,6 +28,9 @@ pub const TRANS_RADIUS_NEIGHBOURS: usize = 200;
 pub const TRANS_KNN: usize = 100;
 /// Radius neighbours kept per rotation query.
 pub const ROT_MAX_NEIGHBOURS: usize = 10000;
+/// Translation queries evaluated together (their edges never interact: the softmax is per
+/// query).
+pub const TRANS_QUERY_BATCH: usize = 4;
 /// Degree of the translation field.
 pub const TRANS_LMAX: usize = 1;
 /// Degree of the rotation field.
@@ -214,13 +217,19 @@ impl FieldHeads {
                 x.extend_from_slice(&node_emb[base..base + c]);
             }
         }
-        let (src, dst) = Self::trans_edges(node_pos, queries)?;
-        let edges = EdgeSet::new(
-            &self.calc, TRANS_LMAX, node_pos, queries, src, dst, &self.rbf,
-        )?;
-        let zeros = vec![0.0f32; queries.len() * k * c];
-        let y = self.trans.forward(&x, &zeros, &edges)?;
-        Ok((0..queries.len()).map(|q| y[q * k * c]).collect())
+        // Queries in small batches: each batch's edge set (300 edges per query, 1024 radial
+        // basis values per edge) stays in cache instead of hundreds of MB per level.
+        let zeros = vec![0.0f32; TRANS_QUERY_BATCH * k * c];
+        let mut logits = Vec::with_capacity(queries.len());
+        for batch in queries.chunks(TRANS_QUERY_BATCH) {
+            let (src, dst) = Self::trans_edges(node_pos, batch)?;
+            let edges = EdgeSet::new(&self.calc, TRANS_LMAX, node_pos, batch, src, dst, &self.rbf)?;
+            let y = self
+                .trans
+                .forward(&x, &zeros[..batch.len() * k * c], &edges)?;
+            logits.extend((0..batch.len()).map(|q| y[q * k * c]));
+        }
+        Ok(logits)
     }
 
     /// The rotation query at one point: open logit and rotation logits.

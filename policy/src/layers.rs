@@ -504,6 +504,10 @@ pub struct GaussianRbf {
     std: Vec<f32>,
     weight: Vec<f32>,
     normalizer: f32,
+    /// Basis indices sorted by mean, and those means: the bases a distance can reach.
+    by_mean: Vec<(f32, usize)>,
+    /// Largest |u − mean| with a non-zero value, √210 · max std (infinite: evaluate all).
+    reach: f32,
 }
 
 impl GaussianRbf {
@@ -512,7 +516,7 @@ impl GaussianRbf {
         let shape = s.shape("mean", 2)?;
         let k = shape[1];
         let mean = s.f32("mean", &[1, k])?;
-        let std = s
+        let std: Vec<f32> = s
             .f32("std_logit", &[1, k])?
             .into_iter()
             .map(|v| softplus(v) + 1e-5)
@@ -523,6 +527,10 @@ impl GaussianRbf {
             .map(|v| sigmoid(v) * 4.0)
             .collect();
         let offset = 0.01 * cutoff;
+        let max_std = std.iter().copied().fold(0.0f32, f32::max);
+        let mut by_mean: Vec<(f32, usize)> = mean.iter().copied().zip(0..).collect();
+        by_mean.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let finite = mean.iter().chain(&std).all(|v| v.is_finite());
         Ok(Self {
             num_basis: k,
             offset: offset as f32,
@@ -531,6 +539,13 @@ impl GaussianRbf {
             std,
             weight,
             normalizer: (k as f64).sqrt() as f32,
+            by_mean,
+            // A little margin over √210 so rounding in z never hides a non-zero basis.
+            reach: if finite {
+                (210.0f32.sqrt() * 1.01) * max_std
+            } else {
+                f32::INFINITY
+            },
         })
     }
 
@@ -551,20 +566,32 @@ impl GaussianRbf {
             };
             1.0 - step
         };
-        // z² for every basis first (vectorised), then the exponentials that do not
-        // underflow: exp(−105) is below the smallest f32, so skipping those is exact (and
-        // keeps the narrow field-head bases sparse).
+        // Only the bases whose mean lies within `reach` of u can exceed exp(−105), which is
+        // below the smallest f32; all others are exactly 0 (the narrow field-head bases are
+        // sparse, so this skips most of them).
         let out = &mut out[..self.num_basis];
-        for ((o, m), sd) in out.iter_mut().zip(&self.mean).zip(&self.std) {
-            let z = (u - m) / sd;
-            *o = z * z;
+        if !(self.reach.is_finite() && u.is_finite()) {
+            for (i, o) in out.iter_mut().enumerate() {
+                *o = self.value(i, u, env);
+            }
+            return;
         }
-        for (o, w) in out.iter_mut().zip(&self.weight) {
-            *o = if *o > 210.0 {
-                0.0
-            } else {
-                w * (-0.5 * *o).exp() * env * self.normalizer
-            };
+        out.iter_mut().for_each(|o| *o = 0.0);
+        let lo = self.by_mean.partition_point(|(m, _)| *m < u - self.reach);
+        let hi = self.by_mean.partition_point(|(m, _)| *m <= u + self.reach);
+        for &(_, i) in &self.by_mean[lo..hi] {
+            out[i] = self.value(i, u, env);
+        }
+    }
+
+    /// Basis `i` at normalised distance `u` with envelope `env`.
+    fn value(&self, i: usize, u: f32, env: f32) -> f32 {
+        let z = (u - self.mean[i]) / self.std[i];
+        let z2 = z * z;
+        if z2 > 210.0 {
+            0.0
+        } else {
+            self.weight[i] * (-0.5 * z2).exp() * env * self.normalizer
         }
     }
 
