@@ -6,6 +6,7 @@
 //! built from their closed forms (they agree with the reference's tables to 6e-8).
 
 use crate::error::{PolicyError, Result};
+use crate::matmul::{gemm_acc, Strided};
 use crate::so3::{angles_to_matrix, angles_to_xyz, spherical_harmonics_unit_into, MAX_DEGREE};
 use nalgebra::Matrix3;
 
@@ -137,46 +138,65 @@ impl S2Grid {
         self.lat * self.long
     }
 
-    /// `grid[z, p, c] = sum_i to_grid[p, i] x[z, i, c]` for x of shape [n, n_reduced, c]
-    /// (f32, vectorised over channels).
+    /// `grid[z, p, c] = sum_i to_grid[p, i] x[z, i, c]` for x of shape [n, n_reduced, c].
     pub fn to_grid_values(&self, x: &[f32], n: usize, c: usize) -> Result<Vec<f32>> {
         let nr = self.reduced.len();
         check_len("S2 grid input", x.len(), &[n, nr, c])?;
-        let np = self.num_points();
-        let mut out = vec![0.0f32; n * np * c];
-        for (xz, oz) in x.chunks_exact(nr * c).zip(out.chunks_exact_mut(np * c)) {
-            for (o, t) in oz.chunks_exact_mut(c).zip(self.to_grid32.chunks_exact(nr)) {
-                for (w, xi) in t.iter().zip(xz.chunks_exact(c)) {
-                    for (oc, xc) in o.iter_mut().zip(xi) {
-                        *oc += w * xc;
-                    }
-                }
-            }
-        }
-        Ok(out)
+        let grid = self.to_grid_columns(&swap_outer(x, n, nr, c), n * c)?;
+        Ok(swap_outer(&grid, self.num_points(), n, c))
+    }
+
+    /// The to-grid product on coefficient-major values `[n_reduced, cols]`: `[points, cols]`.
+    fn to_grid_columns(&self, xt: &[f32], cols: usize) -> Result<Vec<f32>> {
+        let (np, nr) = (self.num_points(), self.reduced.len());
+        let mut grid = vec![0.0f32; np * cols];
+        gemm_acc(
+            Strided::row_major(&self.to_grid32, 0, np, nr),
+            Strided::row_major(xt, 0, nr, cols),
+            &mut grid,
+            0,
+            cols,
+        )?;
+        Ok(grid)
     }
 
     /// The S2 activation of the reference: from_grid(SiLU(to_grid(x))), x of shape [n, n_reduced, c].
+    ///
+    /// Runs as two matrix products over all nodes and channels at once: the values are
+    /// reordered coefficient-major (`[n_reduced, n·c]`), taken to the grid, activated, and
+    /// brought back with the transposed from-grid matrix.
     pub fn activate(&self, x: &[f32], n: usize, c: usize) -> Result<Vec<f32>> {
         let nr = self.reduced.len();
-        let mut grid = self.to_grid_values(x, n, c)?;
+        check_len("S2 activation input", x.len(), &[n, nr, c])?;
+        let cols = n * c;
+        let mut grid = self.to_grid_columns(&swap_outer(x, n, nr, c), cols)?;
         // SiLU once per grid value, then spread over the coefficients.
         for g in &mut grid {
             *g = *g / (1.0 + (-*g).exp());
         }
         let np = self.num_points();
-        let mut out = vec![0.0f32; n * nr * c];
-        for (gz, oz) in grid.chunks_exact(np * c).zip(out.chunks_exact_mut(nr * c)) {
-            for (a, f) in gz.chunks_exact(c).zip(self.from_grid32.chunks_exact(nr)) {
-                for (w, o) in f.iter().zip(oz.chunks_exact_mut(c)) {
-                    for (oc, ac) in o.iter_mut().zip(a) {
-                        *oc += w * ac;
-                    }
-                }
-            }
-        }
-        Ok(out)
+        let mut out = vec![0.0f32; nr * cols];
+        gemm_acc(
+            Strided::row_major(&self.from_grid32, 0, np, nr).t(),
+            Strided::row_major(&grid, 0, np, cols),
+            &mut out,
+            0,
+            cols,
+        )?;
+        Ok(swap_outer(&out, nr, n, c))
     }
+}
+
+/// Swaps the two outer axes of `[a, b, c]` values: `[b, a, c]`.
+fn swap_outer(x: &[f32], a: usize, b: usize, c: usize) -> Vec<f32> {
+    let mut y = vec![0.0f32; x.len()];
+    for i in 0..a {
+        for j in 0..b {
+            y[(j * a + i) * c..(j * a + i + 1) * c]
+                .copy_from_slice(&x[(i * b + j) * c..(i * b + j + 1) * c]);
+        }
+    }
+    y
 }
 
 /// SiLU x·σ(x).

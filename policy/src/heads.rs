@@ -113,11 +113,12 @@ impl FieldHeads {
             value_channels: cfg.value_channels,
             output_channels: c,
         };
-        let trans = GraphAttention::load_with_grid(
+        let mut trans = GraphAttention::load_with_grid(
             &s.sub("trans_field_layer").sub("0"),
             attn(TRANS_LMAX, TRANS_LMAX),
             res.grid(TRANS_LMAX, TRANS_LMAX)?,
         )?;
+        trans.prepare_zero_destinations()?;
         let rot = TransBlock::load_with_grids(
             &s.sub("rot_field_layer").sub("0"),
             TransBlockConfig {
@@ -219,14 +220,13 @@ impl FieldHeads {
         }
         // Queries in small batches: each batch's edge set (300 edges per query, 1024 radial
         // basis values per edge) stays in cache instead of hundreds of MB per level.
-        let zeros = vec![0.0f32; TRANS_QUERY_BATCH * k * c];
         let mut logits = Vec::with_capacity(queries.len());
         for batch in queries.chunks(TRANS_QUERY_BATCH) {
             let (src, dst) = Self::trans_edges(node_pos, batch)?;
             let edges = EdgeSet::new(&self.calc, TRANS_LMAX, node_pos, batch, src, dst, &self.rbf)?;
             let y = self
                 .trans
-                .forward(&x, &zeros[..batch.len() * k * c], &edges)?;
+                .forward_zero_destinations(&x, batch.len(), &edges)?;
             logits.extend((0..batch.len()).map(|q| y[q * k * c]));
         }
         Ok(logits)

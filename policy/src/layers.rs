@@ -133,9 +133,6 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     s as f32
 }
 
-/// Rows processed together by the sparse path of [`axpy_rows`].
-const ROW_BLOCK: usize = 8;
-
 /// `y[r, :] += Σ_i x[r, i] · wt[i, :]` for every row r of `x` `[rows, inp]`, with `wt`
 /// `[inp, out]` and `y` `[rows, out]`, in f32. Dense inputs go through one cache-blocked
 /// matrix product ([`crate::matmul::gemm_acc`]); mostly-zero inputs (the narrow field
@@ -161,17 +158,21 @@ pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) -
     )
 }
 
-/// [`axpy_rows`] skipping zero inputs, rows in blocks of 8 so each weight row is read once
-/// per block.
+/// [`axpy_rows`] skipping zero inputs: each row is scanned in blocks of 16 values, blocks of
+/// zeros are passed over, and every non-zero input adds its weight row.
 fn axpy_rows_sparse(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
-    for (xb, yb) in x.chunks(ROW_BLOCK * inp).zip(y.chunks_mut(ROW_BLOCK * out)) {
-        for (i, w) in wt.chunks_exact(out).enumerate().take(inp) {
-            for (xr, yr) in xb.chunks_exact(inp).zip(yb.chunks_exact_mut(out)) {
-                let xi = xr[i];
+    const BLOCK: usize = 16;
+    for (xr, yr) in x.chunks_exact(inp).zip(y.chunks_exact_mut(out)) {
+        for (bi, xb) in xr.chunks(BLOCK).enumerate() {
+            if xb.iter().all(|v| *v == 0.0) {
+                continue;
+            }
+            for (j, &xi) in xb.iter().enumerate() {
                 if xi == 0.0 {
                     continue;
                 }
-                for (a, b) in yr.iter_mut().zip(w) {
+                let i = bi * BLOCK + j;
+                for (a, b) in yr.iter_mut().zip(&wt[i * out..(i + 1) * out]) {
                     *a += xi * b;
                 }
             }
@@ -237,6 +238,42 @@ impl Linear {
             check_len("linear bias", b.len(), &[out])?;
         }
         Ok(Self::new(inp, out, w, b))
+    }
+
+    /// The layer restricted to the inputs `keep` (the others taken as always zero).
+    pub fn select_inputs(&self, keep: &[usize]) -> Result<Self> {
+        if let Some(&bad) = keep.iter().find(|&&i| i >= self.inp) {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "linear input to keep".into(),
+                value: bad as i64,
+                len: self.inp,
+            });
+        }
+        let w = (0..self.out)
+            .flat_map(|o| keep.iter().map(move |&i| (o, i)))
+            .map(|(o, i)| self.w[o * self.inp + i])
+            .collect();
+        Ok(Self::new(keep.len(), self.out, w, self.b.clone()))
+    }
+
+    /// The layer restricted to the outputs `keep`.
+    pub fn select_outputs(&self, keep: &[usize]) -> Result<Self> {
+        if let Some(&bad) = keep.iter().find(|&&o| o >= self.out) {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "linear output to keep".into(),
+                value: bad as i64,
+                len: self.out,
+            });
+        }
+        let w = keep
+            .iter()
+            .flat_map(|&o| self.w[o * self.inp..(o + 1) * self.inp].iter().copied())
+            .collect();
+        let b = self
+            .b
+            .as_ref()
+            .map(|b| keep.iter().map(|&o| b[o]).collect());
+        Ok(Self::new(self.inp, keep.len(), w, b))
     }
 
     /// Applies the layer to one row.
@@ -649,6 +686,14 @@ impl RadialMlp {
     /// Output width.
     pub fn out(&self) -> usize {
         self.last.out
+    }
+
+    /// The MLP with only the outputs `keep`.
+    pub fn select_outputs(&self, keep: &[usize]) -> Result<Self> {
+        Ok(Self {
+            hidden: self.hidden.clone(),
+            last: self.last.select_outputs(keep)?,
+        })
     }
 
     /// Applies the MLP to every row of `x`.

@@ -83,8 +83,15 @@ fn small_gemm_acc(a: &Strided<'_>, b: &Strided<'_>, c: &mut [f32], c_offset: usi
         for i in 0..a.cols {
             let x = a.data[a.offset + r * a.row_stride + i * a.col_stride];
             let bi = b.offset + i * b.row_stride;
-            for (j, y) in row.iter_mut().enumerate() {
-                *y += x * b.data[bi + j * b.col_stride];
+            if b.col_stride == 1 {
+                // Contiguous rows of b: a vectorisable axpy.
+                for (y, bv) in row.iter_mut().zip(&b.data[bi..bi + b.cols]) {
+                    *y += x * bv;
+                }
+            } else {
+                for (j, y) in row.iter_mut().enumerate() {
+                    *y += x * b.data[bi + j * b.col_stride];
+                }
             }
         }
     }

@@ -245,6 +245,49 @@ impl So2Conv {
         })
     }
 
+    /// The convolution for inputs whose channels from `keep` on are always zero (the
+    /// attention's messages onto all-zero destination features): those input channels and
+    /// their radial weights are dropped, so the products are half as wide. Same outputs.
+    pub fn first_channels(&self, keep: usize) -> Result<Self> {
+        if keep == 0 || keep > self.cin {
+            return Err(PolicyError::ShapeMismatch {
+                name: "SO(2) convolution channels to keep".into(),
+                expected: vec![self.cin],
+                got: vec![keep],
+            });
+        }
+        // Inputs of an m block are [degrees, cin]; keep channel < `keep` of every degree.
+        let cols = |degrees: usize| -> Vec<usize> {
+            (0..degrees)
+                .flat_map(|l| (0..keep).map(move |ch| l * self.cin + ch))
+                .collect()
+        };
+        let l1 = self.map.lmax + 1;
+        let fc_m0 = self.fc_m0.select_inputs(&cols(l1))?;
+        let mut rad_keep = cols(l1);
+        let mut offset = l1 * self.cin;
+        let mut fc_m = Vec::with_capacity(self.fc_m.len());
+        for (mi, fc) in self.fc_m.iter().enumerate() {
+            let nl = l1 - (mi + 1);
+            fc_m.push(fc.select_inputs(&cols(nl))?);
+            rad_keep.extend(cols(nl).into_iter().map(|i| i + offset));
+            offset += nl * self.cin;
+        }
+        let rad = match &self.rad {
+            Some(r) => Some(r.select_outputs(&rad_keep)?),
+            None => None,
+        };
+        Ok(Self {
+            map: self.map.clone(),
+            cin: keep,
+            cout: self.cout,
+            extra: self.extra,
+            fc_m0,
+            fc_m,
+            rad,
+        })
+    }
+
     /// Input width of the radial MLP (0 without one).
     pub fn edge_features(&self) -> usize {
         self.rad.as_ref().map_or(0, RadialMlp::inp)
