@@ -80,6 +80,8 @@ pub struct FieldHeads {
     rot: TransBlock,
     rot_head: RotationHead,
     calc: WignerCalculator,
+    /// Wigner matrices of the translation field's degree (its edge frames).
+    trans_calc: WignerCalculator,
     grid: Vec<GridRotation>,
     grid_wigners: Vec<Vec<f64>>,
 }
@@ -149,6 +151,7 @@ impl FieldHeads {
             rot,
             rot_head,
             calc,
+            trans_calc: WignerCalculator::new(TRANS_LMAX)?,
             grid,
             grid_wigners,
         })
@@ -223,7 +226,15 @@ impl FieldHeads {
         let mut logits = Vec::with_capacity(queries.len());
         for batch in queries.chunks(TRANS_QUERY_BATCH) {
             let (src, dst) = Self::trans_edges(node_pos, batch)?;
-            let edges = EdgeSet::new(&self.calc, TRANS_LMAX, node_pos, batch, src, dst, &self.rbf)?;
+            let edges = EdgeSet::new(
+                &self.trans_calc,
+                TRANS_LMAX,
+                node_pos,
+                batch,
+                src,
+                dst,
+                &self.rbf,
+            )?;
             let y = self
                 .trans
                 .forward_zero_destinations(&x, batch.len(), &edges)?;

@@ -103,13 +103,19 @@ impl EdgeWigners {
     /// D of the reference's edge frame (`init_edge_rot_mat2`) of each edge vector.
     pub fn new(calc: &WignerCalculator, lmax: usize, edge_vec: &[[f32; 3]]) -> Result<Self> {
         let k = num_coefficients(lmax);
-        let mut d = Vec::with_capacity(edge_vec.len() * k * k);
-        for v in edge_vec {
+        let mut d = vec![0.0f32; edge_vec.len() * k * k];
+        let mut sh = Vec::new();
+        for (v, de) in edge_vec.iter().zip(d.chunks_exact_mut(k * k)) {
             let r = edge_rot_mat([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])])?;
-            let w = calc.wigner(lmax, &r)?;
-            for i in 0..k {
-                for j in 0..k {
-                    d.push(w[(i, j)] as f32);
+            if lmax == calc.lmax() {
+                calc.wigner_all_into(&r, &mut sh, de);
+            } else {
+                // A calculator built for a higher degree: per-degree blocks.
+                let w = calc.wigner(lmax, &r)?;
+                for (i, row) in de.chunks_exact_mut(k).enumerate() {
+                    for (j, x) in row.iter_mut().enumerate() {
+                        *x = w[(i, j)] as f32;
+                    }
                 }
             }
         }
