@@ -10,8 +10,8 @@
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
 use crate::layers::{
-    check_len, rows_of, separable_s2_activation, smooth_leaky_relu, GaussianRbf, LayerNorm,
-    So3Linear,
+    check_len, rows_of, separable_s2_activation, smooth_leaky_relu, EdgeFeatures, EdgeFeaturesRef,
+    GaussianRbf, LayerNorm, So3Linear,
 };
 use crate::so2_conv::{CoefficientMapping, EdgeWigners, So2Conv};
 use crate::so3::{num_coefficients, WignerCalculator};
@@ -31,7 +31,7 @@ pub struct EdgeSet {
     /// Wigner matrices of the edge frames.
     pub wigners: EdgeWigners,
     /// Invariant edge features (radial basis of the length), `[E, num_basis]`.
-    pub attr: Vec<f32>,
+    pub attr: EdgeFeatures,
 }
 
 /// Euclidean length of each edge vector.
@@ -72,7 +72,7 @@ impl EdgeSet {
             vec.push([ps[0] - pd[0], ps[1] - pd[1], ps[2] - pd[2]]);
         }
         let dist = edge_lengths(&vec);
-        let attr = rbf.forward(&dist);
+        let attr = rbf.features(&dist);
         Self::assemble(calc, lmax, src, dst, vec, dist, attr)
     }
 
@@ -89,6 +89,7 @@ impl EdgeSet {
         check_len("edge_dst", dst.len(), &[e])?;
         check_len("edge_vec", vec.len(), &[e])?;
         let dist = edge_lengths(&vec);
+        let attr = EdgeFeatures::dense(attr, e)?;
         Self::assemble(calc, lmax, src, dst, vec, dist, attr)
     }
 
@@ -100,8 +101,15 @@ impl EdgeSet {
         dst: Vec<usize>,
         vec: Vec<[f32; 3]>,
         dist: Vec<f32>,
-        attr: Vec<f32>,
+        attr: EdgeFeatures,
     ) -> Result<Self> {
+        if attr.rows() != src.len() {
+            return Err(PolicyError::ShapeMismatch {
+                name: "edge_attr".into(),
+                expected: vec![src.len(), attr.cols()],
+                got: vec![attr.rows(), attr.cols()],
+            });
+        }
         let wigners = EdgeWigners::new(calc, lmax, &vec)?;
         Ok(Self {
             src,
@@ -279,7 +287,6 @@ impl GraphAttention {
         let k = num_coefficients(cfg.lmax);
         let c = cfg.sphere_channels;
         let ns = rows_of("attention source features", x_src.len(), k * c)?;
-        let ne = edges.len();
         if edges.wigners.lmax != cfg.lmax {
             return Err(PolicyError::UnsupportedDegree {
                 lmax: edges.wigners.lmax,
@@ -289,7 +296,6 @@ impl GraphAttention {
         }
         let row = k * cfg.num_heads * cfg.value_channels;
         let mut agg = vec![0.0f32; nd * row];
-        let nb = edges.attr.len().checked_div(ne).unwrap_or(0);
         // Whole destination groups at a time keep the buffers small; the softmax is per
         // destination, so this is exact.
         for r in destination_chunks(&edges.dst, EDGE_CHUNK) {
@@ -300,7 +306,7 @@ impl GraphAttention {
                 (ns, nd),
                 (&edges.src[r.clone()], &edges.dst[r.clone()]),
                 &wig,
-                &edges.attr[r.start * nb..r.end * nb],
+                edges.attr.slice(r.clone()),
                 &mut agg,
             )?;
         }
@@ -317,7 +323,7 @@ impl GraphAttention {
         (ns, nd): (usize, usize),
         (src, dst): (&[usize], &[usize]),
         wigners: &EdgeWigners,
-        attr: &[f32],
+        attr: EdgeFeaturesRef<'_>,
         agg: &mut [f32],
     ) -> Result<()> {
         let cfg = &self.cfg;
@@ -354,7 +360,7 @@ impl GraphAttention {
         }
         let x_rot = wigners.rotate(&self.map, &msg, mc)?;
         drop(msg);
-        let (h, extra) = conv1.forward(&x_rot, Some(attr))?;
+        let (h, extra) = conv1.forward_features(&x_rot, Some(attr))?;
         let n_alpha = cfg.num_heads * cfg.alpha_channels;
         let n_extra = n_alpha + cfg.hidden_channels;
         let mut alpha_in = Vec::with_capacity(ne * n_alpha);

@@ -276,6 +276,54 @@ impl Linear {
         Ok(Self::new(self.inp, keep.len(), w, b))
     }
 
+    /// Applies the layer to compressed rows of `cols` inputs (row r: entries
+    /// `ptr[r]..ptr[r + 1]` of `idx`, `val`).
+    pub fn forward_sparse(
+        &self,
+        cols: usize,
+        ptr: &[usize],
+        idx: &[u32],
+        val: &[f32],
+    ) -> Result<Vec<f32>> {
+        let bad = |got: usize| PolicyError::ShapeMismatch {
+            name: "sparse linear input".into(),
+            expected: vec![self.inp],
+            got: vec![got],
+        };
+        if cols != self.inp {
+            return Err(bad(cols));
+        }
+        let rows = ptr.len().saturating_sub(1);
+        let mut y = vec![0.0f32; rows * self.out];
+        for (w, yr) in ptr.windows(2).zip(y.chunks_exact_mut(self.out)) {
+            if let Some(b) = &self.b {
+                yr.copy_from_slice(b);
+            }
+            let (Some(ix), Some(vs)) = (idx.get(w[0]..w[1]), val.get(w[0]..w[1])) else {
+                return Err(bad(w[1]));
+            };
+            for (&i, &v) in ix.iter().zip(vs) {
+                let i = i as usize;
+                if i >= self.inp {
+                    return Err(bad(i));
+                }
+                match &self.wt {
+                    Some(wt) => {
+                        for (a, b) in yr.iter_mut().zip(&wt[i * self.out..(i + 1) * self.out]) {
+                            *a += v * b;
+                        }
+                    }
+                    None => {
+                        for (o, a) in yr.iter_mut().enumerate() {
+                            *a += v * self.w[o * self.inp + i];
+                        }
+                    }
+                }
+            }
+        }
+        Ok(y)
+    }
+
     /// Applies the layer to one row.
     pub fn forward_row(&self, x: &[f32], y: &mut [f32]) {
         for (o, yo) in y.iter_mut().enumerate().take(self.out) {
@@ -632,6 +680,39 @@ impl GaussianRbf {
         }
     }
 
+    /// The basis values of every distance as [`EdgeFeatures`]: compressed rows when the
+    /// bases are narrow (at most a quarter of them reach any one distance), else dense.
+    pub fn features(&self, d: &[f32]) -> EdgeFeatures {
+        let window = self
+            .by_mean
+            .partition_point(|(m, _)| *m <= self.by_mean[0].0 + 2.0 * self.reach);
+        if !self.reach.is_finite() || 4 * window > self.num_basis || self.num_basis == 0 {
+            return EdgeFeatures::Dense {
+                cols: self.num_basis,
+                values: self.forward(d),
+            };
+        }
+        let mut row = vec![0.0f32; self.num_basis];
+        let (mut ptr, mut idx, mut val) = (vec![0], Vec::new(), Vec::new());
+        for &di in d {
+            self.eval_into(di, &mut row);
+            for (i, v) in row.iter_mut().enumerate() {
+                if *v != 0.0 {
+                    idx.push(i as u32);
+                    val.push(*v);
+                    *v = 0.0;
+                }
+            }
+            ptr.push(idx.len());
+        }
+        EdgeFeatures::Sparse {
+            cols: self.num_basis,
+            ptr,
+            idx,
+            val,
+        }
+    }
+
     /// The basis values of every distance, `[n, num_basis]`.
     pub fn forward(&self, d: &[f32]) -> Vec<f32> {
         let mut y = vec![0.0; d.len() * self.num_basis];
@@ -639,6 +720,138 @@ impl GaussianRbf {
             self.eval_into(di, &mut y[i * self.num_basis..(i + 1) * self.num_basis]);
         }
         y
+    }
+}
+
+/// Rows of invariant edge features (radial basis values), dense or in compressed rows.
+#[derive(Debug, Clone, PartialEq)]
+pub enum EdgeFeatures {
+    /// Row-major `[rows, cols]`.
+    Dense {
+        /// Values per row.
+        cols: usize,
+        /// The values.
+        values: Vec<f32>,
+    },
+    /// Only the non-zero values of each row (the narrow field-head bases).
+    Sparse {
+        /// Values per row (zeros included).
+        cols: usize,
+        /// Row r's entries are `ptr[r]..ptr[r + 1]` of `idx` and `val` (rows + 1 offsets).
+        ptr: Vec<usize>,
+        /// Column of each entry.
+        idx: Vec<u32>,
+        /// Value of each entry.
+        val: Vec<f32>,
+    },
+}
+
+/// A borrowed range of rows of [`EdgeFeatures`].
+#[derive(Debug, Clone, Copy)]
+pub enum EdgeFeaturesRef<'a> {
+    /// Row-major `[rows, cols]`.
+    Dense {
+        /// Values per row.
+        cols: usize,
+        /// The values of the rows.
+        values: &'a [f32],
+    },
+    /// Compressed rows: `ptr` holds rows + 1 offsets into `idx` and `val`.
+    Sparse {
+        /// Values per row (zeros included).
+        cols: usize,
+        /// Offsets of the rows' entries.
+        ptr: &'a [usize],
+        /// Columns of all entries.
+        idx: &'a [u32],
+        /// Values of all entries.
+        val: &'a [f32],
+    },
+}
+
+impl EdgeFeatures {
+    /// Dense features of `rows` rows (an error if the length does not split evenly).
+    pub fn dense(values: Vec<f32>, rows: usize) -> Result<Self> {
+        let cols = if rows == 0 {
+            0
+        } else {
+            rows_of("edge features", values.len(), rows)?
+        };
+        Ok(Self::Dense { cols, values })
+    }
+
+    /// Number of rows.
+    pub fn rows(&self) -> usize {
+        match self {
+            Self::Dense { cols, values } => values.len().checked_div(*cols).unwrap_or(0),
+            Self::Sparse { ptr, .. } => ptr.len().saturating_sub(1),
+        }
+    }
+
+    /// Values per row.
+    pub fn cols(&self) -> usize {
+        match self {
+            Self::Dense { cols, .. } | Self::Sparse { cols, .. } => *cols,
+        }
+    }
+
+    /// The rows in `range`.
+    pub fn slice(&self, range: std::ops::Range<usize>) -> EdgeFeaturesRef<'_> {
+        match self {
+            Self::Dense { cols, values } => EdgeFeaturesRef::Dense {
+                cols: *cols,
+                values: &values[range.start * cols..range.end * cols],
+            },
+            Self::Sparse {
+                cols,
+                ptr,
+                idx,
+                val,
+            } => EdgeFeaturesRef::Sparse {
+                cols: *cols,
+                ptr: &ptr[range.start..=range.end],
+                idx,
+                val,
+            },
+        }
+    }
+
+    /// All rows as dense row-major values.
+    pub fn to_dense(&self) -> Vec<f32> {
+        match self {
+            Self::Dense { values, .. } => values.clone(),
+            Self::Sparse {
+                cols,
+                ptr,
+                idx,
+                val,
+            } => {
+                let mut out = vec![0.0f32; self.rows() * cols];
+                for (r, w) in ptr.windows(2).enumerate() {
+                    for e in w[0]..w[1] {
+                        out[r * cols + idx[e] as usize] = val[e];
+                    }
+                }
+                out
+            }
+        }
+    }
+}
+
+impl EdgeFeaturesRef<'_> {
+    /// Number of rows.
+    pub fn rows(&self) -> usize {
+        match self {
+            Self::Dense { cols, values } => values.len().checked_div(*cols).unwrap_or(0),
+            Self::Sparse { ptr, .. } => ptr.len().saturating_sub(1),
+        }
+    }
+
+    /// Values per row.
+    pub fn cols(&self) -> usize {
+        match self {
+            Self::Dense { cols, .. } | Self::Sparse { cols, .. } => *cols,
+        }
     }
 }
 
@@ -694,6 +907,35 @@ impl RadialMlp {
             hidden: self.hidden.clone(),
             last: self.last.select_outputs(keep)?,
         })
+    }
+
+    /// Applies the MLP to every row of `x`, dense or compressed (the first layer then adds
+    /// one weight column per non-zero input).
+    pub fn forward_features(&self, x: EdgeFeaturesRef<'_>) -> Result<Vec<f32>> {
+        let (ptr, idx, val) = match x {
+            EdgeFeaturesRef::Dense { values, .. } => return self.forward(values),
+            EdgeFeaturesRef::Sparse { ptr, idx, val, .. } => (ptr, idx, val),
+        };
+        let (first, ln) = match self.hidden.first() {
+            Some((lin, ln)) => (lin, Some(ln)),
+            None => (&self.last, None),
+        };
+        let mut h = first.forward_sparse(x.cols(), ptr, idx, val)?;
+        let Some(ln) = ln else {
+            return Ok(h);
+        };
+        ln.apply(&mut h);
+        for v in &mut h {
+            *v = silu(*v);
+        }
+        for (lin, ln) in &self.hidden[1..] {
+            h = lin.forward(&h)?;
+            ln.apply(&mut h);
+            for v in &mut h {
+                *v = silu(*v);
+            }
+        }
+        self.last.forward(&h)
     }
 
     /// Applies the MLP to every row of `x`.

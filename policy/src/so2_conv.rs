@@ -9,7 +9,7 @@
 
 use crate::error::{PolicyError, Result};
 use crate::grids::reduced_coefficients;
-use crate::layers::{check_len, degree_of, rows_of, Linear, RadialMlp};
+use crate::layers::{check_len, degree_of, rows_of, EdgeFeaturesRef, Linear, RadialMlp};
 use crate::so3::{edge_rot_mat, num_coefficients, WignerCalculator};
 use crate::weights::Scope;
 
@@ -303,17 +303,32 @@ impl So2Conv {
     /// invariant edge features `x_edge` `[E, edge_features]` (ignored without a radial MLP).
     /// Returns `[E, n_reduced, cout]` and the extra outputs `[E, extra]`.
     pub fn forward(&self, x: &[f32], x_edge: Option<&[f32]>) -> Result<(Vec<f32>, Vec<f32>)> {
+        let cols = self.edge_features();
+        self.forward_features(
+            x,
+            x_edge.map(|values| EdgeFeaturesRef::Dense { cols, values }),
+        )
+    }
+
+    /// [`So2Conv::forward`] with edge features dense or in compressed rows.
+    pub fn forward_features(
+        &self,
+        x: &[f32],
+        x_edge: Option<EdgeFeaturesRef<'_>>,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
         let nr = self.map.len();
         let (cin, cout) = (self.cin, self.cout);
         let edges = rows_of("SO(2) convolution input", x.len(), nr * cin)?;
         let rad = match (&self.rad, x_edge) {
             (Some(r), Some(xe)) => {
-                check_len(
-                    "SO(2) convolution edge features",
-                    xe.len(),
-                    &[edges, r.inp()],
-                )?;
-                Some(r.forward(xe)?)
+                if xe.rows() != edges || xe.cols() != r.inp() {
+                    return Err(PolicyError::ShapeMismatch {
+                        name: "SO(2) convolution edge features".into(),
+                        expected: vec![edges, r.inp()],
+                        got: vec![xe.rows(), xe.cols()],
+                    });
+                }
+                Some(r.forward_features(xe)?)
             }
             (Some(r), None) => {
                 return Err(PolicyError::ShapeMismatch {
