@@ -10,8 +10,8 @@
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
 use crate::layers::{
-    check_len, rows_of, separable_s2_activation, smooth_leaky_relu, GaussianRbf, LayerNorm,
-    So3Linear,
+    check_len, rows_of, separable_s2_activation, smooth_leaky_relu, EdgeFeatures, EdgeFeaturesRef,
+    GaussianRbf, LayerNorm, So3Linear,
 };
 use crate::so2_conv::{CoefficientMapping, EdgeWigners, So2Conv};
 use crate::so3::{num_coefficients, WignerCalculator};
@@ -31,7 +31,7 @@ pub struct EdgeSet {
     /// Wigner matrices of the edge frames.
     pub wigners: EdgeWigners,
     /// Invariant edge features (radial basis of the length), `[E, num_basis]`.
-    pub attr: Vec<f32>,
+    pub attr: EdgeFeatures,
 }
 
 /// Euclidean length of each edge vector.
@@ -72,7 +72,7 @@ impl EdgeSet {
             vec.push([ps[0] - pd[0], ps[1] - pd[1], ps[2] - pd[2]]);
         }
         let dist = edge_lengths(&vec);
-        let attr = rbf.forward(&dist);
+        let attr = rbf.features(&dist);
         Self::assemble(calc, lmax, src, dst, vec, dist, attr)
     }
 
@@ -89,6 +89,7 @@ impl EdgeSet {
         check_len("edge_dst", dst.len(), &[e])?;
         check_len("edge_vec", vec.len(), &[e])?;
         let dist = edge_lengths(&vec);
+        let attr = EdgeFeatures::dense(attr, e)?;
         Self::assemble(calc, lmax, src, dst, vec, dist, attr)
     }
 
@@ -100,8 +101,15 @@ impl EdgeSet {
         dst: Vec<usize>,
         vec: Vec<[f32; 3]>,
         dist: Vec<f32>,
-        attr: Vec<f32>,
+        attr: EdgeFeatures,
     ) -> Result<Self> {
+        if attr.rows() != src.len() {
+            return Err(PolicyError::ShapeMismatch {
+                name: "edge_attr".into(),
+                expected: vec![src.len(), attr.cols()],
+                got: vec![attr.rows(), attr.cols()],
+            });
+        }
         let wigners = EdgeWigners::new(calc, lmax, &vec)?;
         Ok(Self {
             src,
@@ -158,6 +166,9 @@ pub struct GraphAttention {
     alpha_dot: Vec<f32>,
     grid: S2Grid,
     proj: So3Linear,
+    /// `so2_conv_1` on the source half of the messages only, for all-zero destinations
+    /// (built by [`GraphAttention::prepare_zero_destinations`]).
+    conv1_sources: Option<So2Conv>,
 }
 
 impl GraphAttention {
@@ -221,18 +232,61 @@ impl GraphAttention {
             alpha_dot,
             grid,
             proj,
+            conv1_sources: None,
         })
+    }
+
+    /// Prepares [`GraphAttention::forward_zero_destinations`]: a first SO(2) convolution that
+    /// reads only the source channels of the messages.
+    pub fn prepare_zero_destinations(&mut self) -> Result<()> {
+        self.conv1_sources = Some(self.conv1.first_channels(self.cfg.sphere_channels)?);
+        Ok(())
+    }
+
+    /// [`GraphAttention::forward`] onto `nd` destinations whose features are all zero (the
+    /// field heads' queries): the zero half of every message is never built or multiplied.
+    pub fn forward_zero_destinations(
+        &self,
+        x_src: &[f32],
+        nd: usize,
+        edges: &EdgeSet,
+    ) -> Result<Vec<f32>> {
+        let k = num_coefficients(self.cfg.lmax);
+        match &self.conv1_sources {
+            Some(conv1) => self.forward_with(x_src, None, nd, edges, conv1),
+            None => {
+                let zeros = vec![0.0f32; nd * k * self.cfg.sphere_channels];
+                self.forward(x_src, &zeros, edges)
+            }
+        }
     }
 
     /// Attends from `x_src` `[Ns, K, C]` to `x_dst` `[Nd, K, C]` over `edges`; returns
     /// `[Nd, K, output_channels]`.
     pub fn forward(&self, x_src: &[f32], x_dst: &[f32], edges: &EdgeSet) -> Result<Vec<f32>> {
+        let k = num_coefficients(self.cfg.lmax);
+        let nd = rows_of(
+            "attention destination features",
+            x_dst.len(),
+            k * self.cfg.sphere_channels,
+        )?;
+        self.forward_with(x_src, Some(x_dst), nd, edges, &self.conv1)
+    }
+
+    /// The attention with destination features `x_dst` (None: zero, with `conv1` reading
+    /// only the source channels).
+    fn forward_with(
+        &self,
+        x_src: &[f32],
+        x_dst: Option<&[f32]>,
+        nd: usize,
+        edges: &EdgeSet,
+        conv1: &So2Conv,
+    ) -> Result<Vec<f32>> {
         let cfg = &self.cfg;
         let k = num_coefficients(cfg.lmax);
         let c = cfg.sphere_channels;
         let ns = rows_of("attention source features", x_src.len(), k * c)?;
-        let nd = rows_of("attention destination features", x_dst.len(), k * c)?;
-        let ne = edges.len();
         if edges.wigners.lmax != cfg.lmax {
             return Err(PolicyError::UnsupportedDegree {
                 lmax: edges.wigners.lmax,
@@ -242,18 +296,17 @@ impl GraphAttention {
         }
         let row = k * cfg.num_heads * cfg.value_channels;
         let mut agg = vec![0.0f32; nd * row];
-        let nb = edges.attr.len().checked_div(ne).unwrap_or(0);
         // Whole destination groups at a time keep the buffers small; the softmax is per
         // destination, so this is exact.
         for r in destination_chunks(&edges.dst, EDGE_CHUNK) {
             let wig = edges.wigners.slice(r.clone());
             self.forward_edges(
-                x_src,
-                x_dst,
+                (x_src, x_dst),
+                conv1,
                 (ns, nd),
                 (&edges.src[r.clone()], &edges.dst[r.clone()]),
                 &wig,
-                &edges.attr[r.start * nb..r.end * nb],
+                edges.attr.slice(r.clone()),
                 &mut agg,
             )?;
         }
@@ -265,20 +318,29 @@ impl GraphAttention {
     #[allow(clippy::too_many_arguments)]
     fn forward_edges(
         &self,
-        x_src: &[f32],
-        x_dst: &[f32],
+        (x_src, x_dst): (&[f32], Option<&[f32]>),
+        conv1: &So2Conv,
         (ns, nd): (usize, usize),
         (src, dst): (&[usize], &[usize]),
         wigners: &EdgeWigners,
-        attr: &[f32],
+        attr: EdgeFeaturesRef<'_>,
         agg: &mut [f32],
     ) -> Result<()> {
         let cfg = &self.cfg;
         let k = num_coefficients(cfg.lmax);
         let c = cfg.sphere_channels;
         let ne = src.len();
-        // Messages concat(x_src[src], x_dst[dst]) along channels.
-        let mut msg = vec![0.0f32; ne * k * 2 * c];
+        // Messages concat(x_src[src], x_dst[dst]) along channels (just x_src[src] when the
+        // destinations are zero and `conv1` reads only those channels).
+        let mc = if x_dst.is_some() { 2 * c } else { c };
+        if conv1.cin != mc {
+            return Err(PolicyError::ShapeMismatch {
+                name: "attention message channels".into(),
+                expected: vec![conv1.cin],
+                got: vec![mc],
+            });
+        }
+        let mut msg = vec![0.0f32; ne * k * mc];
         for e in 0..ne {
             let (s, d) = (src[e], dst[e]);
             if s >= ns || d >= nd {
@@ -289,14 +351,16 @@ impl GraphAttention {
                 });
             }
             for i in 0..k {
-                let m = &mut msg[(e * k + i) * 2 * c..(e * k + i + 1) * 2 * c];
+                let m = &mut msg[(e * k + i) * mc..(e * k + i + 1) * mc];
                 m[..c].copy_from_slice(&x_src[(s * k + i) * c..(s * k + i + 1) * c]);
-                m[c..].copy_from_slice(&x_dst[(d * k + i) * c..(d * k + i + 1) * c]);
+                if let Some(x_dst) = x_dst {
+                    m[c..].copy_from_slice(&x_dst[(d * k + i) * c..(d * k + i + 1) * c]);
+                }
             }
         }
-        let x_rot = wigners.rotate(&self.map, &msg, 2 * c)?;
+        let x_rot = wigners.rotate(&self.map, &msg, mc)?;
         drop(msg);
-        let (h, extra) = self.conv1.forward(&x_rot, Some(attr))?;
+        let (h, extra) = conv1.forward_features(&x_rot, Some(attr))?;
         let n_alpha = cfg.num_heads * cfg.alpha_channels;
         let n_extra = n_alpha + cfg.hidden_channels;
         let mut alpha_in = Vec::with_capacity(ne * n_alpha);
@@ -356,7 +420,7 @@ impl GraphAttention {
 }
 
 /// Edges per chunk of the attention (whole destination groups are never split).
-const EDGE_CHUNK: usize = 4096;
+const EDGE_CHUNK: usize = 512;
 
 /// Ranges of about `chunk` edges that end at destination changes; one range over all edges
 /// when the edges are not grouped by destination.

@@ -1265,7 +1265,7 @@ fn check_graph_attention(fx: &FixtureFile) -> Result<Vec<Comparison>> {
     let mut out = Vec::new();
     let cfg = attention_config(fx, "/constructor", None)?;
     let w = fx.weights();
-    let ga = GraphAttention::load(&w.scope("param."), cfg)?;
+    let mut ga = GraphAttention::load(&w.scope("param."), cfg)?;
     let calc = WignerCalculator::new(cfg.lmax)?;
     for prefix in ["", "rot."] {
         let edges = fixture_edges(fx, &calc, cfg.lmax, prefix, &mut out)?;
@@ -1273,6 +1273,19 @@ fn check_graph_attention(fx: &FixtureFile) -> Result<Vec<Comparison>> {
         let y = ga.forward(x, x, &edges)?;
         let key = format!("{prefix}out.y");
         out.push(compare_f32(&key, &y, fx.f32_any(&key)?.1, TOL_WIGNER));
+        // The field heads' path onto zero destinations (source half of the messages only)
+        // against the general path with zero destination features.
+        let zeros = vec![0.0f32; x.len()];
+        let general = ga.forward(x, &zeros, &edges)?;
+        ga.prepare_zero_destinations()?;
+        let nd = x.len() / (num_coefficients(cfg.lmax) * cfg.sphere_channels).max(1);
+        let narrow = ga.forward_zero_destinations(x, nd, &edges)?;
+        out.push(compare_f32(
+            &format!("{prefix}zero destinations (ours: source-only vs general)"),
+            &narrow,
+            &general,
+            TOL,
+        ));
     }
     Ok(out)
 }

@@ -28,6 +28,9 @@ pub const TRANS_RADIUS_NEIGHBOURS: usize = 200;
 pub const TRANS_KNN: usize = 100;
 /// Radius neighbours kept per rotation query.
 pub const ROT_MAX_NEIGHBOURS: usize = 10000;
+/// Translation queries evaluated together (their edges never interact: the softmax is per
+/// query).
+pub const TRANS_QUERY_BATCH: usize = 4;
 /// Degree of the translation field.
 pub const TRANS_LMAX: usize = 1;
 /// Degree of the rotation field.
@@ -77,6 +80,8 @@ pub struct FieldHeads {
     rot: TransBlock,
     rot_head: RotationHead,
     calc: WignerCalculator,
+    /// Wigner matrices of the translation field's degree (its edge frames).
+    trans_calc: WignerCalculator,
     grid: Vec<GridRotation>,
     grid_wigners: Vec<Vec<f64>>,
 }
@@ -110,11 +115,12 @@ impl FieldHeads {
             value_channels: cfg.value_channels,
             output_channels: c,
         };
-        let trans = GraphAttention::load_with_grid(
+        let mut trans = GraphAttention::load_with_grid(
             &s.sub("trans_field_layer").sub("0"),
             attn(TRANS_LMAX, TRANS_LMAX),
             res.grid(TRANS_LMAX, TRANS_LMAX)?,
         )?;
+        trans.prepare_zero_destinations()?;
         let rot = TransBlock::load_with_grids(
             &s.sub("rot_field_layer").sub("0"),
             TransBlockConfig {
@@ -145,6 +151,7 @@ impl FieldHeads {
             rot,
             rot_head,
             calc,
+            trans_calc: WignerCalculator::new(TRANS_LMAX)?,
             grid,
             grid_wigners,
         })
@@ -214,13 +221,26 @@ impl FieldHeads {
                 x.extend_from_slice(&node_emb[base..base + c]);
             }
         }
-        let (src, dst) = Self::trans_edges(node_pos, queries)?;
-        let edges = EdgeSet::new(
-            &self.calc, TRANS_LMAX, node_pos, queries, src, dst, &self.rbf,
-        )?;
-        let zeros = vec![0.0f32; queries.len() * k * c];
-        let y = self.trans.forward(&x, &zeros, &edges)?;
-        Ok((0..queries.len()).map(|q| y[q * k * c]).collect())
+        // Queries in small batches: each batch's edge set (300 edges per query, 1024 radial
+        // basis values per edge) stays in cache instead of hundreds of MB per level.
+        let mut logits = Vec::with_capacity(queries.len());
+        for batch in queries.chunks(TRANS_QUERY_BATCH) {
+            let (src, dst) = Self::trans_edges(node_pos, batch)?;
+            let edges = EdgeSet::new(
+                &self.trans_calc,
+                TRANS_LMAX,
+                node_pos,
+                batch,
+                src,
+                dst,
+                &self.rbf,
+            )?;
+            let y = self
+                .trans
+                .forward_zero_destinations(&x, batch.len(), &edges)?;
+            logits.extend((0..batch.len()).map(|q| y[q * k * c]));
+        }
+        Ok(logits)
     }
 
     /// The rotation query at one point: open logit and rotation logits.

@@ -7,6 +7,7 @@
 //! accumulate in `f64`.
 
 use crate::error::{PolicyError, Result};
+use crate::matmul::{gemm_acc, Strided};
 use crate::so3::num_coefficients;
 use crate::weights::Scope;
 
@@ -132,86 +133,46 @@ fn dot(a: &[f32], b: &[f32]) -> f32 {
     s as f32
 }
 
-/// Rows processed together by the sparse path of [`axpy_rows`].
-const ROW_BLOCK: usize = 8;
-
 /// `y[r, :] += Σ_i x[r, i] · wt[i, :]` for every row r of `x` `[rows, inp]`, with `wt`
-/// `[inp, out]` and `y` `[rows, out]`, in f32, summing in input order. Dense inputs go
-/// through a register-tiled kernel (4 rows × 8 outputs held in registers over the whole
-/// input); mostly-zero inputs (the narrow field radial basis) through a kernel that skips
-/// the zeros.
-pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
+/// `[inp, out]` and `y` `[rows, out]`, in f32. Dense inputs go through one cache-blocked
+/// matrix product ([`crate::matmul::gemm_acc`]); mostly-zero inputs (the narrow field
+/// radial basis) through a kernel that skips the zeros.
+pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) -> Result<()> {
     if inp == 0 || out == 0 {
-        return;
+        return Ok(());
     }
+    let rows = rows_of("matrix product input", x.len(), inp)?;
     // Sparse or dense: judged on the first rows.
     let probe = &x[..x.len().min(4 * inp)];
     let zeros = probe.iter().filter(|v| **v == 0.0).count();
-    if 2 * zeros > probe.len() || out < 8 {
+    if 2 * zeros > probe.len() {
         axpy_rows_sparse(x, inp, wt, out, y);
-        return;
+        return Ok(());
     }
-    const R: usize = 4;
-    const T: usize = 8;
-    // Panels of 32 rows: the panel stays in L2 while each 8-column weight tile streams over
-    // it, so the weights are read once per 32 rows.
-    const P: usize = 32;
-    let tiles = out / T;
-    let mut pad = vec![0.0f32; R * inp];
-    for (xp, yp) in x.chunks(P * inp).zip(y.chunks_mut(P * out)) {
-        for tile in 0..tiles {
-            let o0 = tile * T;
-            for (xb, yb) in xp.chunks(R * inp).zip(yp.chunks_mut(R * out)) {
-                let rows = xb.len() / inp;
-                let xb: &[f32] = if rows == R {
-                    xb
-                } else {
-                    pad[..xb.len()].copy_from_slice(xb);
-                    pad[xb.len()..].iter_mut().for_each(|v| *v = 0.0);
-                    &pad
-                };
-                let mut acc = [[0.0f32; T]; R];
-                for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
-                    let w = &wrow[o0..o0 + T];
-                    for (r, a) in acc.iter_mut().enumerate() {
-                        let xi = xb[r * inp + i];
-                        for (al, wl) in a.iter_mut().zip(w) {
-                            *al += xi * wl;
-                        }
-                    }
-                }
-                for (r, a) in acc.iter().enumerate().take(rows) {
-                    for (yl, al) in yb[r * out + o0..r * out + o0 + T].iter_mut().zip(a) {
-                        *yl += al;
-                    }
-                }
-            }
-        }
-        // Remaining outputs (out not a multiple of 8).
-        let rows = xp.len() / inp;
-        for o in tiles * T..out {
-            for r in 0..rows {
-                let mut a = 0.0f32;
-                for (i, wrow) in wt.chunks_exact(out).enumerate().take(inp) {
-                    a += xp[r * inp + i] * wrow[o];
-                }
-                yp[r * out + o] += a;
-            }
-        }
-    }
+    gemm_acc(
+        Strided::row_major(x, 0, rows, inp),
+        Strided::row_major(wt, 0, inp, out),
+        y,
+        0,
+        out,
+    )
 }
 
-/// [`axpy_rows`] skipping zero inputs, rows in blocks of 8 so each weight row is read once
-/// per block.
+/// [`axpy_rows`] skipping zero inputs: each row is scanned in blocks of 16 values, blocks of
+/// zeros are passed over, and every non-zero input adds its weight row.
 fn axpy_rows_sparse(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
-    for (xb, yb) in x.chunks(ROW_BLOCK * inp).zip(y.chunks_mut(ROW_BLOCK * out)) {
-        for (i, w) in wt.chunks_exact(out).enumerate().take(inp) {
-            for (xr, yr) in xb.chunks_exact(inp).zip(yb.chunks_exact_mut(out)) {
-                let xi = xr[i];
+    const BLOCK: usize = 16;
+    for (xr, yr) in x.chunks_exact(inp).zip(y.chunks_exact_mut(out)) {
+        for (bi, xb) in xr.chunks(BLOCK).enumerate() {
+            if xb.iter().all(|v| *v == 0.0) {
+                continue;
+            }
+            for (j, &xi) in xb.iter().enumerate() {
                 if xi == 0.0 {
                     continue;
                 }
-                for (a, b) in yr.iter_mut().zip(w) {
+                let i = bi * BLOCK + j;
+                for (a, b) in yr.iter_mut().zip(&wt[i * out..(i + 1) * out]) {
                     *a += xi * b;
                 }
             }
@@ -279,6 +240,90 @@ impl Linear {
         Ok(Self::new(inp, out, w, b))
     }
 
+    /// The layer restricted to the inputs `keep` (the others taken as always zero).
+    pub fn select_inputs(&self, keep: &[usize]) -> Result<Self> {
+        if let Some(&bad) = keep.iter().find(|&&i| i >= self.inp) {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "linear input to keep".into(),
+                value: bad as i64,
+                len: self.inp,
+            });
+        }
+        let w = (0..self.out)
+            .flat_map(|o| keep.iter().map(move |&i| (o, i)))
+            .map(|(o, i)| self.w[o * self.inp + i])
+            .collect();
+        Ok(Self::new(keep.len(), self.out, w, self.b.clone()))
+    }
+
+    /// The layer restricted to the outputs `keep`.
+    pub fn select_outputs(&self, keep: &[usize]) -> Result<Self> {
+        if let Some(&bad) = keep.iter().find(|&&o| o >= self.out) {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "linear output to keep".into(),
+                value: bad as i64,
+                len: self.out,
+            });
+        }
+        let w = keep
+            .iter()
+            .flat_map(|&o| self.w[o * self.inp..(o + 1) * self.inp].iter().copied())
+            .collect();
+        let b = self
+            .b
+            .as_ref()
+            .map(|b| keep.iter().map(|&o| b[o]).collect());
+        Ok(Self::new(self.inp, keep.len(), w, b))
+    }
+
+    /// Applies the layer to compressed rows of `cols` inputs (row r: entries
+    /// `ptr[r]..ptr[r + 1]` of `idx`, `val`).
+    pub fn forward_sparse(
+        &self,
+        cols: usize,
+        ptr: &[usize],
+        idx: &[u32],
+        val: &[f32],
+    ) -> Result<Vec<f32>> {
+        let bad = |got: usize| PolicyError::ShapeMismatch {
+            name: "sparse linear input".into(),
+            expected: vec![self.inp],
+            got: vec![got],
+        };
+        if cols != self.inp {
+            return Err(bad(cols));
+        }
+        let rows = ptr.len().saturating_sub(1);
+        let mut y = vec![0.0f32; rows * self.out];
+        for (w, yr) in ptr.windows(2).zip(y.chunks_exact_mut(self.out)) {
+            if let Some(b) = &self.b {
+                yr.copy_from_slice(b);
+            }
+            let (Some(ix), Some(vs)) = (idx.get(w[0]..w[1]), val.get(w[0]..w[1])) else {
+                return Err(bad(w[1]));
+            };
+            for (&i, &v) in ix.iter().zip(vs) {
+                let i = i as usize;
+                if i >= self.inp {
+                    return Err(bad(i));
+                }
+                match &self.wt {
+                    Some(wt) => {
+                        for (a, b) in yr.iter_mut().zip(&wt[i * self.out..(i + 1) * self.out]) {
+                            *a += v * b;
+                        }
+                    }
+                    None => {
+                        for (o, a) in yr.iter_mut().enumerate() {
+                            *a += v * self.w[o * self.inp + i];
+                        }
+                    }
+                }
+            }
+        }
+        Ok(y)
+    }
+
     /// Applies the layer to one row.
     pub fn forward_row(&self, x: &[f32], y: &mut [f32]) {
         for (o, yo) in y.iter_mut().enumerate().take(self.out) {
@@ -307,7 +352,7 @@ impl Linear {
                     yr.copy_from_slice(b);
                 }
             }
-            axpy_rows(x, self.inp, wt, self.out, &mut y);
+            axpy_rows(x, self.inp, wt, self.out, &mut y)?;
             return Ok(y);
         }
         for r in 0..rows {
@@ -386,20 +431,22 @@ fn per_degree_apply(
     let k = num_coefficients(lmax);
     let n = rows_of("SO3 linear input", x.len(), k * cin)?;
     let mut y = vec![0.0; n * k * cout];
-    for node in 0..n {
-        let xn = &x[node * k * cin..(node + 1) * k * cin];
-        let yn = &mut y[node * k * cout..(node + 1) * k * cout];
+    for yn in y.chunks_exact_mut(k * cout) {
         yn[..cout].copy_from_slice(bias);
-        for l in 0..=lmax {
-            let (a, b) = (l * l, (l + 1) * (l + 1));
-            axpy_rows(
-                &xn[a * cin..b * cin],
-                cin,
-                &wt[l * cin * cout..(l + 1) * cin * cout],
-                cout,
-                &mut yn[a * cout..b * cout],
-            );
-        }
+    }
+    // One product per coefficient row i over all nodes: x[:, i, :] · wt[degree(i)].
+    for i in 0..k {
+        let l = degree_of(i);
+        gemm_acc(
+            Strided {
+                row_stride: k * cin,
+                ..Strided::row_major(x, i * cin, n, cin)
+            },
+            Strided::row_major(wt, l * cin * cout, cin, cout),
+            &mut y,
+            i * cout,
+            k * cout,
+        )?;
     }
     Ok(y)
 }
@@ -542,6 +589,10 @@ pub struct GaussianRbf {
     std: Vec<f32>,
     weight: Vec<f32>,
     normalizer: f32,
+    /// Basis indices sorted by mean, and those means: the bases a distance can reach.
+    by_mean: Vec<(f32, usize)>,
+    /// Largest |u − mean| with a non-zero value, √210 · max std (infinite: evaluate all).
+    reach: f32,
 }
 
 impl GaussianRbf {
@@ -550,7 +601,7 @@ impl GaussianRbf {
         let shape = s.shape("mean", 2)?;
         let k = shape[1];
         let mean = s.f32("mean", &[1, k])?;
-        let std = s
+        let std: Vec<f32> = s
             .f32("std_logit", &[1, k])?
             .into_iter()
             .map(|v| softplus(v) + 1e-5)
@@ -561,6 +612,10 @@ impl GaussianRbf {
             .map(|v| sigmoid(v) * 4.0)
             .collect();
         let offset = 0.01 * cutoff;
+        let max_std = std.iter().copied().fold(0.0f32, f32::max);
+        let mut by_mean: Vec<(f32, usize)> = mean.iter().copied().zip(0..).collect();
+        by_mean.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let finite = mean.iter().chain(&std).all(|v| v.is_finite());
         Ok(Self {
             num_basis: k,
             offset: offset as f32,
@@ -569,6 +624,13 @@ impl GaussianRbf {
             std,
             weight,
             normalizer: (k as f64).sqrt() as f32,
+            by_mean,
+            // A little margin over √210 so rounding in z never hides a non-zero basis.
+            reach: if finite {
+                (210.0f32.sqrt() * 1.01) * max_std
+            } else {
+                f32::INFINITY
+            },
         })
     }
 
@@ -589,20 +651,65 @@ impl GaussianRbf {
             };
             1.0 - step
         };
-        // z² for every basis first (vectorised), then the exponentials that do not
-        // underflow: exp(−105) is below the smallest f32, so skipping those is exact (and
-        // keeps the narrow field-head bases sparse).
+        // Only the bases whose mean lies within `reach` of u can exceed exp(−105), which is
+        // below the smallest f32; all others are exactly 0 (the narrow field-head bases are
+        // sparse, so this skips most of them).
         let out = &mut out[..self.num_basis];
-        for ((o, m), sd) in out.iter_mut().zip(&self.mean).zip(&self.std) {
-            let z = (u - m) / sd;
-            *o = z * z;
+        if !(self.reach.is_finite() && u.is_finite()) {
+            for (i, o) in out.iter_mut().enumerate() {
+                *o = self.value(i, u, env);
+            }
+            return;
         }
-        for (o, w) in out.iter_mut().zip(&self.weight) {
-            *o = if *o > 210.0 {
-                0.0
-            } else {
-                w * (-0.5 * *o).exp() * env * self.normalizer
+        out.iter_mut().for_each(|o| *o = 0.0);
+        let lo = self.by_mean.partition_point(|(m, _)| *m < u - self.reach);
+        let hi = self.by_mean.partition_point(|(m, _)| *m <= u + self.reach);
+        for &(_, i) in &self.by_mean[lo..hi] {
+            out[i] = self.value(i, u, env);
+        }
+    }
+
+    /// Basis `i` at normalised distance `u` with envelope `env`.
+    fn value(&self, i: usize, u: f32, env: f32) -> f32 {
+        let z = (u - self.mean[i]) / self.std[i];
+        let z2 = z * z;
+        if z2 > 210.0 {
+            0.0
+        } else {
+            self.weight[i] * (-0.5 * z2).exp() * env * self.normalizer
+        }
+    }
+
+    /// The basis values of every distance as [`EdgeFeatures`]: compressed rows when the
+    /// bases are narrow (at most a quarter of them reach any one distance), else dense.
+    pub fn features(&self, d: &[f32]) -> EdgeFeatures {
+        let window = self
+            .by_mean
+            .partition_point(|(m, _)| *m <= self.by_mean[0].0 + 2.0 * self.reach);
+        if !self.reach.is_finite() || 4 * window > self.num_basis || self.num_basis == 0 {
+            return EdgeFeatures::Dense {
+                cols: self.num_basis,
+                values: self.forward(d),
             };
+        }
+        let mut row = vec![0.0f32; self.num_basis];
+        let (mut ptr, mut idx, mut val) = (vec![0], Vec::new(), Vec::new());
+        for &di in d {
+            self.eval_into(di, &mut row);
+            for (i, v) in row.iter_mut().enumerate() {
+                if *v != 0.0 {
+                    idx.push(i as u32);
+                    val.push(*v);
+                    *v = 0.0;
+                }
+            }
+            ptr.push(idx.len());
+        }
+        EdgeFeatures::Sparse {
+            cols: self.num_basis,
+            ptr,
+            idx,
+            val,
         }
     }
 
@@ -613,6 +720,138 @@ impl GaussianRbf {
             self.eval_into(di, &mut y[i * self.num_basis..(i + 1) * self.num_basis]);
         }
         y
+    }
+}
+
+/// Rows of invariant edge features (radial basis values), dense or in compressed rows.
+#[derive(Debug, Clone, PartialEq)]
+pub enum EdgeFeatures {
+    /// Row-major `[rows, cols]`.
+    Dense {
+        /// Values per row.
+        cols: usize,
+        /// The values.
+        values: Vec<f32>,
+    },
+    /// Only the non-zero values of each row (the narrow field-head bases).
+    Sparse {
+        /// Values per row (zeros included).
+        cols: usize,
+        /// Row r's entries are `ptr[r]..ptr[r + 1]` of `idx` and `val` (rows + 1 offsets).
+        ptr: Vec<usize>,
+        /// Column of each entry.
+        idx: Vec<u32>,
+        /// Value of each entry.
+        val: Vec<f32>,
+    },
+}
+
+/// A borrowed range of rows of [`EdgeFeatures`].
+#[derive(Debug, Clone, Copy)]
+pub enum EdgeFeaturesRef<'a> {
+    /// Row-major `[rows, cols]`.
+    Dense {
+        /// Values per row.
+        cols: usize,
+        /// The values of the rows.
+        values: &'a [f32],
+    },
+    /// Compressed rows: `ptr` holds rows + 1 offsets into `idx` and `val`.
+    Sparse {
+        /// Values per row (zeros included).
+        cols: usize,
+        /// Offsets of the rows' entries.
+        ptr: &'a [usize],
+        /// Columns of all entries.
+        idx: &'a [u32],
+        /// Values of all entries.
+        val: &'a [f32],
+    },
+}
+
+impl EdgeFeatures {
+    /// Dense features of `rows` rows (an error if the length does not split evenly).
+    pub fn dense(values: Vec<f32>, rows: usize) -> Result<Self> {
+        let cols = if rows == 0 {
+            0
+        } else {
+            rows_of("edge features", values.len(), rows)?
+        };
+        Ok(Self::Dense { cols, values })
+    }
+
+    /// Number of rows.
+    pub fn rows(&self) -> usize {
+        match self {
+            Self::Dense { cols, values } => values.len().checked_div(*cols).unwrap_or(0),
+            Self::Sparse { ptr, .. } => ptr.len().saturating_sub(1),
+        }
+    }
+
+    /// Values per row.
+    pub fn cols(&self) -> usize {
+        match self {
+            Self::Dense { cols, .. } | Self::Sparse { cols, .. } => *cols,
+        }
+    }
+
+    /// The rows in `range`.
+    pub fn slice(&self, range: std::ops::Range<usize>) -> EdgeFeaturesRef<'_> {
+        match self {
+            Self::Dense { cols, values } => EdgeFeaturesRef::Dense {
+                cols: *cols,
+                values: &values[range.start * cols..range.end * cols],
+            },
+            Self::Sparse {
+                cols,
+                ptr,
+                idx,
+                val,
+            } => EdgeFeaturesRef::Sparse {
+                cols: *cols,
+                ptr: &ptr[range.start..=range.end],
+                idx,
+                val,
+            },
+        }
+    }
+
+    /// All rows as dense row-major values.
+    pub fn to_dense(&self) -> Vec<f32> {
+        match self {
+            Self::Dense { values, .. } => values.clone(),
+            Self::Sparse {
+                cols,
+                ptr,
+                idx,
+                val,
+            } => {
+                let mut out = vec![0.0f32; self.rows() * cols];
+                for (r, w) in ptr.windows(2).enumerate() {
+                    for e in w[0]..w[1] {
+                        out[r * cols + idx[e] as usize] = val[e];
+                    }
+                }
+                out
+            }
+        }
+    }
+}
+
+impl EdgeFeaturesRef<'_> {
+    /// Number of rows.
+    pub fn rows(&self) -> usize {
+        match self {
+            Self::Dense { cols, values } => values.len().checked_div(*cols).unwrap_or(0),
+            Self::Sparse { ptr, .. } => ptr.len().saturating_sub(1),
+        }
+    }
+
+    /// Values per row.
+    pub fn cols(&self) -> usize {
+        match self {
+            Self::Dense { cols, .. } | Self::Sparse { cols, .. } => *cols,
+        }
     }
 }
 
@@ -660,6 +899,43 @@ impl RadialMlp {
     /// Output width.
     pub fn out(&self) -> usize {
         self.last.out
+    }
+
+    /// The MLP with only the outputs `keep`.
+    pub fn select_outputs(&self, keep: &[usize]) -> Result<Self> {
+        Ok(Self {
+            hidden: self.hidden.clone(),
+            last: self.last.select_outputs(keep)?,
+        })
+    }
+
+    /// Applies the MLP to every row of `x`, dense or compressed (the first layer then adds
+    /// one weight column per non-zero input).
+    pub fn forward_features(&self, x: EdgeFeaturesRef<'_>) -> Result<Vec<f32>> {
+        let (ptr, idx, val) = match x {
+            EdgeFeaturesRef::Dense { values, .. } => return self.forward(values),
+            EdgeFeaturesRef::Sparse { ptr, idx, val, .. } => (ptr, idx, val),
+        };
+        let (first, ln) = match self.hidden.first() {
+            Some((lin, ln)) => (lin, Some(ln)),
+            None => (&self.last, None),
+        };
+        let mut h = first.forward_sparse(x.cols(), ptr, idx, val)?;
+        let Some(ln) = ln else {
+            return Ok(h);
+        };
+        ln.apply(&mut h);
+        for v in &mut h {
+            *v = silu(*v);
+        }
+        for (lin, ln) in &self.hidden[1..] {
+            h = lin.forward(&h)?;
+            ln.apply(&mut h);
+            for v in &mut h {
+                *v = silu(*v);
+            }
+        }
+        self.last.forward(&h)
     }
 
     /// Applies the MLP to every row of `x`.

@@ -27,11 +27,14 @@
 //! - [`training`]: the training losses (translation CE, open BCE, rotation soft CE) with
 //!   their gradients, and the rotation augmentation (no backward pass through the network
 //!   yet);
-//! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`).
+//! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`);
+//! - [`matmul`]: the dense f32 matrix products the batched layers run on.
 //!
-//! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit),
-//! `safetensors` to read the reference's tensor files, `serde_json` for their sidecars,
-//! `libm` (erf) and `unicode-normalization` (NFD) for the MiniLM encoder.
+//! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit) and,
+//! through its `gemm` on strided views, `matrixmultiply`'s cache-blocked sgemm for the large
+//! batched products (run-time AVX2/FMA/AVX-512 kernels, single-threaded); `safetensors` to
+//! read the reference's tensor files, `serde_json` for their sidecars; `libm` (erf) and
+//! `unicode-normalization` (NFD) for the MiniLM encoder.
 
 pub mod attention;
 pub mod error;
@@ -41,6 +44,7 @@ pub mod heads;
 pub mod init;
 pub mod language;
 pub mod layers;
+pub mod matmul;
 pub mod minilm;
 pub mod model;
 pub mod points;

@@ -9,7 +9,7 @@
 
 use crate::error::{PolicyError, Result};
 use crate::grids::reduced_coefficients;
-use crate::layers::{check_len, degree_of, rows_of, Linear, RadialMlp};
+use crate::layers::{check_len, degree_of, rows_of, EdgeFeaturesRef, Linear, RadialMlp};
 use crate::so3::{edge_rot_mat, num_coefficients, WignerCalculator};
 use crate::weights::Scope;
 
@@ -103,13 +103,19 @@ impl EdgeWigners {
     /// D of the reference's edge frame (`init_edge_rot_mat2`) of each edge vector.
     pub fn new(calc: &WignerCalculator, lmax: usize, edge_vec: &[[f32; 3]]) -> Result<Self> {
         let k = num_coefficients(lmax);
-        let mut d = Vec::with_capacity(edge_vec.len() * k * k);
-        for v in edge_vec {
+        let mut d = vec![0.0f32; edge_vec.len() * k * k];
+        let mut sh = Vec::new();
+        for (v, de) in edge_vec.iter().zip(d.chunks_exact_mut(k * k)) {
             let r = edge_rot_mat([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])])?;
-            let w = calc.wigner(lmax, &r)?;
-            for i in 0..k {
-                for j in 0..k {
-                    d.push(w[(i, j)] as f32);
+            if lmax == calc.lmax() {
+                calc.wigner_all_into(&r, &mut sh, de);
+            } else {
+                // A calculator built for a higher degree: per-degree blocks.
+                let w = calc.wigner(lmax, &r)?;
+                for (i, row) in de.chunks_exact_mut(k).enumerate() {
+                    for (j, x) in row.iter_mut().enumerate() {
+                        *x = w[(i, j)] as f32;
+                    }
                 }
             }
         }
@@ -245,6 +251,49 @@ impl So2Conv {
         })
     }
 
+    /// The convolution for inputs whose channels from `keep` on are always zero (the
+    /// attention's messages onto all-zero destination features): those input channels and
+    /// their radial weights are dropped, so the products are half as wide. Same outputs.
+    pub fn first_channels(&self, keep: usize) -> Result<Self> {
+        if keep == 0 || keep > self.cin {
+            return Err(PolicyError::ShapeMismatch {
+                name: "SO(2) convolution channels to keep".into(),
+                expected: vec![self.cin],
+                got: vec![keep],
+            });
+        }
+        // Inputs of an m block are [degrees, cin]; keep channel < `keep` of every degree.
+        let cols = |degrees: usize| -> Vec<usize> {
+            (0..degrees)
+                .flat_map(|l| (0..keep).map(move |ch| l * self.cin + ch))
+                .collect()
+        };
+        let l1 = self.map.lmax + 1;
+        let fc_m0 = self.fc_m0.select_inputs(&cols(l1))?;
+        let mut rad_keep = cols(l1);
+        let mut offset = l1 * self.cin;
+        let mut fc_m = Vec::with_capacity(self.fc_m.len());
+        for (mi, fc) in self.fc_m.iter().enumerate() {
+            let nl = l1 - (mi + 1);
+            fc_m.push(fc.select_inputs(&cols(nl))?);
+            rad_keep.extend(cols(nl).into_iter().map(|i| i + offset));
+            offset += nl * self.cin;
+        }
+        let rad = match &self.rad {
+            Some(r) => Some(r.select_outputs(&rad_keep)?),
+            None => None,
+        };
+        Ok(Self {
+            map: self.map.clone(),
+            cin: keep,
+            cout: self.cout,
+            extra: self.extra,
+            fc_m0,
+            fc_m,
+            rad,
+        })
+    }
+
     /// Input width of the radial MLP (0 without one).
     pub fn edge_features(&self) -> usize {
         self.rad.as_ref().map_or(0, RadialMlp::inp)
@@ -254,17 +303,32 @@ impl So2Conv {
     /// invariant edge features `x_edge` `[E, edge_features]` (ignored without a radial MLP).
     /// Returns `[E, n_reduced, cout]` and the extra outputs `[E, extra]`.
     pub fn forward(&self, x: &[f32], x_edge: Option<&[f32]>) -> Result<(Vec<f32>, Vec<f32>)> {
+        let cols = self.edge_features();
+        self.forward_features(
+            x,
+            x_edge.map(|values| EdgeFeaturesRef::Dense { cols, values }),
+        )
+    }
+
+    /// [`So2Conv::forward`] with edge features dense or in compressed rows.
+    pub fn forward_features(
+        &self,
+        x: &[f32],
+        x_edge: Option<EdgeFeaturesRef<'_>>,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
         let nr = self.map.len();
         let (cin, cout) = (self.cin, self.cout);
         let edges = rows_of("SO(2) convolution input", x.len(), nr * cin)?;
         let rad = match (&self.rad, x_edge) {
             (Some(r), Some(xe)) => {
-                check_len(
-                    "SO(2) convolution edge features",
-                    xe.len(),
-                    &[edges, r.inp()],
-                )?;
-                Some(r.forward(xe)?)
+                if xe.rows() != edges || xe.cols() != r.inp() {
+                    return Err(PolicyError::ShapeMismatch {
+                        name: "SO(2) convolution edge features".into(),
+                        expected: vec![edges, r.inp()],
+                        got: vec![xe.rows(), xe.cols()],
+                    });
+                }
+                Some(r.forward_features(xe)?)
             }
             (Some(r), None) => {
                 return Err(PolicyError::ShapeMismatch {

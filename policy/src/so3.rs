@@ -186,6 +186,10 @@ pub struct WignerCalculator {
     lmax: usize,
     /// Per degree: sample directions and the pseudo-inverse [n_samples, 2l+1].
     per_degree: Vec<(Vec<[f64; 3]>, DMatrix<f64>)>,
+    /// One sample set for all degrees (that of degree lmax) and, per degree, the
+    /// pseudo-inverse of its SH matrix on those samples, row-major [n_samples, 2l+1]: the
+    /// whole block-diagonal D from one SH evaluation per sample (`wigner_all_into`).
+    shared: (Vec<[f64; 3]>, Vec<Vec<f64>>),
 }
 
 impl WignerCalculator {
@@ -220,7 +224,69 @@ impl WignerCalculator {
             })?;
             per_degree.push((pts, a.transpose() * inv));
         }
-        Ok(Self { lmax, per_degree })
+        let shared_pts = per_degree
+            .last()
+            .map(|(p, _)| p.clone())
+            .unwrap_or_default();
+        let mut shared_pinv = Vec::with_capacity(lmax + 1);
+        for l in 0..=lmax {
+            let d = 2 * l + 1;
+            let mut a = DMatrix::<f64>::zeros(d, shared_pts.len());
+            for (k, p) in shared_pts.iter().enumerate() {
+                spherical_harmonics_unit_into(l, *p, &mut buf);
+                for i in 0..d {
+                    a[(i, k)] = buf[l * l + i];
+                }
+            }
+            let inv = (&a * a.transpose())
+                .try_inverse()
+                .ok_or(PolicyError::UnsupportedDegree {
+                    lmax,
+                    mmax: lmax,
+                    max_supported: l.saturating_sub(1),
+                })?;
+            let pinv = a.transpose() * inv;
+            let mut rows = Vec::with_capacity(shared_pts.len() * d);
+            for k in 0..shared_pts.len() {
+                rows.extend((0..d).map(|j| pinv[(k, j)]));
+            }
+            shared_pinv.push(rows);
+        }
+        Ok(Self {
+            lmax,
+            per_degree,
+            shared: (shared_pts, shared_pinv),
+        })
+    }
+
+    /// Writes the block-diagonal D(R) over degrees 0..=lmax (the calculator's own lmax) as
+    /// f32, row-major `[(lmax+1)², (lmax+1)²]`, into `out`; `sh` is scratch of
+    /// `n_samples · (lmax+1)²` values. No allocation: the per-edge frames use this.
+    pub fn wigner_all_into(&self, r: &Matrix3<f64>, sh: &mut Vec<f64>, out: &mut [f32]) {
+        let k = num_coefficients(self.lmax);
+        let (pts, pinv) = &self.shared;
+        sh.resize(pts.len() * k, 0.0);
+        for (p, y) in pts.iter().zip(sh.chunks_exact_mut(k)) {
+            let rv = r * Vector3::new(p[0], p[1], p[2]);
+            spherical_harmonics_unit_into(self.lmax, [rv[0], rv[1], rv[2]], y);
+        }
+        out[..k * k].iter_mut().for_each(|v| *v = 0.0);
+        for (l, pl) in pinv.iter().enumerate() {
+            let d = 2 * l + 1;
+            for i in 0..d {
+                let mut row = [0.0f64; 2 * MAX_DEGREE + 1];
+                for (y, pk) in sh.chunks_exact(k).zip(pl.chunks_exact(d)) {
+                    let yi = y[l * l + i];
+                    for (acc, pv) in row.iter_mut().zip(pk) {
+                        *acc += yi * pv;
+                    }
+                }
+                let o = (l * l + i) * k + l * l;
+                for (dst, v) in out[o..o + d].iter_mut().zip(&row) {
+                    *dst = *v as f32;
+                }
+            }
+        }
     }
 
     /// The largest degree this calculator serves.

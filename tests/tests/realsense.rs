@@ -307,6 +307,7 @@ fn preflight_camera_checks() {
                 id: i as u8,
                 intrinsics: recorded,
                 base_from_camera: Transform::identity(),
+                depth_correction: Default::default(),
             })
             .collect(),
     };

@@ -1,0 +1,216 @@
+//! Dense `f32` matrix products on flat (row-major or strided) slices.
+//!
+//! The products go through nalgebra's `gemm` on strided matrix views: for dynamically sized
+//! `f32` matrices nalgebra hands them to `matrixmultiply`'s cache-blocked sgemm, which picks
+//! its AVX2/FMA/AVX-512 kernel at run time (the crate itself is built for baseline x86-64).
+//! This is how the per-edge layers run as a few large products instead of per-row loops.
+//! Everything stays on the calling thread.
+
+use nalgebra::{DMatrixView, DMatrixViewMut};
+
+use crate::error::{PolicyError, Result};
+
+/// A read-only strided matrix inside a flat slice: element (r, c) is
+/// `data[offset + r·row_stride + c·col_stride]`.
+#[derive(Debug, Clone, Copy)]
+pub struct Strided<'a> {
+    /// The backing values.
+    pub data: &'a [f32],
+    /// Index of element (0, 0).
+    pub offset: usize,
+    /// Rows.
+    pub rows: usize,
+    /// Columns.
+    pub cols: usize,
+    /// Step between rows.
+    pub row_stride: usize,
+    /// Step between columns.
+    pub col_stride: usize,
+}
+
+impl<'a> Strided<'a> {
+    /// A contiguous row-major `[rows, cols]` matrix starting at `offset`.
+    pub fn row_major(data: &'a [f32], offset: usize, rows: usize, cols: usize) -> Self {
+        Self {
+            data,
+            offset,
+            rows,
+            cols,
+            row_stride: cols,
+            col_stride: 1,
+        }
+    }
+
+    /// The transpose of this matrix (same values, strides swapped).
+    pub fn t(self) -> Self {
+        Self {
+            rows: self.cols,
+            cols: self.rows,
+            row_stride: self.col_stride,
+            col_stride: self.row_stride,
+            ..self
+        }
+    }
+}
+
+/// One past the last index a strided `[rows, cols]` matrix touches (0 when empty).
+fn extent(offset: usize, rows: usize, cols: usize, rs: usize, cs: usize) -> usize {
+    if rows == 0 || cols == 0 {
+        offset
+    } else {
+        offset + (rows - 1) * rs + (cols - 1) * cs + 1
+    }
+}
+
+/// The error for a product whose operands do not fit their slices or each other.
+fn bad_operand(what: &str, expected: Vec<usize>, got: Vec<usize>) -> PolicyError {
+    PolicyError::ShapeMismatch {
+        name: format!("matrix product {what}"),
+        expected,
+        got,
+    }
+}
+
+/// nalgebra forwards a product to `matrixmultiply` only when every size exceeds this; its
+/// generic path for smaller ones wrote outside row-strided views in a test here, so those
+/// products use [`small_gemm_acc`] instead.
+const SMALL: usize = 5;
+
+/// `c += a · b` by the definition (products with a side of at most [`SMALL`]).
+fn small_gemm_acc(a: &Strided<'_>, b: &Strided<'_>, c: &mut [f32], c_offset: usize, c_rs: usize) {
+    for r in 0..a.rows {
+        let row = &mut c[c_offset + r * c_rs..c_offset + r * c_rs + b.cols];
+        for i in 0..a.cols {
+            let x = a.data[a.offset + r * a.row_stride + i * a.col_stride];
+            let bi = b.offset + i * b.row_stride;
+            if b.col_stride == 1 {
+                // Contiguous rows of b: a vectorisable axpy.
+                for (y, bv) in row.iter_mut().zip(&b.data[bi..bi + b.cols]) {
+                    *y += x * bv;
+                }
+            } else {
+                for (j, y) in row.iter_mut().enumerate() {
+                    *y += x * b.data[bi + j * b.col_stride];
+                }
+            }
+        }
+    }
+}
+
+/// `c += a · b` with `c` a strided `[a.rows, b.cols]` matrix inside `c_data`
+/// (element (r, j) at `c_offset + r·c_rs + j`).
+///
+/// Errors if the inner sizes differ or an operand reaches past its slice.
+pub fn gemm_acc(
+    a: Strided<'_>,
+    b: Strided<'_>,
+    c_data: &mut [f32],
+    c_offset: usize,
+    c_rs: usize,
+) -> Result<()> {
+    let (m, k, n) = (a.rows, a.cols, b.cols);
+    if b.rows != k {
+        return Err(bad_operand(
+            "inner sizes",
+            vec![m, k, n],
+            vec![b.rows, b.cols],
+        ));
+    }
+    for (what, s) in [("left operand", &a), ("right operand", &b)] {
+        let end = extent(s.offset, s.rows, s.cols, s.row_stride, s.col_stride);
+        if end > s.data.len() {
+            return Err(bad_operand(what, vec![end], vec![s.data.len()]));
+        }
+    }
+    let end = extent(c_offset, m, n, c_rs, 1);
+    if end > c_data.len() || (m > 1 && c_rs < n) {
+        return Err(bad_operand("output", vec![end], vec![c_data.len()]));
+    }
+    if m == 0 || n == 0 || k == 0 {
+        return Ok(());
+    }
+    if m <= SMALL || n <= SMALL || k <= SMALL {
+        small_gemm_acc(&a, &b, c_data, c_offset, c_rs);
+        return Ok(());
+    }
+    let av =
+        DMatrixView::from_slice_with_strides(&a.data[a.offset..], m, k, a.row_stride, a.col_stride);
+    let bv =
+        DMatrixView::from_slice_with_strides(&b.data[b.offset..], k, n, b.row_stride, b.col_stride);
+    // A single output row has no row step to speak of; any value >= n keeps the view valid.
+    let c_rs = if m == 1 { n.max(1) } else { c_rs };
+    let mut cv =
+        DMatrixViewMut::from_slice_with_strides_mut(&mut c_data[c_offset..], m, n, c_rs, 1);
+    cv.gemm(1.0, &av, &bv, 1.0);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The product by the definition, for comparison.
+    fn naive(a: &Strided<'_>, b: &Strided<'_>) -> Vec<f32> {
+        let at = |s: &Strided<'_>, r: usize, c: usize| {
+            s.data[s.offset + r * s.row_stride + c * s.col_stride]
+        };
+        let mut out = vec![0.0; a.rows * b.cols];
+        for r in 0..a.rows {
+            for j in 0..b.cols {
+                out[r * b.cols + j] = (0..a.cols).map(|i| at(a, r, i) * at(b, i, j)).sum();
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn strided_products_match_the_definition() {
+        let vals: Vec<f32> = (0..4000)
+            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 25.0)
+            .collect();
+        // Row-major a [9, 13] at offset 5; b the transpose of a row-major [11, 13] block.
+        let a = Strided::row_major(&vals, 5, 9, 13);
+        let b = Strided::row_major(&vals, 300, 11, 13).t();
+        let want = naive(&a, &b);
+        // Output rows of 11 inside rows of 20, starting at 3; the rest must stay untouched.
+        let mut c = vec![1.0f32; 3 + 9 * 20];
+        gemm_acc(a, b, &mut c, 3, 20).unwrap_or_else(|e| panic!("{e}"));
+        for r in 0..9 {
+            for j in 0..20 {
+                let got = c[3 + r * 20 + j];
+                let expect = if j < 11 { 1.0 + want[r * 11 + j] } else { 1.0 };
+                assert!((got - expect).abs() < 1e-4, "({r}, {j}): {got} vs {expect}");
+            }
+        }
+    }
+
+    #[test]
+    fn small_and_large_shapes_match_the_definition() {
+        for (m, k, n) in [(100, 3, 32), (1, 128, 70), (2, 9, 1), (40, 64, 48)] {
+            let a_vals: Vec<f32> = (0..m * k).map(|i| (i % 7) as f32 - 3.0).collect();
+            let b_vals: Vec<f32> = (0..k * n).map(|i| (i % 5) as f32 - 2.0).collect();
+            let a = Strided::row_major(&a_vals, 0, m, k);
+            let b = Strided::row_major(&b_vals, 0, k, n);
+            let want = naive(&a, &b);
+            // A guard region after the output must stay untouched.
+            let mut c = vec![0.0f32; m * n + 16];
+            gemm_acc(a, b, &mut c[..m * n], 0, n).unwrap_or_else(|e| panic!("{e}"));
+            assert_eq!(&c[..m * n], &want[..], "{m}×{k}×{n}");
+            assert!(c[m * n..].iter().all(|v| *v == 0.0));
+        }
+    }
+
+    #[test]
+    fn operands_past_their_slices_are_errors() {
+        let vals = vec![0.0f32; 20];
+        let a = Strided::row_major(&vals, 0, 4, 5);
+        let too_long = Strided::row_major(&vals, 10, 5, 3);
+        let mut c = vec![0.0f32; 12];
+        assert!(gemm_acc(a, too_long, &mut c, 0, 3).is_err());
+        let b = Strided::row_major(&vals, 0, 5, 3);
+        assert!(gemm_acc(a, b, &mut c[..11], 0, 3).is_err());
+        assert!(gemm_acc(a, b, &mut c, 0, 3).is_ok());
+        let wrong_inner = Strided::row_major(&vals, 0, 4, 3);
+        assert!(gemm_acc(a, wrong_inner, &mut c, 0, 3).is_err());
+    }
+}
