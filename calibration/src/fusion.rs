@@ -286,8 +286,58 @@ pub struct FusionPipeline {
 struct Scratch {
     /// The deprojected, cropped points of all cameras.
     merged: Points,
+    edges: EdgeWindows,
     voxels: VoxelScratch,
     knn: KnnScratch,
+}
+
+/// Each depth pixel's row neighbourhood (itself and its left and right neighbours): the
+/// largest raw depth and the smallest valid one, so that the depth-edge filter's 3x3 window
+/// is three look-ups instead of nine.
+#[derive(Default)]
+struct EdgeWindows {
+    /// Largest raw depth of the three (0 is never the largest of a valid pixel's window).
+    max: Vec<u16>,
+    /// Smallest raw depth of the three minus one, wrapping: 0 (no measurement) becomes
+    /// `u16::MAX` and never wins.
+    min: Vec<u16>,
+}
+
+impl EdgeWindows {
+    /// Fills both for an image of width `w` stored in `data`.
+    fn rows(&mut self, data: &[u16], w: usize) {
+        self.max.clear();
+        self.min.clear();
+        if w == 0 {
+            return;
+        }
+        self.max.resize(data.len(), 0);
+        self.min.resize(data.len(), 0);
+        for ((row, max), min) in data
+            .chunks_exact(w)
+            .zip(self.max.chunks_exact_mut(w))
+            .zip(self.min.chunks_exact_mut(w))
+        {
+            for u in 0..w {
+                let (l, r) = (u.saturating_sub(1), (u + 1).min(w - 1));
+                let (a, b, c) = (row[l], row[u], row[r]);
+                max[u] = a.max(b).max(c);
+                min[u] = a
+                    .wrapping_sub(1)
+                    .min(b.wrapping_sub(1))
+                    .min(c.wrapping_sub(1));
+            }
+        }
+    }
+
+    /// The smallest valid and the largest raw depth of a 3x3 window, from the flat indices
+    /// of its rows' centres (a valid pixel's window always has a valid depth).
+    #[inline]
+    fn window(&self, up: usize, at: usize, down: usize) -> (u16, u16) {
+        let hi = self.max[up].max(self.max[at]).max(self.max[down]);
+        let lo = self.min[up].min(self.min[at]).min(self.min[down]);
+        (lo.wrapping_add(1), hi)
+    }
 }
 
 /// The pipeline's buffers behind a lock (`fuse` takes `&self`). A second thread fusing with
@@ -455,11 +505,20 @@ impl FusionPipeline {
             })?;
         check_frame(&self.calibration.cameras[idx], frame)?;
         let mut out = Points::default();
-        let valid = self.deproject_into(idx, frame, &mut out);
+        let valid = self.deproject_into(idx, frame, &mut out, &mut EdgeWindows::default());
         Ok((out, valid))
     }
 
-    fn deproject_into(&self, idx: usize, frame: &CameraFrame, out: &mut Points) -> usize {
+    /// Deprojects one frame (already checked against its camera) into `out`: valid pixels
+    /// that pass the depth-edge filter and land in the workspace. Returns the number of
+    /// valid depth pixels.
+    fn deproject_into(
+        &self,
+        idx: usize,
+        frame: &CameraFrame,
+        out: &mut Points,
+        edges: &mut EdgeWindows,
+    ) -> usize {
         let cam = &self.calibration.cameras[idx];
         let rays = &self.rays[idx];
         let iso = cam.base_from_camera.isometry();
@@ -478,40 +537,44 @@ impl FusionPipeline {
             frame.depth.raw.height as usize,
         );
         let jump = self.params.edge_jump_m as f32;
+        if jump > 0.0 {
+            edges.rows(data, w);
+        }
         let mut valid = 0;
-        for (i, (&raw, ray)) in data.iter().zip(rays).enumerate() {
-            if raw == 0 {
-                continue;
-            }
-            let z = f32::from(raw) * scale;
-            if !(z.is_finite() && z > 0.0) {
-                continue;
-            }
-            valid += 1;
-            if jump > 0.0 {
-                let (u, v) = (i % w, i / w);
-                let (mut lo_raw, mut hi_raw) = (raw, raw);
-                for nv in v.saturating_sub(1)..(v + 2).min(h) {
-                    for nu in u.saturating_sub(1)..(u + 2).min(w) {
-                        let r = data[nv * w + nu];
-                        if r != 0 {
-                            lo_raw = lo_raw.min(r);
-                            hi_raw = hi_raw.max(r);
-                        }
-                    }
-                }
-                if f32::from(hi_raw - lo_raw) * scale > jump * z.max(1.0) {
+        for v in 0..h {
+            // The window's rows, clamped at the image border (a repeated row changes no
+            // minimum or maximum).
+            let up = v.saturating_sub(1) * w;
+            let down = (v + 1).min(h - 1) * w;
+            let row = v * w;
+            for u in 0..w {
+                let i = row + u;
+                let raw = data[i];
+                if raw == 0 {
                     continue;
                 }
+                let z = f32::from(raw) * scale;
+                if !(z.is_finite() && z > 0.0) {
+                    continue;
+                }
+                valid += 1;
+                if jump > 0.0 {
+                    let (lo_raw, hi_raw) = edges.window(up + u, i, down + u);
+                    if f32::from(hi_raw - lo_raw) * scale > jump * z.max(1.0) {
+                        continue;
+                    }
+                }
+                let ray = rays[i];
+                let p = r * Vector3::new(ray[0] * z, ray[1] * z, z) + t;
+                if p.x < lo.x || p.y < lo.y || p.z < lo.z || p.x > hi.x || p.y > hi.y || p.z > hi.z
+                {
+                    continue;
+                }
+                out.push(
+                    Point3::from(p),
+                    colour.map(|c| c.data.get(i).copied().unwrap_or([128; 3])),
+                );
             }
-            let p = r * Vector3::new(ray[0] * z, ray[1] * z, z) + t;
-            if p.x < lo.x || p.y < lo.y || p.z < lo.z || p.x > hi.x || p.y > hi.y || p.z > hi.z {
-                continue;
-            }
-            out.push(
-                Point3::from(p),
-                colour.map(|c| c.data.get(i).copied().unwrap_or([128; 3])),
-            );
         }
         valid
     }
@@ -571,7 +634,7 @@ impl FusionPipeline {
         merged.rgb.clear();
         for (idx, f) in matched.iter().enumerate() {
             let before = merged.len();
-            let valid = self.deproject_into(idx, f, merged);
+            let valid = self.deproject_into(idx, f, merged, &mut scratch.edges);
             if valid == 0 {
                 return Err(CalibrationError::NoValidDepth {
                     camera: f.camera,
@@ -1299,6 +1362,48 @@ mod tests {
         let _ = pipe.fuse(&far, &[]).unwrap();
         assert_eq!(pipe.fuse(&near, &[]).unwrap(), first);
         assert_eq!(pipe.clone().fuse(&near, &[]).unwrap(), first);
+    }
+
+    #[test]
+    fn edge_windows_match_the_3x3_window_of_valid_depths() {
+        use rand::Rng;
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let mut edges = EdgeWindows::default();
+        for (w, h) in [(1, 1), (1, 5), (5, 1), (2, 2), (17, 9), (64, 3)] {
+            let data: Vec<u16> = (0..w * h)
+                .map(|_| match rng.random_range(0..4) {
+                    0 => 0,
+                    1 => u16::MAX,
+                    _ => rng.random_range(1..3000),
+                })
+                .collect();
+            edges.rows(&data, w);
+            for v in 0..h {
+                for u in 0..w {
+                    if data[v * w + u] == 0 {
+                        continue;
+                    }
+                    let window: Vec<u16> = (v.saturating_sub(1)..(v + 2).min(h))
+                        .flat_map(|nv| {
+                            (u.saturating_sub(1)..(u + 2).min(w)).map(move |nu| (nv, nu))
+                        })
+                        .map(|(nv, nu)| data[nv * w + nu])
+                        .filter(|&r| r != 0)
+                        .collect();
+                    let expected = (
+                        window.iter().copied().min().unwrap(),
+                        window.iter().copied().max().unwrap(),
+                    );
+                    let up = v.saturating_sub(1) * w + u;
+                    let down = (v + 1).min(h - 1) * w + u;
+                    assert_eq!(
+                        edges.window(up, v * w + u, down),
+                        expected,
+                        "{w}x{h} ({u}, {v})"
+                    );
+                }
+            }
+        }
     }
 
     #[test]

@@ -17,6 +17,8 @@
 //!   its default thread count and once with `OMP_NUM_THREADS=1`, and both ratios are given.
 //!   Each side's stage time is the median of `--inner` calls; the speed-ups are medians of
 //!   the per-round ratios. Open3D works on f64 points (converted outside the timing).
+//! - Wall times on a loaded machine swing with the load; the `cpu_*` ratios compare thread
+//!   CPU time of the two single-threaded runs, which the load does not inflate.
 //!
 //! `cargo bench -p hil_sim --bench fusion [-- --python /path/to/python3 --reps 5 --inner 3]`
 //! `--profile N` runs only our pipeline N times (for callgrind) and prints nothing else.
@@ -28,22 +30,36 @@ use std::time::{Duration, Instant};
 use calibration::fusion::{
     remove_statistical_outliers, voxel_downsample, Bounds, FusionParams, FusionPipeline, Points,
 };
+use cpu_time::ThreadTime;
 use hil_sim::depth_camera::{default_rig, render_rig, rig_calibration};
 use hil_sim::scene::{robot_capsules, Scene, HOME_Q};
 use serde_json::{json, Value};
 
-fn median_ms<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, T) {
-    let mut times = Vec::with_capacity(reps);
+fn median_ms<T>(reps: usize, f: impl FnMut() -> T) -> (f64, T) {
+    let (wall, _, out) = median_wall_cpu_ms(reps, f);
+    (wall, out)
+}
+
+/// Median wall and CPU times (ms) of `reps` calls, and the last result.
+fn median_wall_cpu_ms<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, f64, T) {
+    let mut walls = Vec::with_capacity(reps);
+    let mut cpus = Vec::with_capacity(reps);
     let mut last = None;
     for _ in 0..reps.max(1) {
+        let c = ThreadTime::now();
         let t = Instant::now();
         let out = f();
-        times.push(t.elapsed());
+        walls.push(ms(t.elapsed()));
+        cpus.push(ms(c.elapsed()));
         last = Some(out);
     }
-    times.sort();
-    let med = times[times.len() / 2];
-    (ms(med), last.unwrap_or_else(|| unreachable!()))
+    walls.sort_by(f64::total_cmp);
+    cpus.sort_by(f64::total_cmp);
+    (
+        walls[walls.len() / 2],
+        cpus[cpus.len() / 2],
+        last.unwrap_or_else(|| unreachable!()),
+    )
 }
 
 fn ms(d: Duration) -> f64 {
@@ -189,12 +205,12 @@ fn main() -> anyhow::Result<()> {
     let mut counts = json!(null);
     let mut last = [json!(null), json!(null)];
     for _ in 0..reps.max(1) {
-        let (full_ms, _) = median_ms(inner, || pipe.fuse_dense(&frames, &robot));
-        let (crop_ms, cropped) = median_ms(inner, crop);
-        let (voxel_ms, voxels) = median_ms(inner, || {
+        let (full_ms, full_cpu, _) = median_wall_cpu_ms(inner, || pipe.fuse_dense(&frames, &robot));
+        let (crop_ms, crop_cpu, cropped) = median_wall_cpu_ms(inner, crop);
+        let (voxel_ms, voxel_cpu, voxels) = median_wall_cpu_ms(inner, || {
             voxel_downsample(&cropped, params.voxel_m, o3d_origin)
         });
-        let (sor_ms, inliers) = median_ms(inner, || {
+        let (sor_ms, sor_cpu, inliers) = median_wall_cpu_ms(inner, || {
             remove_statistical_outliers(
                 &voxels,
                 params.outlier_k,
@@ -210,6 +226,9 @@ fn main() -> anyhow::Result<()> {
         let mut round = json!({
             "ours_crop_ms": crop_ms, "ours_voxel_ms": voxel_ms, "ours_outliers_ms": sor_ms,
             "ours_total_ms": ours, "ours_full_pipeline_ms": full_ms,
+            "ours_crop_cpu_ms": crop_cpu, "ours_voxel_cpu_ms": voxel_cpu,
+            "ours_outliers_cpu_ms": sor_cpu, "ours_total_cpu_ms": crop_cpu + voxel_cpu + sor_cpu,
+            "ours_full_pipeline_cpu_ms": full_cpu,
         });
         for (i, (single, tag)) in [(false, "open3d"), (true, "open3d_1thread")]
             .into_iter()
@@ -225,6 +244,25 @@ fn main() -> anyhow::Result<()> {
             }
             round[format!("speedup_full_pipeline_vs_{tag}")] =
                 json!(o["total_ms"].as_f64().map(|t| t / full_ms));
+            if single {
+                // Both single-threaded: CPU time is the like-for-like cost under load.
+                for stage in ["crop", "voxel", "outliers"] {
+                    let t = o[format!("{stage}_cpu_ms")].as_f64();
+                    round[format!("{tag}_{stage}_cpu_ms")] = json!(t);
+                    round[format!("cpu_speedup_vs_{tag}_{stage}")] = json!(t
+                        .zip(round[format!("ours_{stage}_cpu_ms")].as_f64())
+                        .map(|(t, o)| t / o));
+                }
+                let t: Option<f64> = ["crop", "voxel", "outliers"]
+                    .iter()
+                    .map(|s| o[format!("{s}_cpu_ms")].as_f64())
+                    .sum();
+                round[format!("{tag}_total_cpu_ms")] = json!(t);
+                round[format!("cpu_speedup_vs_{tag}_total")] =
+                    json!(t.map(|t| t / (crop_cpu + voxel_cpu + sor_cpu)));
+                round[format!("cpu_speedup_full_pipeline_vs_{tag}")] =
+                    json!(t.map(|t| t / full_cpu));
+            }
             last[i] = o;
         }
         rounds.push(round);
