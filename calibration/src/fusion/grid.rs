@@ -246,8 +246,9 @@ const KNN_MIN_CELLS: usize = 1 << 20;
 /// instructions; smaller cells leave most k-th distances outside the block.
 const KNN_CELLS_PER_CAP: f64 = 3.0;
 
-/// The first search radius as a multiple of the previous point's k-th distance.
-const GUESS: f32 = 1.05;
+/// The first search radius as a multiple of the previous point's k-th distance (callgrind
+/// on the benchmark's cloud: 1.0, 1.05 and 1.3 cost 21 %, 4 % and 11 % more instructions).
+const GUESS: f32 = 1.15;
 
 /// Relative slack on search radii and cell walls: f32 rounding must never leave a point
 /// that is within the radius outside the cells searched.
