@@ -5,10 +5,13 @@
 //! focus box, 512 outside), then shuffle.
 //!
 //! No library does this on depth images directly, and the hot loops are simple: each stage
-//! is one pass over flat arrays with no per-point allocation. Neighbour search uses a
-//! hashed uniform grid (cells of 3 voxels) rather than a k-d tree: after voxelisation the
-//! points are evenly spread, so a grid finds the k nearest in 27 cells almost always.
-//! Deprojection uses a per-pixel ray table computed once per camera.
+//! is one pass over flat arrays with no per-point allocation, and the buffers are reused from
+//! one keyframe to the next. Deprojection uses a per-pixel ray table computed once per
+//! camera, with the crop fused in and the depth-edge filter's 3x3 window from per-row
+//! minima and maxima. Voxels live in a dense grid over the (small, known) workspace instead
+//! of a hash map. The outlier filter's k nearest neighbours come from a dense grid of points
+//! counting-sorted by cell (module `grid`): exact, and usually served by one contiguous block
+//! of ~100 points per cell, which beats a k-d tree on an evenly spread voxel cloud.
 //!
 //! Bad input never panics: zero depth is "no measurement", non-finite depth scales and
 //! transforms are typed errors, as are missing frames, unknown cameras and cameras with no
@@ -858,9 +861,9 @@ pub fn remove_robot(points: &Points, robot: &[Capsule], margin: f64) -> Points {
 
 /// Open3D's statistical outlier removal: a point is an outlier when its mean distance to
 /// its `k` nearest neighbours exceeds the mean of that over all points by `std_ratio`
-/// standard deviations. Neighbours come from a grid of `cell_m` cells searched in growing
-/// rings until the k-th neighbour is provably found (or 3 rings: such a point is isolated;
-/// see [`mean_neighbour_distances`]). Non-finite points are removed.
+/// standard deviations. Neighbour distances are capped at `3 cell_m` (a point with fewer
+/// neighbours within the cap is isolated; see [`mean_neighbour_distances`]). Non-finite
+/// points are removed.
 pub fn remove_statistical_outliers(
     points: &Points,
     k: usize,
