@@ -5,17 +5,23 @@
 //! focus box, 512 outside), then shuffle.
 //!
 //! No library does this on depth images directly, and the hot loops are simple: each stage
-//! is one pass over flat arrays with no per-point allocation. Neighbour search uses a
-//! hashed uniform grid (cells of 3 voxels) rather than a k-d tree: after voxelisation the
-//! points are evenly spread, so a grid finds the k nearest in 27 cells almost always.
-//! Deprojection uses a per-pixel ray table computed once per camera.
+//! is one pass over flat arrays with no per-point allocation, and the buffers are reused from
+//! one keyframe to the next. Deprojection uses a per-pixel ray table computed once per
+//! camera, with the crop fused in and the depth-edge filter's 3x3 window from per-row
+//! minima and maxima. Voxels live in a dense grid over the (small, known) workspace instead
+//! of a hash map. The outlier filter's k nearest neighbours come from a dense grid of points
+//! counting-sorted by cell (module `grid`): exact, and usually served by one contiguous block
+//! of ~100 points per cell, which beats a k-d tree on an evenly spread voxel cloud.
 //!
 //! Bad input never panics: zero depth is "no measurement", non-finite depth scales and
 //! transforms are typed errors, as are missing frames, unknown cameras and cameras with no
 //! valid pixel.
 
+mod grid;
+
 use std::collections::HashMap;
 use std::hash::{BuildHasherDefault, Hasher};
+use std::sync::{Mutex, TryLockError};
 
 use cell_types::{Base, Camera, CameraFrame, FrameId, PointCloud, Rgb, Transform};
 use nalgebra::{Point2, Point3, Vector3};
@@ -26,6 +32,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::camera::{DepthCorrection, Intrinsics};
 use crate::error::CalibrationError;
+use grid::{CellBox, KnnScratch, VoxelScratch};
 
 /// One camera's calibration: intrinsics of its depth stream and its pose in the base frame.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -275,6 +282,87 @@ pub struct FusionPipeline {
     params: FusionParams,
     /// Per camera, the normalised ray (x, y) of every pixel.
     rays: Vec<Vec<[f32; 2]>>,
+    /// The workspace's voxels (the dense grid every cropped point falls in).
+    voxel_box: CellBox,
+    /// Buffers reused from one call to the next.
+    scratch: ScratchCell,
+}
+
+/// Buffers the pipeline reuses from one keyframe to the next.
+#[derive(Default)]
+struct Scratch {
+    /// The deprojected, cropped points of all cameras.
+    merged: Points,
+    edges: EdgeWindows,
+    voxels: VoxelScratch,
+    knn: KnnScratch,
+}
+
+/// Each depth pixel's row neighbourhood (itself and its left and right neighbours): the
+/// largest raw depth and the smallest valid one, so that the depth-edge filter's 3x3 window
+/// is three look-ups instead of nine.
+#[derive(Default)]
+struct EdgeWindows {
+    /// Largest raw depth of the three (0 is never the largest of a valid pixel's window).
+    max: Vec<u16>,
+    /// Smallest raw depth of the three minus one, wrapping: 0 (no measurement) becomes
+    /// `u16::MAX` and never wins.
+    min: Vec<u16>,
+}
+
+impl EdgeWindows {
+    /// Fills both for an image of width `w` stored in `data`.
+    fn rows(&mut self, data: &[u16], w: usize) {
+        self.max.clear();
+        self.min.clear();
+        if w == 0 {
+            return;
+        }
+        self.max.resize(data.len(), 0);
+        self.min.resize(data.len(), 0);
+        for ((row, max), min) in data
+            .chunks_exact(w)
+            .zip(self.max.chunks_exact_mut(w))
+            .zip(self.min.chunks_exact_mut(w))
+        {
+            for u in 0..w {
+                let (l, r) = (u.saturating_sub(1), (u + 1).min(w - 1));
+                let (a, b, c) = (row[l], row[u], row[r]);
+                max[u] = a.max(b).max(c);
+                min[u] = a
+                    .wrapping_sub(1)
+                    .min(b.wrapping_sub(1))
+                    .min(c.wrapping_sub(1));
+            }
+        }
+    }
+
+    /// The smallest valid and the largest raw depth of a 3x3 window, from the flat indices
+    /// of its rows' centres (a valid pixel's window always has a valid depth).
+    #[inline]
+    fn window(&self, up: usize, at: usize, down: usize) -> (u16, u16) {
+        let hi = self.max[up].max(self.max[at]).max(self.max[down]);
+        let lo = self.min[up].min(self.min[at]).min(self.min[down]);
+        (lo.wrapping_add(1), hi)
+    }
+}
+
+/// The pipeline's buffers behind a lock (`fuse` takes `&self`). A second thread fusing with
+/// the same pipeline at the same time gets fresh buffers instead of waiting; a clone starts
+/// with empty ones.
+#[derive(Default)]
+struct ScratchCell(Mutex<Scratch>);
+
+impl Clone for ScratchCell {
+    fn clone(&self) -> Self {
+        Self::default()
+    }
+}
+
+impl std::fmt::Debug for ScratchCell {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("ScratchCell")
+    }
 }
 
 impl FusionPipeline {
@@ -339,10 +427,23 @@ impl FusionPipeline {
             }
             rays.push(r);
         }
+        let inv = (1.0 / params.voxel_m) as f32;
+        let h = params.voxel_m / 2.0;
+        let o = params.workspace.min.map(|v| (v - h) as f32);
+        let o = Vector3::new(o[0], o[1], o[2]);
+        let corner = |c: [f64; 3]| Point3::new(c[0] as f32, c[1] as f32, c[2] as f32);
+        // The crop keeps points in [min, max] (as f32) and the voxel of a coordinate grows
+        // with it, so the voxels of these two corners bound every cropped point's voxel.
+        let voxel_box = CellBox::spanning(
+            grid::voxel_coords(&corner(params.workspace.min), &o, inv),
+            grid::voxel_coords(&corner(params.workspace.max), &o, inv),
+        );
         Ok(Self {
             calibration,
             params,
             rays,
+            voxel_box,
+            scratch: ScratchCell::default(),
         })
     }
 
@@ -411,11 +512,20 @@ impl FusionPipeline {
             })?;
         check_frame(&self.calibration.cameras[idx], frame)?;
         let mut out = Points::default();
-        let valid = self.deproject_into(idx, frame, &mut out);
+        let valid = self.deproject_into(idx, frame, &mut out, &mut EdgeWindows::default());
         Ok((out, valid))
     }
 
-    fn deproject_into(&self, idx: usize, frame: &CameraFrame, out: &mut Points) -> usize {
+    /// Deprojects one frame (already checked against its camera) into `out`: valid pixels
+    /// that pass the depth-edge filter and land in the workspace. Returns the number of
+    /// valid depth pixels.
+    fn deproject_into(
+        &self,
+        idx: usize,
+        frame: &CameraFrame,
+        out: &mut Points,
+        edges: &mut EdgeWindows,
+    ) -> usize {
         let cam = &self.calibration.cameras[idx];
         let rays = &self.rays[idx];
         let iso = cam.base_from_camera.isometry();
@@ -437,40 +547,44 @@ impl FusionPipeline {
             frame.depth.raw.height as usize,
         );
         let jump = self.params.edge_jump_m as f32;
+        if jump > 0.0 {
+            edges.rows(data, w);
+        }
         let mut valid = 0;
-        for (i, (&raw, ray)) in data.iter().zip(rays).enumerate() {
-            if raw == 0 {
-                continue;
-            }
-            let z = f32::from(raw) * scale * gain + bias;
-            if !(z.is_finite() && z > 0.0) {
-                continue;
-            }
-            valid += 1;
-            if jump > 0.0 {
-                let (u, v) = (i % w, i / w);
-                let (mut lo_raw, mut hi_raw) = (raw, raw);
-                for nv in v.saturating_sub(1)..(v + 2).min(h) {
-                    for nu in u.saturating_sub(1)..(u + 2).min(w) {
-                        let r = data[nv * w + nu];
-                        if r != 0 {
-                            lo_raw = lo_raw.min(r);
-                            hi_raw = hi_raw.max(r);
-                        }
-                    }
-                }
-                if f32::from(hi_raw - lo_raw) * scale > jump * z.max(1.0) {
+        for v in 0..h {
+            // The window's rows, clamped at the image border (a repeated row changes no
+            // minimum or maximum).
+            let up = v.saturating_sub(1) * w;
+            let down = (v + 1).min(h - 1) * w;
+            let row = v * w;
+            for u in 0..w {
+                let i = row + u;
+                let raw = data[i];
+                if raw == 0 {
                     continue;
                 }
+                let z = f32::from(raw) * scale * gain + bias;
+                if !(z.is_finite() && z > 0.0) {
+                    continue;
+                }
+                valid += 1;
+                if jump > 0.0 {
+                    let (lo_raw, hi_raw) = edges.window(up + u, i, down + u);
+                    if f32::from(hi_raw - lo_raw) * scale > jump * z.max(1.0) {
+                        continue;
+                    }
+                }
+                let ray = rays[i];
+                let p = r * Vector3::new(ray[0] * z, ray[1] * z, z) + t;
+                if p.x < lo.x || p.y < lo.y || p.z < lo.z || p.x > hi.x || p.y > hi.y || p.z > hi.z
+                {
+                    continue;
+                }
+                out.push(
+                    Point3::from(p),
+                    colour.map(|c| c.data.get(i).copied().unwrap_or([128; 3])),
+                );
             }
-            let p = r * Vector3::new(ray[0] * z, ray[1] * z, z) + t;
-            if p.x < lo.x || p.y < lo.y || p.z < lo.z || p.x > hi.x || p.y > hi.y || p.z > hi.z {
-                continue;
-            }
-            out.push(
-                Point3::from(p),
-                colour.map(|c| c.data.get(i).copied().unwrap_or([128; 3])),
-            );
         }
         valid
     }
@@ -498,13 +612,39 @@ impl FusionPipeline {
         frames: &[CameraFrame],
         robot: &[Capsule],
     ) -> Result<(Points, FusionStats), CalibrationError> {
+        let mut fresh = None;
+        let mut guard = match self.scratch.0.try_lock() {
+            Ok(g) => Some(g),
+            Err(TryLockError::Poisoned(e)) => {
+                // A panic mid-call may have left the voxel slots dirty: start afresh.
+                let mut g = e.into_inner();
+                *g = Scratch::default();
+                Some(g)
+            }
+            Err(TryLockError::WouldBlock) => None,
+        };
+        let scratch = match guard.as_deref_mut() {
+            Some(s) => s,
+            None => fresh.insert(Scratch::default()),
+        };
+        self.fuse_dense_with(frames, robot, scratch)
+    }
+
+    fn fuse_dense_with(
+        &self,
+        frames: &[CameraFrame],
+        robot: &[Capsule],
+        scratch: &mut Scratch,
+    ) -> Result<(Points, FusionStats), CalibrationError> {
         let matched = self.match_frames(frames)?;
         let mut stats = FusionStats::default();
         let any_colour = matched.iter().any(|f| f.colour.is_some());
-        let mut merged = Points::default();
+        let merged = &mut scratch.merged;
+        merged.xyz.clear();
+        merged.rgb.clear();
         for (idx, f) in matched.iter().enumerate() {
             let before = merged.len();
-            let valid = self.deproject_into(idx, f, &mut merged);
+            let valid = self.deproject_into(idx, f, merged, &mut scratch.edges);
             if valid == 0 {
                 return Err(CalibrationError::NoValidDepth {
                     camera: f.camera,
@@ -521,15 +661,23 @@ impl FusionPipeline {
             stats.valid_pixels.push(valid);
         }
         stats.cropped = merged.len();
-        let voxels = voxel_downsample(&merged, self.params.voxel_m, self.voxel_origin());
+        let mut voxels = Points::default();
+        scratch.voxels.voxelise(
+            merged,
+            self.params.voxel_m,
+            self.voxel_origin(),
+            Some(self.voxel_box),
+            &mut voxels,
+        );
         stats.voxels = voxels.len();
         let without_robot = remove_robot(&voxels, robot, self.params.robot_margin_m);
         stats.without_robot = without_robot.len();
-        let inliers = remove_statistical_outliers(
+        let inliers = remove_outliers_with(
             &without_robot,
             self.params.outlier_k,
             self.params.outlier_std_ratio,
             self.params.voxel_m * 3.0,
+            &mut scratch.knn,
         );
         stats.inliers = inliers.len();
         Ok((inliers, stats))
@@ -639,7 +787,7 @@ type KeyMap<V> = HashMap<u64, V, BuildHasherDefault<KeyHasher>>;
 
 /// Packs a grid cell (21 bits per axis, offset so that negative cells fit).
 fn cell_key(p: &Point3<f32>, inv: f32) -> u64 {
-    let f = |v: f32| ((v * inv).floor() as i64 + (1 << 20)).clamp(0, (1 << 21) - 1) as u64;
+    let f = |v: f32| (grid::cell_coord(v, inv) + (1 << 20)) as u64;
     f(p.x) | (f(p.y) << 21) | (f(p.z) << 42)
 }
 
@@ -653,8 +801,17 @@ fn key_offset(key: u64, dx: i64, dy: i64, dz: i64) -> u64 {
 /// Replaces the points of each occupied voxel (edge `voxel_m`, grid corner at `origin`) by
 /// their centroid (and mean colour), like Open3D's `voxel_down_sample`. Output order: first
 /// occurrence. Anchor the grid in the base frame (not at the cloud's minimum, as Open3D
-/// does) so that voxels stay put from frame to frame.
+/// does) so that voxels stay put from frame to frame. Voxels are found in a dense grid
+/// around the cloud (a hash map when that would be too large).
 pub fn voxel_downsample(points: &Points, voxel_m: f64, origin: [f64; 3]) -> Points {
+    let mut out = Points::default();
+    VoxelScratch::default().voxelise(points, voxel_m, origin, None, &mut out);
+    out
+}
+
+/// `voxel_downsample` with a hash map of voxels: for clouds spread too wide for a dense
+/// grid, and the reference the dense grid is tested against.
+fn voxel_downsample_hashed(points: &Points, voxel_m: f64, origin: [f64; 3]) -> Points {
     let inv = (1.0 / voxel_m) as f32;
     let o = Vector3::new(origin[0] as f32, origin[1] as f32, origin[2] as f32);
     let has_rgb = points.rgb.len() == points.len();
@@ -711,129 +868,55 @@ pub fn remove_robot(points: &Points, robot: &[Capsule], margin: f64) -> Points {
 
 /// Open3D's statistical outlier removal: a point is an outlier when its mean distance to
 /// its `k` nearest neighbours exceeds the mean of that over all points by `std_ratio`
-/// standard deviations. Neighbours come from a hashed grid of `cell_m` cells searched in
-/// growing rings until the k-th neighbour is provably found (or 3 rings: such a point is
-/// isolated; see [`mean_neighbour_distances`]).
+/// standard deviations. Neighbour distances are capped at `3 cell_m` (a point with fewer
+/// neighbours within the cap is isolated; see [`mean_neighbour_distances`]). Non-finite
+/// points are removed.
 pub fn remove_statistical_outliers(
     points: &Points,
     k: usize,
     std_ratio: f64,
     cell_m: f64,
 ) -> Points {
+    remove_outliers_with(points, k, std_ratio, cell_m, &mut KnnScratch::default())
+}
+
+/// [`remove_statistical_outliers`] with the pipeline's reused buffers.
+fn remove_outliers_with(
+    points: &Points,
+    k: usize,
+    std_ratio: f64,
+    cell_m: f64,
+    scratch: &mut KnnScratch,
+) -> Points {
     if points.is_empty() || k == 0 {
         return points.clone();
     }
-    let mean_dist = mean_neighbour_distances(&points.xyz, k, cell_m);
-    let finite: Vec<f64> = mean_dist
-        .iter()
-        .filter(|d| d.is_finite())
-        .map(|&d| f64::from(d))
-        .collect();
-    if finite.is_empty() {
+    scratch.mean_neighbour_distances(&points.xyz, k, cell_m);
+    let mean_dist = &scratch.mean;
+    let finite = || {
+        mean_dist
+            .iter()
+            .filter(|d| d.is_finite())
+            .map(|&d| f64::from(d))
+    };
+    let count = finite().count();
+    if count == 0 {
         return Points::default();
     }
-    let m = finite.iter().sum::<f64>() / finite.len() as f64;
-    let var =
-        finite.iter().map(|d| (d - m).powi(2)).sum::<f64>() / (finite.len().max(2) - 1) as f64;
+    let m = finite().sum::<f64>() / count as f64;
+    let var = finite().map(|d| (d - m).powi(2)).sum::<f64>() / (count.max(2) - 1) as f64;
     let threshold = m + std_ratio * var.sqrt();
     points.select(|i| f64::from(mean_dist[i]) <= threshold)
 }
 
 /// Each point's mean distance to its `k` nearest neighbours (itself excluded), with each
 /// distance capped at 3 grid cells (`cell_m`) and missing neighbours counted at that cap:
-/// exact whenever the k-th neighbour lies within 3 cells.
+/// exact whenever the k-th neighbour lies within 3 cells. Non-finite points are nobody's
+/// neighbour and get `+inf`.
 pub fn mean_neighbour_distances(points: &[Point3<f32>], k: usize, cell_m: f64) -> Vec<f32> {
-    let n = points.len();
-    let k = k.clamp(1, 64);
-    let inv = (1.0 / cell_m) as f32;
-    let cell = cell_m as f32;
-    // Sort the points by cell. x sits in the key's low bits, so the cells x-1..=x+1 of one
-    // (y, z) row are one contiguous run of the sorted keys: a 3x3x3 search is 9 range
-    // look-ups (binary searches), and candidates are read sequentially.
-    let mut order: Vec<(u64, u32)> = points
-        .iter()
-        .enumerate()
-        .map(|(i, p)| (cell_key(p, inv), i as u32))
-        .collect();
-    order.sort_unstable_by_key(|e| e.0);
-    let keys: Vec<u64> = order.iter().map(|e| e.0).collect();
-    let xyz: Vec<Point3<f32>> = order.iter().map(|e| points[e.1 as usize]).collect();
-    let mut mean_dist = vec![0.0f32; n];
-    let mut best = [0.0f32; 64];
-    // The 9 row ranges of the first ring, shared by all the points of a cell (the points
-    // come in cell order), so the binary searches run once per cell, not per point.
-    let row_range = |key: u64, ring: i64, dy: i64, dz: i64| {
-        let lo = key_offset(key, -ring, dy, dz);
-        let hi = key_offset(key, ring, dy, dz);
-        let start = keys.partition_point(|&x| x < lo);
-        (start, start + keys[start..].partition_point(|&x| x <= hi))
-    };
-    let mut ring1 = [(0usize, 0usize); 9];
-    let mut ring1_key = None;
-    let mut ranges: Vec<(usize, usize)> = Vec::with_capacity(49);
-    let mut cand: Vec<f32> = Vec::with_capacity(512);
-    for (qi, p) in xyz.iter().enumerate() {
-        let key = keys[qi];
-        if ring1_key != Some(key) {
-            let mut r = 0;
-            for dz in -1..=1 {
-                for dy in -1..=1 {
-                    ring1[r] = row_range(key, 1, dy, dz);
-                    r += 1;
-                }
-            }
-            ring1_key = Some(key);
-        }
-        let mut found;
-        let mut ring = 1i64;
-        loop {
-            ranges.clear();
-            if ring == 1 {
-                ranges.extend_from_slice(&ring1);
-            } else {
-                for dz in -ring..=ring {
-                    for dy in -ring..=ring {
-                        ranges.push(row_range(key, ring, dy, dz));
-                    }
-                }
-            }
-            // Gather every candidate's squared distance, then select the k smallest in
-            // linear time (an insertion-sorted top-k mispredicts on every other candidate).
-            cand.clear();
-            for &(start, end) in &ranges {
-                for (j, q) in xyz[start..end].iter().enumerate() {
-                    if start + j != qi {
-                        cand.push((q - p).norm_squared());
-                    }
-                }
-            }
-            found = cand.len();
-            if found > k {
-                cand.select_nth_unstable_by(k - 1, f32::total_cmp);
-            }
-            let got = found.min(k);
-            best[..got].copy_from_slice(&cand[..got]);
-            // The k-th nearest distance: only then are all k provably inside the ring.
-            let kth = if got == k {
-                best[..k].iter().copied().fold(0.0, f32::max)
-            } else {
-                f32::INFINITY
-            };
-            let reach = ring as f32 * cell;
-            if kth <= reach * reach || ring >= 3 {
-                break;
-            }
-            ring += 1;
-        }
-        // Distances are capped at the search's reach (3 cells; everything within it is in
-        // the searched cube) and missing neighbours count as at the reach: isolated points
-        // score high, and the value does not depend on which cube corners were searched.
-        let reach = 3.0 * cell;
-        let got = found.min(k);
-        let sum: f32 = best[..got].iter().map(|d2| d2.sqrt().min(reach)).sum();
-        mean_dist[order[qi].1 as usize] = (sum + (k - got) as f32 * reach) / k as f32;
-    }
-    mean_dist
+    let mut scratch = KnnScratch::default();
+    scratch.mean_neighbour_distances(points, k, cell_m);
+    scratch.mean
 }
 
 /// Farthest point sampling of `count` of the points `candidates` (indices into `xyz`),
@@ -1178,6 +1261,180 @@ mod tests {
                     "trial {trial} point {i} k {k}: {} vs {expected}",
                     fast[i]
                 );
+            }
+        }
+    }
+
+    /// Brute-force reference of `mean_neighbour_distances`: finite points only.
+    fn brute_mean_distances(pts: &[Point3<f32>], k: usize, reach: f32) -> Vec<f32> {
+        let finite = |p: &Point3<f32>| p.iter().all(|v| v.is_finite());
+        pts.iter()
+            .enumerate()
+            .map(|(i, p)| {
+                if !finite(p) {
+                    return f32::INFINITY;
+                }
+                let mut d: Vec<f32> = pts
+                    .iter()
+                    .enumerate()
+                    .filter(|(j, q)| *j != i && finite(q))
+                    .map(|(_, q)| (q - p).norm())
+                    .collect();
+                d.sort_by(f32::total_cmp);
+                let within: Vec<f32> = d.iter().copied().filter(|&x| x <= reach).take(k).collect();
+                (within.iter().sum::<f32>() + (k - within.len()) as f32 * reach) / k as f32
+            })
+            .collect()
+    }
+
+    #[test]
+    fn grid_knn_is_exact_on_widely_spread_clouds_and_skips_non_finite_points() {
+        use rand::Rng;
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let cell = 0.01;
+        let reach = 3.0 * cell as f32;
+        // Clusters kilometres apart: the grid cannot cover them all and clamps the far ones
+        // into its border cells, and duplicates (distance 0) must still count.
+        for trial in 0..10 {
+            let mut pts = Vec::new();
+            for _ in 0..rng.random_range(2..5) {
+                let c = Point3::new(
+                    rng.random_range(-2000.0f32..2000.0),
+                    rng.random_range(-1.0f32..1.0),
+                    rng.random_range(-300.0f32..300.0),
+                );
+                for _ in 0..rng.random_range(20..200) {
+                    pts.push(
+                        c + Vector3::new(
+                            rng.random_range(-0.03f32..0.03),
+                            rng.random_range(-0.03f32..0.03),
+                            rng.random_range(-0.03f32..0.03),
+                        ),
+                    );
+                }
+            }
+            pts.push(pts[3]);
+            pts.push(Point3::new(f32::NAN, 0.0, 0.0));
+            pts.push(Point3::new(f32::INFINITY, 0.0, 0.0));
+            let k = rng.random_range(1..25);
+            let fast = mean_neighbour_distances(&pts, k, cell);
+            let slow = brute_mean_distances(&pts, k, reach);
+            for (i, (f, s)) in fast.iter().zip(&slow).enumerate() {
+                // Centred kilometres out, f32 differences are exact only to ~1e-4 m.
+                let ok = f == s || (f - s).abs() < 2e-4;
+                assert!(ok, "trial {trial} point {i} k {k}: {f} vs {s}");
+            }
+        }
+        let kept = remove_statistical_outliers(
+            &Points {
+                xyz: vec![Point3::new(f32::NAN, 0.0, 0.0), Point3::origin()],
+                rgb: Vec::new(),
+            },
+            3,
+            2.0,
+            cell,
+        );
+        assert_eq!(kept.xyz, vec![Point3::origin()]);
+    }
+
+    #[test]
+    fn dense_voxel_grid_equals_the_hash_map_on_random_clouds() {
+        use rand::Rng;
+        let mut rng = ChaCha8Rng::seed_from_u64(9);
+        let mut scratch = VoxelScratch::default();
+        for trial in 0..30 {
+            let voxel = rng.random_range(0.002..0.02);
+            let origin = [0, 1, 2].map(|_| rng.random_range(-0.1..0.1));
+            let spread = if trial % 5 == 4 { 50.0 } else { 0.3 };
+            let n = rng.random_range(0..3000);
+            let mut pts = Points::default();
+            for i in 0..n {
+                // Repeats make many points per voxel.
+                let p = if i > 0 && rng.random_bool(0.5) {
+                    pts.xyz[rng.random_range(0..i)]
+                        + Vector3::repeat(rng.random_range(0.0..voxel as f32))
+                } else {
+                    Point3::new(
+                        rng.random_range(-spread..spread),
+                        rng.random_range(-spread..spread),
+                        rng.random_range(-spread..spread),
+                    )
+                };
+                pts.xyz.push(p);
+                if trial % 2 == 0 {
+                    pts.rgb.push([rng.random(), rng.random(), rng.random()]);
+                }
+            }
+            let reference = voxel_downsample_hashed(&pts, voxel, origin);
+            assert_eq!(
+                voxel_downsample(&pts, voxel, origin),
+                reference,
+                "trial {trial}"
+            );
+            // A given grid too small for some points falls back; the reused scratch stays clean.
+            let mut out = Points::default();
+            let small = CellBox::spanning([-3; 3], [3; 3]);
+            scratch.voxelise(&pts, voxel, origin, Some(small), &mut out);
+            assert_eq!(out, reference, "trial {trial} (small grid)");
+            let inv = (1.0 / voxel) as f32;
+            let o = Vector3::new(origin[0] as f32, origin[1] as f32, origin[2] as f32);
+            let all = CellBox::around(pts.xyz.iter().map(|p| grid::voxel_coords(p, &o, inv)));
+            if let Some(all) = all.filter(|b| b.cells() <= grid::DENSE_VOXEL_CELLS) {
+                scratch.voxelise(&pts, voxel, origin, Some(all), &mut out);
+                assert_eq!(out, reference, "trial {trial} (given grid)");
+            }
+        }
+    }
+
+    #[test]
+    fn reused_buffers_give_the_same_cloud_as_a_fresh_pipeline() {
+        let pipe = FusionPipeline::new(calib(&[0, 1]), FusionParams::default()).unwrap();
+        let near = [frame(0, 950), frame(1, 900)];
+        let far = [frame(0, 1000), frame(1, 980)];
+        let first = pipe.fuse(&near, &[]).unwrap();
+        let _ = pipe.fuse(&far, &[]).unwrap();
+        assert_eq!(pipe.fuse(&near, &[]).unwrap(), first);
+        assert_eq!(pipe.clone().fuse(&near, &[]).unwrap(), first);
+    }
+
+    #[test]
+    fn edge_windows_match_the_3x3_window_of_valid_depths() {
+        use rand::Rng;
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let mut edges = EdgeWindows::default();
+        for (w, h) in [(1, 1), (1, 5), (5, 1), (2, 2), (17, 9), (64, 3)] {
+            let data: Vec<u16> = (0..w * h)
+                .map(|_| match rng.random_range(0..4) {
+                    0 => 0,
+                    1 => u16::MAX,
+                    _ => rng.random_range(1..3000),
+                })
+                .collect();
+            edges.rows(&data, w);
+            for v in 0..h {
+                for u in 0..w {
+                    if data[v * w + u] == 0 {
+                        continue;
+                    }
+                    let window: Vec<u16> = (v.saturating_sub(1)..(v + 2).min(h))
+                        .flat_map(|nv| {
+                            (u.saturating_sub(1)..(u + 2).min(w)).map(move |nu| (nv, nu))
+                        })
+                        .map(|(nv, nu)| data[nv * w + nu])
+                        .filter(|&r| r != 0)
+                        .collect();
+                    let expected = (
+                        window.iter().copied().min().unwrap(),
+                        window.iter().copied().max().unwrap(),
+                    );
+                    let up = v.saturating_sub(1) * w + u;
+                    let down = (v + 1).min(h - 1) * w + u;
+                    assert_eq!(
+                        edges.window(up, v * w + u, down),
+                        expected,
+                        "{w}x{h} ({u}, {v})"
+                    );
+                }
             }
         }
     }

@@ -1,0 +1,636 @@
+//! Dense grids for the fusion pipeline's voxelisation and neighbour search, and their
+//! reusable buffers.
+//!
+//! Both replace hash maps: the workspace is small and known, so a flat array indexed by
+//! cell finds a voxel with one load, and a counting sort of the points by cell (compressed
+//! rows: one start offset per cell) makes every row of neighbouring cells one contiguous run
+//! of points, stored as structure-of-arrays so that distances vectorise.
+
+use nalgebra::{Point3, Vector3};
+
+use super::{voxel_downsample_hashed, Points};
+
+/// Marks an unoccupied cell of the voxel grid.
+const EMPTY: u32 = u32::MAX;
+
+/// The most cells a dense voxel grid may have (32 MB of slots; the EquAct workspace at 5 mm
+/// needs 3.1 M); larger boxes fall back to the hash map.
+pub(super) const DENSE_VOXEL_CELLS: usize = 1 << 23;
+
+/// Cell coordinates are clamped to +-2^20 (the range of the packed hash keys).
+const COORD_LIMIT: i64 = 1 << 20;
+
+/// The grid cell of one coordinate: `floor(v * inv)`, clamped (NaN lands in cell 0).
+/// Truncates and corrects instead of calling `floor`, which without SSE4.1 (the baseline
+/// x86-64 target) is a library call that cost more than the rest of a voxel insert.
+#[inline]
+pub(super) fn cell_coord(v: f32, inv: f32) -> i64 {
+    let t = v * inv;
+    let i = t as i64;
+    let i = if (i as f32) > t {
+        i.saturating_sub(1)
+    } else {
+        i
+    };
+    i.clamp(-COORD_LIMIT, COORD_LIMIT - 1)
+}
+
+/// The voxel of `p` in a grid with corner `o` and inverse edge `inv`.
+#[inline]
+pub(super) fn voxel_coords(p: &Point3<f32>, o: &Vector3<f32>, inv: f32) -> [i64; 3] {
+    [
+        cell_coord(p.x - o.x, inv),
+        cell_coord(p.y - o.y, inv),
+        cell_coord(p.z - o.z, inv),
+    ]
+}
+
+/// A box of grid cells: `dims[a]` cells from `lo[a]` on each axis, x fastest.
+#[derive(Copy, Clone, Debug, PartialEq, Eq)]
+pub(super) struct CellBox {
+    /// The first cell on each axis.
+    pub lo: [i64; 3],
+    /// Cells per axis (each at least 1).
+    pub dims: [usize; 3],
+}
+
+impl CellBox {
+    /// The box from cell `lo` to cell `hi` (both included).
+    pub fn spanning(lo: [i64; 3], hi: [i64; 3]) -> CellBox {
+        CellBox {
+            lo,
+            dims: [0, 1, 2].map(|a| (hi[a] - lo[a]).max(0) as usize + 1),
+        }
+    }
+
+    /// The smallest box holding every cell of `cells` (`None` when there is none).
+    pub fn around(cells: impl Iterator<Item = [i64; 3]>) -> Option<CellBox> {
+        let mut lo = [i64::MAX; 3];
+        let mut hi = [i64::MIN; 3];
+        for c in cells {
+            for a in 0..3 {
+                lo[a] = lo[a].min(c[a]);
+                hi[a] = hi[a].max(c[a]);
+            }
+        }
+        (lo[0] <= hi[0]).then(|| CellBox::spanning(lo, hi))
+    }
+
+    /// Number of cells (saturating).
+    pub fn cells(&self) -> usize {
+        self.dims.iter().fold(1usize, |n, &d| n.saturating_mul(d))
+    }
+
+    /// The flat index of cell `c`, or `None` outside the box.
+    #[inline]
+    pub fn index(&self, c: [i64; 3]) -> Option<usize> {
+        let mut idx = 0usize;
+        for a in (0..3).rev() {
+            let r = c[a] - self.lo[a];
+            if r < 0 || r as usize >= self.dims[a] {
+                return None;
+            }
+            idx = idx * self.dims[a] + r as usize;
+        }
+        Some(idx)
+    }
+
+    /// Cell `c` moved into the box (nearest cell on each axis).
+    #[inline]
+    fn clamp(&self, c: [i64; 3]) -> [usize; 3] {
+        [0, 1, 2].map(|a| (c[a] - self.lo[a]).clamp(0, self.dims[a] as i64 - 1) as usize)
+    }
+}
+
+/// Voxelisation buffers: a dense grid of voxel slots and the per-voxel sums.
+#[derive(Default)]
+pub(super) struct VoxelScratch {
+    /// Per grid cell, the index of its voxel, or `EMPTY`; all `EMPTY` between calls.
+    slots: Vec<u32>,
+    /// Per voxel, its grid cell (to reset `slots` afterwards).
+    cells: Vec<u32>,
+    /// Per voxel, the sum of its points (f64: 10^4 points of one voxel lose no precision).
+    sums: Vec<[f64; 3]>,
+    /// Per voxel, the sum of its colours.
+    colours: Vec<[u32; 3]>,
+    /// Per voxel, its number of points.
+    counts: Vec<u32>,
+}
+
+impl VoxelScratch {
+    /// Voxel centroids of `points` (voxel edge `voxel_m`, grid corner `origin`) into `out`, in
+    /// order of first occurrence. Uses the dense grid `grid` when given (it must hold every
+    /// point's voxel; the pipeline's is the workspace's), else one around the points, and
+    /// falls back to a hash map when that has more than `DENSE_VOXEL_CELLS` cells or a point
+    /// lies outside it. All three give the same result.
+    pub fn voxelise(
+        &mut self,
+        points: &Points,
+        voxel_m: f64,
+        origin: [f64; 3],
+        grid: Option<CellBox>,
+        out: &mut Points,
+    ) {
+        let inv = (1.0 / voxel_m) as f32;
+        let o = Vector3::new(origin[0] as f32, origin[1] as f32, origin[2] as f32);
+        let grid =
+            grid.or_else(|| CellBox::around(points.xyz.iter().map(|p| voxel_coords(p, &o, inv))));
+        if let Some(g) = grid.filter(|g| g.cells() <= DENSE_VOXEL_CELLS) {
+            if self.accumulate(points, &g, &o, inv) {
+                self.write(points.rgb.len() == points.len(), out);
+                return;
+            }
+        }
+        *out = voxel_downsample_hashed(points, voxel_m, origin);
+    }
+
+    /// Sums the points per voxel of `grid`; false when a point lies outside it.
+    fn accumulate(&mut self, points: &Points, grid: &CellBox, o: &Vector3<f32>, inv: f32) -> bool {
+        let n_cells = grid.cells();
+        if self.slots.len() < n_cells {
+            self.slots.resize(n_cells, EMPTY);
+        }
+        self.cells.clear();
+        self.sums.clear();
+        self.colours.clear();
+        self.counts.clear();
+        let has_rgb = points.rgb.len() == points.len();
+        let mut inside = true;
+        for (i, p) in points.xyz.iter().enumerate() {
+            let Some(cell) = grid.index(voxel_coords(p, o, inv)) else {
+                inside = false;
+                break;
+            };
+            let mut slot = self.slots[cell];
+            if slot == EMPTY {
+                slot = self.sums.len() as u32;
+                self.slots[cell] = slot;
+                self.cells.push(cell as u32);
+                self.sums.push([0.0; 3]);
+                self.colours.push([0; 3]);
+                self.counts.push(0);
+            }
+            let s = slot as usize;
+            let sum = &mut self.sums[s];
+            sum[0] += f64::from(p.x);
+            sum[1] += f64::from(p.y);
+            sum[2] += f64::from(p.z);
+            if has_rgb {
+                for (sum, &v) in self.colours[s].iter_mut().zip(&points.rgb[i]) {
+                    *sum += u32::from(v);
+                }
+            }
+            self.counts[s] += 1;
+        }
+        for &c in &self.cells {
+            self.slots[c as usize] = EMPTY;
+        }
+        inside
+    }
+
+    /// The centroids (and mean colours) of the accumulated voxels.
+    fn write(&self, has_rgb: bool, out: &mut Points) {
+        out.xyz.clear();
+        out.rgb.clear();
+        out.xyz.reserve(self.sums.len());
+        for (s, &n) in self.sums.iter().zip(&self.counts) {
+            let nf = f64::from(n);
+            out.xyz.push(Point3::new(
+                (s[0] / nf) as f32,
+                (s[1] / nf) as f32,
+                (s[2] / nf) as f32,
+            ));
+        }
+        if has_rgb {
+            out.rgb.extend(
+                self.colours
+                    .iter()
+                    .zip(&self.counts)
+                    .map(|(c, &n)| c.map(|v| (v / n) as u8)),
+            );
+        }
+    }
+}
+
+/// Neighbour-search buffers: the points counting-sorted by grid cell, structure of arrays.
+#[derive(Default)]
+pub(super) struct KnnScratch {
+    /// Per cell, the first of its points in the sorted arrays; one more entry at the end.
+    start: Vec<u32>,
+    /// Per input point, its cell (`u32::MAX`: not finite, not indexed).
+    cell_of: Vec<u32>,
+    /// Sorted positions.
+    xs: Vec<f32>,
+    ys: Vec<f32>,
+    zs: Vec<f32>,
+    /// Per sorted point, its input index.
+    ids: Vec<u32>,
+    /// Per axis, each cell's slab (widened a little; the border cells open outwards).
+    walls: [Vec<[f32; 2]>; 3],
+    /// Candidates' squared distances, as bits (non-negative floats order like their bits).
+    cand: Vec<u32>,
+    /// The points around the current cell.
+    block: Block,
+    /// Per input point, the result.
+    pub mean: Vec<f32>,
+}
+
+/// The most cells a neighbour grid may have beyond two per point (4 MB of offsets); a
+/// cloud spread wider is searched in a window of cells, the points outside it clamped into
+/// its border cells (still exact, only slower for them).
+const KNN_MIN_CELLS: usize = 1 << 20;
+
+/// Neighbour-grid cells per distance cap: a cell's 3x3x3 block (about 100 points of a 5 mm
+/// voxel cloud) then serves radii up to 15 mm, past the typical k-th distance (about 13 mm
+/// at k = 20). Measured with callgrind on the benchmark's cloud: 2.5 costs 22 % more
+/// instructions; smaller cells leave most k-th distances outside the block.
+const KNN_CELLS_PER_CAP: f64 = 3.0;
+
+/// The first search radius as a multiple of the previous point's k-th distance (callgrind
+/// on the benchmark's cloud: 1.0, 1.05 and 1.3 cost 21 %, 4 % and 11 % more instructions).
+const GUESS: f32 = 1.15;
+
+/// Relative slack on search radii and cell walls: f32 rounding must never leave a point
+/// that is within the radius outside the cells searched.
+const SLACK: f32 = 1e-4;
+
+impl KnnScratch {
+    /// Each point's mean distance to its `k` nearest other points (`k` in 1..=64), each
+    /// distance capped at `3 cell_m` and missing neighbours counted at that cap; into
+    /// `self.mean`. Non-finite points are nobody's neighbour and get `+inf`.
+    ///
+    /// Exact: each point gathers the points within a radius r and, when more than k lie
+    /// within it, its k nearest are among them. r is first a guess (the previous point's
+    /// k-th distance `d_k(p)`, a little more: the points come in cell order, so neighbouring
+    /// points with similar densities follow each other), then a bound that provably holds k
+    /// neighbours (`d_k(p) + |p - q|`: p's k neighbours, or p itself in place of q, are all
+    /// that close to q), then the cap; after a failed guess, first the largest radius the
+    /// block below serves. Radii up to one cell edge are served from the points of the
+    /// cell's 3x3x3 block, copied once per cell so that distances vectorise (computed once
+    /// per point, whatever the radius); larger ones from the grid rows whose cells come
+    /// within r.
+    /// Points clamped into a border cell are only extra candidates with their true
+    /// distances, and border cells count as open towards the outside, so clamping keeps
+    /// the search exact.
+    pub fn mean_neighbour_distances(&mut self, points: &[Point3<f32>], k: usize, cell_m: f64) {
+        let n = points.len();
+        let k = k.clamp(1, 64);
+        let cap = (3.0 * cell_m) as f32;
+        let g = 3.0 * cell_m / KNN_CELLS_PER_CAP;
+        let inv = (1.0 / g) as f32;
+        let coords = |p: &Point3<f32>| [p.x, p.y, p.z].map(|v| cell_coord(v, inv));
+        let finite = |p: &Point3<f32>| p.x.is_finite() && p.y.is_finite() && p.z.is_finite();
+        self.mean.clear();
+        self.mean.resize(n, f32::INFINITY);
+        let Some(bbox) = CellBox::around(points.iter().filter(|p| finite(p)).map(coords)) else {
+            return;
+        };
+        let grid = window(bbox, KNN_MIN_CELLS.max(2 * n), points, &coords, &finite);
+        let [nx, ny, nz] = grid.dims;
+        let slack = SLACK * g as f32;
+        for (a, walls) in self.walls.iter_mut().enumerate() {
+            let wall = |i: usize| {
+                let w = (grid.lo[a] + i as i64) as f32 * g as f32;
+                (w, slack + w.abs() * 1e-6)
+            };
+            walls.clear();
+            walls.extend((0..grid.dims[a]).map(|i| {
+                let ((lo, lo_eps), (hi, hi_eps)) = (wall(i), wall(i + 1));
+                [
+                    if i == 0 {
+                        f32::NEG_INFINITY
+                    } else {
+                        lo - lo_eps
+                    },
+                    if i + 1 == grid.dims[a] {
+                        f32::INFINITY
+                    } else {
+                        hi + hi_eps
+                    },
+                ]
+            }));
+        }
+
+        // Counting sort by cell.
+        self.start.clear();
+        self.start.resize(grid.cells() + 1, 0);
+        self.cell_of.clear();
+        for p in points {
+            let c = if finite(p) {
+                let [x, y, z] = grid.clamp(coords(p));
+                let c = (z * ny + y) * nx + x;
+                self.start[c + 1] += 1;
+                c as u32
+            } else {
+                u32::MAX
+            };
+            self.cell_of.push(c);
+        }
+        for c in 0..grid.cells() {
+            self.start[c + 1] += self.start[c];
+        }
+        let m = self.start[grid.cells()] as usize;
+        self.xs.resize(m, 0.0);
+        self.ys.resize(m, 0.0);
+        self.zs.resize(m, 0.0);
+        self.ids.resize(m, 0);
+        // Scatter with `start` as the running cursor, then shift it back by one cell.
+        for (i, (p, &c)) in points.iter().zip(&self.cell_of).enumerate() {
+            if c != u32::MAX {
+                let at = self.start[c as usize] as usize;
+                self.start[c as usize] += 1;
+                self.xs[at] = p.x;
+                self.ys[at] = p.y;
+                self.zs[at] = p.z;
+                self.ids[at] = i as u32;
+            }
+        }
+        self.start.copy_within(0..grid.cells(), 1);
+        self.start[0] = 0;
+
+        let search = Search {
+            xs: &self.xs[..m],
+            ys: &self.ys[..m],
+            zs: &self.zs[..m],
+            start: &self.start,
+            walls: &self.walls,
+            grid: &grid,
+            inv,
+            slack,
+        };
+        let cand = &mut self.cand;
+        let block = &mut self.block;
+        let mut prev: Option<([f32; 3], f32)> = None;
+        let gf = g as f32;
+        let mut c = 0usize;
+        for cz in 0..nz {
+            for cy in 0..ny {
+                for cx in 0..nx {
+                    let (first, end) = (self.start[c] as usize, self.start[c + 1] as usize);
+                    c += 1;
+                    if first == end {
+                        continue;
+                    }
+                    // The 3x3x3 cells around this one: everything within one cell edge of
+                    // any of its points, shared by all of them.
+                    block.gather(&search, [cx, cy, cz]);
+                    for qi in first..end {
+                        let p = [self.xs[qi], self.ys[qi], self.zs[qi]];
+                        let covered = gf * (1.0 - SLACK)
+                            - p.iter().fold(0.0f32, |m, v| m.max(v.abs())) * 1e-6;
+                        // First a guess (the previous point's k-th distance: neighbouring
+                        // points see similar densities), then the bound, then the cap.
+                        let (guess, bound) = match prev {
+                            Some((q, kth)) => {
+                                let d = ((p[0] - q[0]).powi(2)
+                                    + (p[1] - q[1]).powi(2)
+                                    + (p[2] - q[2]).powi(2))
+                                .sqrt();
+                                (kth * GUESS, ((kth + d) * (1.0 + SLACK)).min(cap))
+                            }
+                            None => (cap, cap),
+                        };
+                        let mut r = guess.min(bound);
+                        let mut distances = false;
+                        let mean = loop {
+                            // Every point within r, the point itself included (at distance
+                            // 0). With more than k of them, the k nearest are among them
+                            // whatever r was.
+                            let found = if r <= covered {
+                                if !distances {
+                                    block.distances(p);
+                                    distances = true;
+                                }
+                                block.within(r, cand)
+                            } else {
+                                search.gather(p, r, cand)
+                            };
+                            if found > k {
+                                let kth = keep_smallest(&mut cand[..found], k + 1);
+                                prev = Some((p, f32::from_bits(kth).sqrt()));
+                                break capped_mean(&cand[..=k], k, cap);
+                            }
+                            if r >= cap {
+                                prev = None;
+                                break capped_mean(&cand[..found], k, cap);
+                            }
+                            // Then all the block holds, the bound (which holds k neighbours
+                            // unless f32 rounding bit), the cap.
+                            r = if r < covered.min(bound) {
+                                covered.min(bound)
+                            } else if r < bound {
+                                bound
+                            } else {
+                                cap
+                            };
+                        };
+                        self.mean[self.ids[qi] as usize] = mean;
+                    }
+                }
+            }
+        }
+    }
+}
+
+/// The points of a block of cells, copied contiguous so that distances to all of them
+/// vectorise.
+#[derive(Default)]
+pub(super) struct Block {
+    xs: Vec<f32>,
+    ys: Vec<f32>,
+    zs: Vec<f32>,
+    /// Squared distances to the current point.
+    d2: Vec<f32>,
+}
+
+impl Block {
+    /// Copies the points of the 3x3x3 cells around `cell` (clamped to the grid).
+    fn gather(&mut self, search: &Search<'_>, cell: [usize; 3]) {
+        self.xs.clear();
+        self.ys.clear();
+        self.zs.clear();
+        let [nx, ny, nz] = search.grid.dims;
+        let [cx, cy, cz] = cell;
+        let (x0, x1) = (cx.saturating_sub(1), (cx + 1).min(nx - 1));
+        for z in cz.saturating_sub(1)..=(cz + 1).min(nz - 1) {
+            for y in cy.saturating_sub(1)..=(cy + 1).min(ny - 1) {
+                let row = (z * ny + y) * nx;
+                let s = search.start[row + x0] as usize;
+                let e = search.start[row + x1 + 1] as usize;
+                self.xs.extend_from_slice(&search.xs[s..e]);
+                self.ys.extend_from_slice(&search.ys[s..e]);
+                self.zs.extend_from_slice(&search.zs[s..e]);
+            }
+        }
+    }
+
+    /// Squared distances of the block's points to `p`.
+    fn distances(&mut self, p: [f32; 3]) {
+        self.d2.resize(self.xs.len(), 0.0);
+        for (((d2, &x), &y), &z) in self.d2.iter_mut().zip(&self.xs).zip(&self.ys).zip(&self.zs) {
+            let (dx, dy, dz) = (x - p[0], y - p[1], z - p[2]);
+            *d2 = dx * dx + dy * dy + dz * dz;
+        }
+    }
+
+    /// The squared distances (as bits) up to `r` (from the last `distances`) into `cand`;
+    /// returns how many.
+    fn within(&self, r: f32, cand: &mut Vec<u32>) -> usize {
+        let n = self.d2.len();
+        if cand.len() < n {
+            cand.resize(n, 0);
+        }
+        let r2 = r * r;
+        let mut used = 0;
+        for &d2 in &self.d2 {
+            cand[used] = d2.to_bits();
+            used += usize::from(d2 <= r2);
+        }
+        used
+    }
+}
+
+/// The sorted points and their grid, for gathering the points within a radius.
+struct Search<'a> {
+    xs: &'a [f32],
+    ys: &'a [f32],
+    zs: &'a [f32],
+    start: &'a [u32],
+    walls: &'a [Vec<[f32; 2]>; 3],
+    grid: &'a CellBox,
+    inv: f32,
+    /// Absolute slack on radii (m).
+    slack: f32,
+}
+
+impl Search<'_> {
+    /// The cells (clamped into the grid) that hold coordinates within `r` of `v` on axis `a`.
+    #[inline]
+    fn span(&self, a: usize, v: f32, r: f32) -> (usize, usize) {
+        let r = r * (1.0 + SLACK) + self.slack + v.abs() * 1e-6;
+        let cell = |v: f32| {
+            (cell_coord(v, self.inv) - self.grid.lo[a]).clamp(0, self.grid.dims[a] as i64 - 1)
+                as usize
+        };
+        (cell(v - r), cell(v + r))
+    }
+
+    /// Distance from `v` to cell `i`'s slab on axis `a` (0 inside).
+    #[inline]
+    fn gap(&self, a: usize, i: usize, v: f32) -> f32 {
+        let [lo, hi] = self.walls[a][i];
+        (lo - v).max(v - hi).max(0.0)
+    }
+
+    /// Squared distances (as bits) of every point within `r` of `p` into `cand[..n]`;
+    /// returns n.
+    fn gather(&self, p: [f32; 3], r: f32, cand: &mut Vec<u32>) -> usize {
+        let r2 = r * r;
+        let (nx, ny) = (self.grid.dims[0], self.grid.dims[1]);
+        let (x0, x1) = self.span(0, p[0], r);
+        let (y0, y1) = self.span(1, p[1], r);
+        let (z0, z1) = self.span(2, p[2], r);
+        let mut used = 0;
+        for z in z0..=z1 {
+            let gz = self.gap(2, z, p[2]);
+            for y in y0..=y1 {
+                let gy = self.gap(1, y, p[1]);
+                if gz * gz + gy * gy > r2 {
+                    continue;
+                }
+                let row = (z * ny + y) * nx;
+                let (s, e) = (
+                    self.start[row + x0] as usize,
+                    self.start[row + x1 + 1] as usize,
+                );
+                if cand.len() < used + (e - s) {
+                    cand.resize(used + (e - s), 0);
+                }
+                for ((&x, &y), &z) in self.xs[s..e].iter().zip(&self.ys[s..e]).zip(&self.zs[s..e]) {
+                    let (dx, dy, dz) = (x - p[0], y - p[1], z - p[2]);
+                    let d2 = dx * dx + dy * dy + dz * dz;
+                    cand[used] = d2.to_bits();
+                    used += usize::from(d2 <= r2);
+                }
+            }
+        }
+        used
+    }
+}
+
+/// Moves the `n` smallest of `v` (`n` in 1..=len) into `v[..n]`, in no order, and returns
+/// the largest of them: a max-heap of the first `n`, each further value replacing the top
+/// when smaller (the search radius leaves only a few more than `n` candidates).
+fn keep_smallest(v: &mut [u32], n: usize) -> u32 {
+    let (head, tail) = v.split_at_mut(n);
+    for i in (0..n / 2).rev() {
+        sift_down(head, i);
+    }
+    for &x in tail.iter() {
+        if x < head[0] {
+            head[0] = x;
+            sift_down(head, 0);
+        }
+    }
+    head[0]
+}
+
+/// Restores the max-heap order below `i`.
+fn sift_down(h: &mut [u32], mut i: usize) {
+    loop {
+        let l = 2 * i + 1;
+        if l >= h.len() {
+            return;
+        }
+        let c = if l + 1 < h.len() && h[l + 1] > h[l] {
+            l + 1
+        } else {
+            l
+        };
+        if h[c] <= h[i] {
+            return;
+        }
+        h.swap(i, c);
+        i = c;
+    }
+}
+
+/// Mean of the capped distances of `best` (squared, as bits; the point itself among them at
+/// distance 0), the missing ones of `k` counted at the cap.
+fn capped_mean(best: &[u32], k: usize, cap: f32) -> f32 {
+    let sum: f32 = best
+        .iter()
+        .map(|&d2| f32::from_bits(d2).sqrt().min(cap))
+        .sum();
+    (sum + (k + 1 - best.len()) as f32 * cap) / k as f32
+}
+
+/// `bbox` shrunk to at most `budget` cells: the widest axis first, to a window centred on the
+/// points' median cell on that axis.
+fn window(
+    bbox: CellBox,
+    budget: usize,
+    points: &[Point3<f32>],
+    coords: &impl Fn(&Point3<f32>) -> [i64; 3],
+    finite: &impl Fn(&Point3<f32>) -> bool,
+) -> CellBox {
+    let mut b = bbox;
+    while b.cells() > budget {
+        let a = (0..3).max_by_key(|&a| b.dims[a]).unwrap_or(0);
+        if b.dims[a] == 1 {
+            break;
+        }
+        let others = b.dims[(a + 1) % 3].saturating_mul(b.dims[(a + 2) % 3]);
+        let d = (budget / others.max(1)).clamp(1, b.dims[a] - 1);
+        let mut on_axis: Vec<i64> = points
+            .iter()
+            .filter(|p| finite(p))
+            .map(|p| coords(p)[a])
+            .collect();
+        let mid = on_axis.len() / 2;
+        let median = *on_axis.select_nth_unstable(mid).1;
+        b.lo[a] = median - (d / 2) as i64;
+        b.dims[a] = d;
+    }
+    b
+}
