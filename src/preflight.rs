@@ -452,13 +452,7 @@ fn check_calibration(cfg: &CellConfig, config_dir: &Path) -> (Check, Option<Cell
         }
     };
     // Cameras are numbered by their order in the config's [[cameras]] list.
-    let missing: Vec<String> = cfg
-        .cameras
-        .iter()
-        .enumerate()
-        .filter(|(i, _)| !calibration.cameras.iter().any(|c| usize::from(c.id) == *i))
-        .map(|(i, c)| format!("{i} ({})", c.name))
-        .collect();
+    let missing = crate::real_cell::cameras_without_pose(cfg, &calibration);
     let known: Vec<u8> = (0..cfg.cameras.len())
         .filter_map(|i| u8::try_from(i).ok())
         .collect();

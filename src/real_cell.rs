@@ -82,13 +82,7 @@ pub fn read_calibration(cfg: &CellConfig, config_dir: &Path) -> anyhow::Result<C
     calibration
         .validate_against(&known)
         .with_context(|| format!("{} does not fit the configured cameras", path.display()))?;
-    let missing: Vec<String> = cfg
-        .cameras
-        .iter()
-        .enumerate()
-        .filter(|(i, _)| !calibration.cameras.iter().any(|c| usize::from(c.id) == *i))
-        .map(|(i, c)| format!("{i} ({})", c.name))
-        .collect();
+    let missing = cameras_without_pose(cfg, &calibration);
     if !missing.is_empty() {
         anyhow::bail!(
             "{} has no pose for camera(s) {}: recalibrate with every configured camera",
@@ -97,6 +91,17 @@ pub fn read_calibration(cfg: &CellConfig, config_dir: &Path) -> anyhow::Result<C
         );
     }
     Ok(calibration)
+}
+
+/// The configured cameras (`index (name)`, numbered by their order in `[[cameras]]`) that
+/// `calibration` has no pose for.
+pub fn cameras_without_pose(cfg: &CellConfig, calibration: &CellCalibration) -> Vec<String> {
+    cfg.cameras
+        .iter()
+        .enumerate()
+        .filter(|(i, _)| !calibration.cameras.iter().any(|c| usize::from(c.id) == *i))
+        .map(|(i, c)| format!("{i} ({})", c.name))
+        .collect()
 }
 
 /// The CAN identifiers of the configuration (11-bit when they fit, else 29-bit).

@@ -272,13 +272,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             clock.as_ref(),
             seed,
         );
-        println!(
-            "  outcome: {} after {} keyframes ({})",
-            report.outcome.label(),
-            report.steps,
-            report.detail
-        );
-        println!("  recording: {}", report.recording.display());
+        print_report(&report);
         if report.outcome == Outcome::Success {
             successes += 1;
         } else {
@@ -399,16 +393,21 @@ fn run_real(
             clock.as_ref(),
             seed,
         );
-        println!(
-            "  outcome: {} after {} keyframes ({})",
-            report.outcome.label(),
-            report.steps,
-            report.detail
-        );
-        println!("  recording: {}", report.recording.display());
+        print_report(&report);
     }
     if interrupt.load(Ordering::SeqCst) {
         anyhow::bail!("interrupted by Ctrl-C; the arm was stopped and the recording finished");
     }
     Ok(())
+}
+
+/// The end of one episode on the terminal: outcome and where the recording is.
+fn print_report(report: &equact::episode::EpisodeReport) {
+    println!(
+        "  outcome: {} after {} keyframes ({})",
+        report.outcome.label(),
+        report.steps,
+        report.detail
+    );
+    println!("  recording: {}", report.recording.display());
 }

@@ -99,3 +99,48 @@ pub fn load_venv_librealsense() -> anyhow::Result<PathBuf> {
     });
     loaded.clone().map_err(|e| anyhow::anyhow!(e))
 }
+
+/// Checks an episode recording with the Python `mcap` reader and Foxglove's schemas
+/// (`tests/peers/check_mcap.py`): no schema error, the file complete. Returns the peer's
+/// report (counts, outcome, periods) for further checks.
+pub fn check_recording_with_peer(path: &Path) -> anyhow::Result<serde_json::Value> {
+    let schemas = foxglove_schemas()?;
+    let path_text = path
+        .to_str()
+        .ok_or_else(|| anyhow::anyhow!("{} is not UTF-8", path.display()))?;
+    let schemas_text = schemas
+        .to_str()
+        .ok_or_else(|| anyhow::anyhow!("{} is not UTF-8", schemas.display()))?;
+    let out = run_peer("check_mcap.py", &[path_text, "--schemas", schemas_text])?;
+    let v: serde_json::Value = serde_json::from_str(out.trim())?;
+    if v["errors"] != serde_json::json!([]) {
+        anyhow::bail!("{}: schema errors: {v}", path.display());
+    }
+    if v["complete"] != true {
+        anyhow::bail!("{}: not complete: {v}", path.display());
+    }
+    Ok(v)
+}
+
+/// A real-cell configuration (backend "ur", URCap gripper) pointed at a simulated
+/// controller and, when given, a gripper emulator on loopback: what `equact check`, `run`
+/// and `calibrate capture --config` see on a real cell.
+pub fn loopback_real_cell_config(
+    controller: &hil_sim::ur_controller::UrSimHandle,
+    gripper_port: Option<u16>,
+) -> anyhow::Result<cell_types::config::CellConfig> {
+    use cell_types::config::{CellConfig, GripperTransport, RobotBackend};
+    let mut cfg = CellConfig::simulated()?;
+    cfg.robot.backend = RobotBackend::Ur;
+    cfg.robot.host = "127.0.0.1".into();
+    let ports = controller.ports();
+    cfg.robot.rtde_port = ports.rtde;
+    cfg.robot.dashboard_port = ports.dashboard;
+    cfg.robot.secondary_port = ports.secondary;
+    if let Some(port) = gripper_port {
+        cfg.gripper.transport = GripperTransport::Urcap;
+        cfg.gripper.host = "127.0.0.1".into();
+        cfg.gripper.port = port;
+    }
+    Ok(cfg)
+}

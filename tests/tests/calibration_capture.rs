@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use calibration::detect::{render_board_ir, IrLevels};
 use calibration::simulate::SimConfig;
-use cell_types::config::{CellConfig, RobotBackend};
+use cell_types::config::CellConfig;
 use cell_types::{Base, Camera, CameraFrame, DepthImage, Image, SystemClock, Transform};
 use equact::calibrate_capture::{capture_in_sim, capture_on_cell, CapturePlan};
 use firmware_iface::camera::{CameraError, DepthCamera};
@@ -146,12 +146,7 @@ fn capture_on_a_real_cell_config_with_approximately_placed_cameras() {
         )
         .unwrap(),
     );
-    cfg.robot.backend = RobotBackend::Ur;
-    cfg.robot.host = "127.0.0.1".into();
-    let ports = controller.ports();
-    cfg.robot.rtde_port = ports.rtde;
-    cfg.robot.dashboard_port = ports.dashboard;
-    cfg.robot.secondary_port = ports.secondary;
+    cfg = tests::loopback_real_cell_config(&controller, None).unwrap();
     let sim = SimConfig::default_cell();
     let mut cameras: Vec<Box<dyn DepthCamera>> = Vec::new();
     let mut truth = Vec::new();

@@ -86,19 +86,7 @@ fn run_episode_with(
 }
 
 fn check_recording(report: &EpisodeReport) {
-    let schemas = tests::foxglove_schemas().unwrap();
-    let out = tests::run_peer(
-        "check_mcap.py",
-        &[
-            report.recording.to_str().unwrap(),
-            "--schemas",
-            schemas.to_str().unwrap(),
-        ],
-    )
-    .unwrap();
-    let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
-    assert_eq!(v["errors"], serde_json::json!([]), "{v}");
-    assert_eq!(v["complete"], true);
+    let v = tests::check_recording_with_peer(&report.recording).unwrap();
     assert_eq!(v["outcome"]["outcome"], report.outcome.label());
     for (topic, n) in &report.counts {
         assert_eq!(v["counts"][topic].as_u64(), Some(*n), "{topic}: {v}");

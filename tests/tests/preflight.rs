@@ -7,7 +7,6 @@
 
 use std::sync::Arc;
 
-use cell_types::config::{CellConfig, GripperTransport, RobotBackend};
 use cell_types::SystemClock;
 use equact::preflight::{run_checks, Check};
 use hil_sim::gripper::{GripperSim, SimConfig};
@@ -29,16 +28,8 @@ fn preflight_of_a_loopback_cell() {
     let dir = std::env::temp_dir().join(format!("equact-preflight-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
 
-    let mut cfg = CellConfig::simulated().unwrap();
-    cfg.robot.backend = RobotBackend::Ur;
-    cfg.robot.host = "127.0.0.1".into();
-    let ports = controller.ports();
-    cfg.robot.rtde_port = ports.rtde;
-    cfg.robot.dashboard_port = ports.dashboard;
-    cfg.robot.secondary_port = ports.secondary;
-    cfg.gripper.transport = GripperTransport::Urcap;
-    cfg.gripper.host = "127.0.0.1".into();
-    cfg.gripper.port = server.addr().unwrap().port();
+    let mut cfg =
+        tests::loopback_real_cell_config(&controller, Some(server.addr().unwrap().port())).unwrap();
     cfg.calibration.file = "calibration.toml".into();
     // A real calibration file: simulated exact captures of the cell, solved.
     let mut sim = calibration::SimConfig::default_cell();

@@ -10,7 +10,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Duration;
 
-use cell_types::config::{CellConfig, GripperTransport, RobotBackend};
+use cell_types::config::{CellConfig, GripperTransport};
 use cell_types::Joints;
 use cell_types::SystemClock;
 use equact::episode::{run_episode, CellIo, OperatorJudged, Outcome, ScriptedExpert, TaskMonitor};
@@ -31,16 +31,8 @@ fn a_real_cell_config_connects_arm_gripper_and_calibration_and_names_the_cameras
     let dir = std::env::temp_dir().join(format!("equact-real-cell-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
 
-    let mut cfg = CellConfig::simulated().unwrap();
-    cfg.robot.backend = RobotBackend::Ur;
-    cfg.robot.host = "127.0.0.1".into();
-    let ports = controller.ports();
-    cfg.robot.rtde_port = ports.rtde;
-    cfg.robot.dashboard_port = ports.dashboard;
-    cfg.robot.secondary_port = ports.secondary;
-    cfg.gripper.transport = GripperTransport::Urcap;
-    cfg.gripper.host = "127.0.0.1".into();
-    cfg.gripper.port = server.addr().unwrap().port();
+    let mut cfg =
+        tests::loopback_real_cell_config(&controller, Some(server.addr().unwrap().port())).unwrap();
 
     // No calibration file named: a clear error before anything connects.
     let err = RealCell::connect(&cfg, &dir, clock.clone()).err().unwrap();
@@ -151,18 +143,6 @@ fn an_episode_without_a_success_test_is_left_to_the_operator() {
     assert!(snap.actual_qd.iter().all(|v| v.abs() < 1e-3));
     cell.controller.shutdown();
 
-    let schemas = tests::foxglove_schemas().unwrap();
-    let out = tests::run_peer(
-        "check_mcap.py",
-        &[
-            path.to_str().unwrap(),
-            "--schemas",
-            schemas.to_str().unwrap(),
-        ],
-    )
-    .unwrap();
-    let v: serde_json::Value = serde_json::from_str(out.trim()).unwrap();
-    assert_eq!(v["errors"], serde_json::json!([]), "{v}");
-    assert_eq!(v["complete"], true);
+    let v = tests::check_recording_with_peer(&path).unwrap();
     assert_eq!(v["outcome"]["outcome"], "task_not_done");
 }
