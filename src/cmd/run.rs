@@ -194,12 +194,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         let clock = Arc::new(SystemClock::new());
         let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
         println!(
-            "episode {}/{} · task {} (\"{}\") · seed {seed} · policy {:?}",
+            "episode {}/{} · task {} (\"{}\") · seed {seed} · policy {}",
             e + 1,
             args.episodes,
             kind.name(),
             kind.instruction(),
-            args.policy
+            args.policy.label()
         );
         let mut cell = SimCell::start(&cfg, task.clone(), seed, clock.clone())?;
         if !cfg.calibration.file.trim().is_empty() {
