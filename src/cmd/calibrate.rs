@@ -136,11 +136,7 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             let clock = std::sync::Arc::new(cell_types::SystemClock::new());
             let mut progress = |line: &str| eprintln!("{line}");
             let run = if cfg.robot.backend == cell_types::config::RobotBackend::Ur {
-                let config_dir = config
-                    .as_ref()
-                    .and_then(|p| p.parent())
-                    .map(PathBuf::from)
-                    .unwrap_or_default();
+                let config_dir = super::config::config_dir(config.as_ref());
                 let mut cameras = equact::real_cell::open_cameras(&cfg)?;
                 equact::real_cell::confirm_motion(yes)?;
                 equact::calibrate_capture::capture_on_cell(

@@ -18,7 +18,7 @@ pub struct CheckArgs {
 /// Runs `equact check`; fails when any check fails.
 pub fn run(args: CheckArgs) -> anyhow::Result<()> {
     let cfg = super::config::load(Some(&args.config))?;
-    let dir = args.config.parent().map(PathBuf::from).unwrap_or_default();
+    let dir = super::config::config_dir(Some(&args.config));
     let checks = equact::preflight::run_checks(&cfg, &dir, Arc::new(SystemClock::new()));
     for c in &checks {
         let mark = match (c.passed, c.warning) {

@@ -22,6 +22,14 @@ pub fn load(path: Option<&PathBuf>) -> anyhow::Result<CellConfig> {
     }
 }
 
+/// The folder relative paths inside the configuration (the calibration file) resolve
+/// against: the config file's folder, or the working directory for the built-in cell.
+pub fn config_dir(path: Option<&PathBuf>) -> PathBuf {
+    path.and_then(|p| p.parent())
+        .map(PathBuf::from)
+        .unwrap_or_default()
+}
+
 /// Runs `equact config`: validates and prints the checked configuration.
 pub fn run(args: ConfigArgs) -> anyhow::Result<()> {
     let cfg = load(args.config.as_ref())?;

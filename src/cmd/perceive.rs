@@ -119,7 +119,7 @@ fn real(args: &PerceiveArgs, path: &Path) -> anyhow::Result<Captured> {
             path.display()
         );
     }
-    let dir = path.parent().map(PathBuf::from).unwrap_or_default();
+    let dir = super::config::config_dir(Some(&path.to_path_buf()));
     let cal_path = dir.join(&cfg.calibration.file);
     let calibration = calibration::read_calibration_toml(&cal_path)
         .with_context(|| format!("reading the calibration {}", cal_path.display()))?;

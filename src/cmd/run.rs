@@ -184,6 +184,18 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         return run_real(&args, &cfg, kind, policy, &interrupt, &stop_handles);
     }
 
+    // Fuse with a calibration from `equact calibrate` instead of the simulator's true camera
+    // poses when the config names one (relative to the config file); read once for all
+    // episodes.
+    let calibrated = if cfg.calibration.file.trim().is_empty() {
+        None
+    } else {
+        let path = super::config::config_dir(args.config.as_ref()).join(&cfg.calibration.file);
+        let calibration = calibration::read_calibration_toml(&path)
+            .with_context(|| format!("reading the calibration {}", path.display()))?;
+        Some((path, calibration))
+    };
+
     let mut successes = 0;
     let mut failures = Vec::new();
     for e in 0..args.episodes {
@@ -202,23 +214,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             args.policy.label()
         );
         let mut cell = SimCell::start(&cfg, task.clone(), seed, clock.clone())?;
-        if !cfg.calibration.file.trim().is_empty() {
-            // Fuse with a calibration from `equact calibrate` instead of the simulator's true
-            // camera poses (the file is relative to the config file).
-            let dir = args
-                .config
-                .as_ref()
-                .and_then(|p| p.parent())
-                .map(PathBuf::from)
-                .unwrap_or_default();
-            let path = dir.join(&cfg.calibration.file);
-            let calibration = calibration::read_calibration_toml(&path)
-                .with_context(|| format!("reading the calibration {}", path.display()))?;
+        if let Some((path, calibration)) = &calibrated {
             let known: Vec<u8> = cell.calibration.cameras.iter().map(|c| c.id).collect();
             calibration
                 .validate_against(&known)
                 .with_context(|| format!("{} does not fit this cell", path.display()))?;
-            cell.calibration = calibration;
+            cell.calibration = calibration.clone();
             println!("  cameras calibrated from {}", path.display());
         }
         if let Ok(mut handles) = stop_handles.lock() {
@@ -307,12 +308,7 @@ fn run_real(
     interrupt: &Arc<AtomicBool>,
     stop_handles: &Arc<std::sync::Mutex<Vec<firmware_iface::arm::StopHandle>>>,
 ) -> anyhow::Result<()> {
-    let config_dir = args
-        .config
-        .as_ref()
-        .and_then(|p| p.parent())
-        .map(PathBuf::from)
-        .unwrap_or_default();
+    let config_dir = super::config::config_dir(args.config.as_ref());
     let clock: Arc<dyn cell_types::Clock> = Arc::new(SystemClock::new());
     println!("checking the cell before anything moves (as `equact check`)...");
     let checks = equact::preflight::run_checks(cfg, &config_dir, clock.clone());
