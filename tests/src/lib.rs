@@ -144,3 +144,17 @@ pub fn loopback_real_cell_config(
     }
     Ok(cfg)
 }
+
+/// Writes `dir/calibration.toml`, solved from simulated exact captures of the default
+/// cell (in `dir/captures`): a real calibration file for the real-cell tests.
+pub fn write_exact_calibration(dir: &Path) -> anyhow::Result<PathBuf> {
+    let mut sim = calibration::SimConfig::default_cell();
+    sim.noise = calibration::SimNoise::none();
+    let captures = dir.join("captures");
+    calibration::simulate(&sim, 3, &captures)?;
+    let set = calibration::load_captures(&captures)?;
+    let path = dir.join("calibration.toml");
+    calibration::solve(&set, &calibration::SolveOptions::default())?
+        .write_calibration_toml(&path)?;
+    Ok(path)
+}

@@ -32,15 +32,7 @@ fn preflight_of_a_loopback_cell() {
         tests::loopback_real_cell_config(&controller, Some(server.addr().unwrap().port())).unwrap();
     cfg.calibration.file = "calibration.toml".into();
     // A real calibration file: simulated exact captures of the cell, solved.
-    let mut sim = calibration::SimConfig::default_cell();
-    sim.noise = calibration::SimNoise::none();
-    let captures = dir.join("captures");
-    calibration::simulate(&sim, 3, &captures).unwrap();
-    let set = calibration::load_captures(&captures).unwrap();
-    calibration::solve(&set, &calibration::SolveOptions::default())
-        .unwrap()
-        .write_calibration_toml(&dir.join("calibration.toml"))
-        .unwrap();
+    tests::write_exact_calibration(&dir).unwrap();
 
     // A ready cell: every hardware check passes; the cameras fail (no D455 is connected
     // here, or librealsense is not installed; tests/tests/realsense.rs checks them).

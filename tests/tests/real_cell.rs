@@ -40,15 +40,7 @@ fn a_real_cell_config_connects_arm_gripper_and_calibration_and_names_the_cameras
 
     // A calibration solved from simulated exact captures of the cell.
     cfg.calibration.file = "calibration.toml".into();
-    let mut sim = calibration::SimConfig::default_cell();
-    sim.noise = calibration::SimNoise::none();
-    let captures = dir.join("captures");
-    calibration::simulate(&sim, 3, &captures).unwrap();
-    let set = calibration::load_captures(&captures).unwrap();
-    calibration::solve(&set, &calibration::SolveOptions::default())
-        .unwrap()
-        .write_calibration_toml(&dir.join("calibration.toml"))
-        .unwrap();
+    tests::write_exact_calibration(&dir).unwrap();
     let cal = read_calibration(&cfg, &dir).unwrap();
     assert_eq!(cal.cameras.len(), cfg.cameras.len());
 
