@@ -840,17 +840,28 @@ fn voxel_downsample_hashed(points: &Points, voxel_m: f64, origin: [f64; 3]) -> P
         rgb: Vec::with_capacity(if has_rgb { acc.len() } else { 0 }),
     };
     for (s, c, n) in acc {
-        let nf = f64::from(n);
-        out.xyz.push(Point3::new(
-            (s[0] / nf) as f32,
-            (s[1] / nf) as f32,
-            (s[2] / nf) as f32,
-        ));
+        out.xyz.push(voxel_centroid(&s, n));
         if has_rgb {
-            out.rgb.push(c.map(|v| (v / n) as u8));
+            out.rgb.push(voxel_colour(&c, n));
         }
     }
     out
+}
+
+/// The centroid of a voxel's `n` points from their coordinate sums (both voxelisers, so
+/// the dense grid and the hash map give the same points to the bit).
+fn voxel_centroid(sum: &[f64; 3], n: u32) -> Point3<f32> {
+    let nf = f64::from(n);
+    Point3::new(
+        (sum[0] / nf) as f32,
+        (sum[1] / nf) as f32,
+        (sum[2] / nf) as f32,
+    )
+}
+
+/// The mean colour of a voxel's `n` points from their channel sums.
+fn voxel_colour(sum: &[u32; 3], n: u32) -> Rgb {
+    sum.map(|v| (v / n) as u8)
 }
 
 /// Drops every point within `margin` of the robot's capsules.

@@ -8,7 +8,7 @@
 
 use nalgebra::{Point3, Vector3};
 
-use super::{voxel_downsample_hashed, Points};
+use super::{voxel_centroid, voxel_colour, voxel_downsample_hashed, Points};
 
 /// Marks an unoccupied cell of the voxel grid.
 const EMPTY: u32 = u32::MAX;
@@ -193,20 +193,18 @@ impl VoxelScratch {
         out.xyz.clear();
         out.rgb.clear();
         out.xyz.reserve(self.sums.len());
-        for (s, &n) in self.sums.iter().zip(&self.counts) {
-            let nf = f64::from(n);
-            out.xyz.push(Point3::new(
-                (s[0] / nf) as f32,
-                (s[1] / nf) as f32,
-                (s[2] / nf) as f32,
-            ));
-        }
+        out.xyz.extend(
+            self.sums
+                .iter()
+                .zip(&self.counts)
+                .map(|(s, &n)| voxel_centroid(s, n)),
+        );
         if has_rgb {
             out.rgb.extend(
                 self.colours
                     .iter()
                     .zip(&self.counts)
-                    .map(|(c, &n)| c.map(|v| (v / n) as u8)),
+                    .map(|(c, &n)| voxel_colour(c, n)),
             );
         }
     }
