@@ -25,6 +25,8 @@ pub struct LearnedPolicy {
     policy: Policy,
     instruction: InstructionEmbedding,
     model: planner::model::RobotModel,
+    /// The episode's seed; prediction k runs with `episode_seed + k`.
+    episode_seed: u64,
     predictions: u64,
 }
 
@@ -38,6 +40,7 @@ impl LearnedPolicy {
         let model =
             robot_model(cfg).context("building the arm model for the policy's TCP input")?;
         Ok(Self {
+            episode_seed: policy.seed,
             policy,
             instruction,
             model,
@@ -78,7 +81,7 @@ impl LearnedPolicy {
 
     /// Seeds the next episode's predictions (each prediction adds its index).
     pub fn set_seed(&mut self, seed: u64) {
-        self.policy.seed = seed;
+        self.episode_seed = seed;
         self.predictions = 0;
     }
 }
@@ -102,12 +105,12 @@ impl KeyframeSource for LearnedPolicy {
         };
         // A new seed per prediction: the translation sampling is random, but each episode
         // is reproducible from its seed.
-        let base_seed = self.policy.seed;
-        self.policy.seed = base_seed.wrapping_add(self.predictions);
-        let result = self.policy.predict(obs.cloud, &gripper, &self.instruction);
-        self.policy.seed = base_seed;
+        self.policy.seed = self.episode_seed.wrapping_add(self.predictions);
         self.predictions += 1;
-        let keyframe = result.context("the EquAct network could not predict a keyframe")?;
+        let keyframe = self
+            .policy
+            .predict(obs.cloud, &gripper, &self.instruction)
+            .context("the EquAct network could not predict a keyframe")?;
         Ok(Some(keyframe))
     }
 
