@@ -3,10 +3,8 @@
 //! [`equact::demos`]). Restarting with the same arguments skips the episodes already done.
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::Ordering;
 
-use anyhow::Context;
 use clap::{Args, Subcommand};
 use equact::task::TaskKind;
 
@@ -67,15 +65,8 @@ pub fn run(args: DemosArgs) -> anyhow::Result<()> {
         );
     }
     let kinds = kinds_for(&args.task)?;
-    let interrupt = Arc::new(AtomicBool::new(false));
-    {
-        let interrupt = interrupt.clone();
-        ctrlc::set_handler(move || {
-            interrupt.store(true, Ordering::SeqCst);
-            eprintln!("\nCtrl-C: finishing the current episode's stop; rerun to resume");
-        })
-        .context("installing the Ctrl-C handler")?;
-    }
+    let interrupt =
+        super::args::interrupt_flag("finishing the current episode's stop; rerun to resume")?;
     println!(
         "recording {} episodes of {} task variation(s) into {}",
         args.episodes * kinds.len() as u64,

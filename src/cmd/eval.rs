@@ -2,8 +2,7 @@
 //! table per task variation ([`equact::eval`]).
 
 use std::path::PathBuf;
-use std::sync::atomic::{AtomicBool, Ordering};
-use std::sync::Arc;
+use std::sync::atomic::Ordering;
 
 use anyhow::Context;
 use clap::Args;
@@ -93,15 +92,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             Box::new(LearnedEval { policy, embeddings })
         }
     };
-    let interrupt = Arc::new(AtomicBool::new(false));
-    {
-        let interrupt = interrupt.clone();
-        ctrlc::set_handler(move || {
-            interrupt.store(true, Ordering::SeqCst);
-            eprintln!("\nCtrl-C: stopping after the current episode");
-        })
-        .context("installing the Ctrl-C handler")?;
-    }
+    let interrupt = super::args::interrupt_flag("stopping after the current episode")?;
     let plan = EvalPlan {
         kinds,
         episodes: args.episodes,
