@@ -171,100 +171,155 @@ fn plan_poses(
     Ok(planned)
 }
 
-/// Drives `arm` through the planned poses `todo`, images the board at each and writes one
-/// capture per pose into `folder` (atomically, so an interruption loses nothing).
-#[allow(clippy::too_many_arguments)]
-fn capture_poses(
-    arm: &mut UrArm,
-    imager: &mut dyn BoardImager,
-    planner: &Planner,
-    world: &World,
-    planned: &CaptureSet,
-    todo: &[usize],
-    board: &BoardConfig,
-    folder: &mut CaptureFolder,
-    dir: &Path,
-    plan: &CapturePlan,
-    run: &mut CaptureRun,
-    progress: &mut dyn FnMut(&str),
-) -> anyhow::Result<()> {
-    let cameras = folder.session().cameras.len();
-    for (n, index) in todo.iter().enumerate() {
-        if plan.limit.is_some_and(|l| run.captured >= l) {
-            break;
-        }
-        let Some(goal) = planned.captures.get(*index).and_then(|c| c.joints) else {
-            run.skipped.push((*index, "no joints planned".into()));
-            continue;
+/// A capture run ready to move the arm: the planner and its world, the layout the poses
+/// were planned for, the planned poses, the open captures folder and what is left to do.
+struct PreparedCapture {
+    planner: Planner,
+    world: World,
+    layout: SimConfig,
+    planned: CaptureSet,
+    folder: CaptureFolder,
+    todo: Vec<usize>,
+    run: CaptureRun,
+}
+
+impl PreparedCapture {
+    /// Plans `plan.poses` board poses for `layout` (reachable and collision-free) and opens
+    /// or resumes the captures folder `dir`; nothing moves.
+    fn new(
+        cfg: &CellConfig,
+        mut layout: SimConfig,
+        dir: &Path,
+        plan: &CapturePlan,
+        progress: &mut dyn FnMut(&str),
+    ) -> anyhow::Result<Self> {
+        let planner = planner_from_config(cfg)?;
+        let world = World::empty().with_obstacle(Obstacle::table(cfg.workspace.table_height));
+        layout.poses = plan.poses;
+        let planned = plan_poses(&planner, &world, &layout, plan.seed)?;
+        let folder = CaptureFolder::create_or_resume(dir, &layout.session())?;
+        let todo = folder.missing(planned.captures.len());
+        let run = CaptureRun {
+            planned: planned.captures.len(),
+            resumed: planned.captures.len() - todo.len(),
+            captured: 0,
+            skipped: Vec::new(),
         };
-        let start = arm.state()?.joints.position;
-        let mut why = String::from("no IK solution");
-        let mut motion = None;
-        for candidate in goal_candidates(&planner.model, &goal, &start) {
-            match planner.plan_to_joints(&start, &candidate, world) {
-                Ok(m) => {
-                    motion = Some(m);
-                    break;
-                }
-                Err(e) => why = e.to_string(),
-            }
-        }
-        let Some(motion) = motion else {
-            run.skipped.push((*index, format!("no plan: {why}")));
-            continue;
-        };
-        match arm.execute(&motion.trajectory)? {
-            ExecutionOutcome::Completed { .. } => {}
-            ExecutionOutcome::Stopped { by, cause, .. } => {
-                anyhow::bail!(
-                    "pose {index}: the arm stopped ({by:?}: {cause:?}); the poses captured so \
-                     far are kept, rerun to resume"
-                );
-            }
-        }
-        if plan.settle_s > 0.0 {
-            // Let the arm and the board stop swinging before the exposure.
-            std::thread::sleep(std::time::Duration::from_secs_f64(plan.settle_s));
-        }
-        // What the robot reports, not what was planned, goes into the capture.
-        let q = arm.state()?.joints.position;
-        let base_from_flange = planner
-            .model
-            .fk_flange(&q)
-            .context("the robot model has no flange link")?;
-        let mut views = Vec::new();
-        for (camera, img) in imager.images(&base_from_flange)? {
-            // The image is kept beside the capture (to re-detect or inspect later).
-            let png = grey_png(&img).context("encoding an IR image")?;
-            calibration::capture::write_atomic(
-                &dir.join(format!("ir_pose_{index:04}_cam_{camera}.png")),
-                &png,
-            )?;
-            // A camera that does not find the board records no view.
-            if let Ok(corners) = detect_chessboard(&img, board, &DetectParams::default()) {
-                views.push(CameraView {
-                    camera,
-                    corners,
-                    board_depth: Vec::new(),
-                });
-            }
-        }
-        let seen = views.len();
-        folder.write(&Capture {
-            index: *index,
-            joints: Some(q),
-            base_from_flange,
-            views,
-        })?;
-        run.captured += 1;
         progress(&format!(
-            "pose {:>2} ({}/{}): {seen} of {cameras} cameras found the board",
-            index,
-            n + 1,
-            todo.len(),
+            "{} poses planned, {} already captured in {}",
+            run.planned,
+            run.resumed,
+            dir.display()
         ));
+        Ok(Self {
+            planner,
+            world,
+            layout,
+            planned,
+            folder,
+            todo,
+            run,
+        })
     }
-    Ok(())
+
+    /// Drives `arm` through the poses left to do, images the board at each and writes one
+    /// capture per pose into the folder (atomically, so an interruption loses nothing).
+    fn capture(
+        &mut self,
+        arm: &mut UrArm,
+        imager: &mut dyn BoardImager,
+        dir: &Path,
+        plan: &CapturePlan,
+        progress: &mut dyn FnMut(&str),
+    ) -> anyhow::Result<()> {
+        let Self {
+            planner,
+            world,
+            layout,
+            planned,
+            folder,
+            todo,
+            run,
+        } = self;
+        let board = &layout.board;
+        let cameras = folder.session().cameras.len();
+        for (n, index) in todo.iter().enumerate() {
+            if plan.limit.is_some_and(|l| run.captured >= l) {
+                break;
+            }
+            let Some(goal) = planned.captures.get(*index).and_then(|c| c.joints) else {
+                run.skipped.push((*index, "no joints planned".into()));
+                continue;
+            };
+            let start = arm.state()?.joints.position;
+            let mut why = String::from("no IK solution");
+            let mut motion = None;
+            for candidate in goal_candidates(&planner.model, &goal, &start) {
+                match planner.plan_to_joints(&start, &candidate, world) {
+                    Ok(m) => {
+                        motion = Some(m);
+                        break;
+                    }
+                    Err(e) => why = e.to_string(),
+                }
+            }
+            let Some(motion) = motion else {
+                run.skipped.push((*index, format!("no plan: {why}")));
+                continue;
+            };
+            match arm.execute(&motion.trajectory)? {
+                ExecutionOutcome::Completed { .. } => {}
+                ExecutionOutcome::Stopped { by, cause, .. } => {
+                    anyhow::bail!(
+                        "pose {index}: the arm stopped ({by:?}: {cause:?}); the poses captured so \
+                         far are kept, rerun to resume"
+                    );
+                }
+            }
+            if plan.settle_s > 0.0 {
+                // Let the arm and the board stop swinging before the exposure.
+                std::thread::sleep(std::time::Duration::from_secs_f64(plan.settle_s));
+            }
+            // What the robot reports, not what was planned, goes into the capture.
+            let q = arm.state()?.joints.position;
+            let base_from_flange = planner
+                .model
+                .fk_flange(&q)
+                .context("the robot model has no flange link")?;
+            let mut views = Vec::new();
+            for (camera, img) in imager.images(&base_from_flange)? {
+                // The image is kept beside the capture (to re-detect or inspect later).
+                let png = grey_png(&img).context("encoding an IR image")?;
+                calibration::capture::write_atomic(
+                    &dir.join(format!("ir_pose_{index:04}_cam_{camera}.png")),
+                    &png,
+                )?;
+                // A camera that does not find the board records no view.
+                if let Ok(corners) = detect_chessboard(&img, board, &DetectParams::default()) {
+                    views.push(CameraView {
+                        camera,
+                        corners,
+                        board_depth: Vec::new(),
+                    });
+                }
+            }
+            let seen = views.len();
+            folder.write(&Capture {
+                index: *index,
+                joints: Some(q),
+                base_from_flange,
+                views,
+            })?;
+            run.captured += 1;
+            progress(&format!(
+                "pose {:>2} ({}/{}): {seen} of {cameras} cameras found the board",
+                index,
+                n + 1,
+                todo.len(),
+            ));
+        }
+        Ok(())
+    }
 }
 
 /// The arm configurations that put the flange where `goal` does, nearest to `start`
@@ -285,37 +340,6 @@ fn goal_candidates(model: &planner::RobotModel, goal: &Joints, start: &Joints) -
     out
 }
 
-/// The planner and its world for capture motions: the arm, the table, nothing else.
-fn capture_planner(cfg: &CellConfig) -> anyhow::Result<(Planner, World)> {
-    let planner = planner_from_config(cfg)?;
-    let world = World::empty().with_obstacle(Obstacle::table(cfg.workspace.table_height));
-    Ok((planner, world))
-}
-
-/// Opens (or resumes) the captures folder and reports what is left to do.
-fn open_folder(
-    dir: &Path,
-    sim: &SimConfig,
-    planned: &CaptureSet,
-    progress: &mut dyn FnMut(&str),
-) -> anyhow::Result<(CaptureFolder, Vec<usize>, CaptureRun)> {
-    let folder = CaptureFolder::create_or_resume(dir, &sim.session())?;
-    let todo = folder.missing(planned.captures.len());
-    let run = CaptureRun {
-        planned: planned.captures.len(),
-        resumed: planned.captures.len() - todo.len(),
-        captured: 0,
-        skipped: Vec::new(),
-    };
-    progress(&format!(
-        "{} poses planned, {} already captured in {}",
-        run.planned,
-        run.resumed,
-        dir.display()
-    ));
-    Ok((folder, todo, run))
-}
-
 /// Runs the capture loop of `plan` in the simulated cell into the captures folder `dir`.
 pub fn capture_in_sim(
     cfg: &CellConfig,
@@ -324,16 +348,12 @@ pub fn capture_in_sim(
     clock: Arc<dyn Clock>,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<CaptureRun> {
-    let (planner, world) = capture_planner(cfg)?;
-    let mut sim = SimConfig::default_cell();
-    sim.poses = plan.poses;
-    let planned = plan_poses(&planner, &world, &sim, plan.seed)?;
-    let (mut folder, todo, mut run) = open_folder(dir, &sim, &planned, progress)?;
+    let mut prepared = PreparedCapture::new(cfg, SimConfig::default_cell(), dir, &plan, progress)?;
     // The simulated cameras' true poses, so that `equact calibrate solve` can report its
     // error (the flange poses come from the captures themselves).
     let truth = Truth {
         seed: plan.seed,
-        config: sim.clone(),
+        config: prepared.layout.clone(),
         base_from_flange: Vec::new(),
         intrinsics: Vec::new(),
     };
@@ -341,8 +361,8 @@ pub fn capture_in_sim(
         &dir.join(calibration::simulate::TRUTH_FILE),
         &serde_json::to_vec_pretty(&truth).context("encoding truth.json")?,
     )?;
-    if todo.is_empty() {
-        return Ok(run);
+    if prepared.todo.is_empty() {
+        return Ok(prepared.run);
     }
     let task = TaskInstance::sample(
         TaskKind::parse("pick_fruit/strawberry").map_err(anyhow::Error::msg)?,
@@ -350,28 +370,16 @@ pub fn capture_in_sim(
         cfg.workspace.table_height,
     );
     let mut cell = SimCell::start(cfg, task, plan.seed, clock)?;
+    let layout = prepared.layout.clone();
     let mut imager = RenderedBoard {
-        sim: &sim,
+        sim: &layout,
         rng: ChaCha8Rng::seed_from_u64(plan.seed ^ 0x1a_b0a2d),
         ir_sigma: plan.ir_sigma,
     };
-    let result = capture_poses(
-        &mut cell.arm,
-        &mut imager,
-        &planner,
-        &world,
-        &planned,
-        &todo,
-        &sim.board,
-        &mut folder,
-        dir,
-        &plan,
-        &mut run,
-        progress,
-    );
+    let result = prepared.capture(&mut cell.arm, &mut imager, dir, &plan, progress);
     let _ = cell.arm.stop();
     cell.controller.shutdown();
-    result.map(|()| run)
+    result.map(|()| prepared.run)
 }
 
 /// The depth-stream intrinsics of a configured camera: the D455 factory values for its
@@ -454,33 +462,22 @@ pub fn capture_on_cell(
     clock: Arc<dyn Clock>,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<CaptureRun> {
-    let (planner, world) = capture_planner(cfg)?;
-    let mut sim = real_cell_layout(cfg, config_dir)?;
-    sim.poses = plan.poses;
-    let planned = plan_poses(&planner, &world, &sim, plan.seed)?;
-    let (mut folder, todo, mut run) = open_folder(dir, &sim, &planned, progress)?;
-    if todo.is_empty() {
-        return Ok(run);
+    let mut prepared = PreparedCapture::new(
+        cfg,
+        real_cell_layout(cfg, config_dir)?,
+        dir,
+        &plan,
+        progress,
+    )?;
+    if prepared.todo.is_empty() {
+        return Ok(prepared.run);
     }
     let ur = crate::preflight::ur_config(cfg).map_err(anyhow::Error::msg)?;
     let mut arm = UrArm::connect(ur, clock)
         .with_context(|| format!("connecting to the UR controller at {}", cfg.robot.host))?;
-    let result = capture_poses(
-        &mut arm,
-        &mut CameraIr { cameras },
-        &planner,
-        &world,
-        &planned,
-        &todo,
-        &sim.board,
-        &mut folder,
-        dir,
-        &plan,
-        &mut run,
-        progress,
-    );
+    let result = prepared.capture(&mut arm, &mut CameraIr { cameras }, dir, &plan, progress);
     let _ = arm.stop();
-    result.map(|()| run)
+    result.map(|()| prepared.run)
 }
 
 /// An 8-bit grey image as PNG bytes.
