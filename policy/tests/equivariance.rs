@@ -3,9 +3,11 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests may unwrap (CONVENTIONS 6)
 
+mod common;
+use common::random_rotation;
 use std::path::{Path, PathBuf};
 
-use nalgebra::{DMatrix, Matrix3, Rotation3, Vector3};
+use nalgebra::{DMatrix, Matrix3, Vector3};
 use policy::layers::{rotate_embedding, FilmLinear, RmsNormSh, So3Linear};
 use policy::so3::WignerCalculator;
 use policy::weights::Weights;
@@ -16,16 +18,6 @@ fn fixture(name: &str) -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("tests/fixtures")
         .join(format!("{name}.safetensors"))
-}
-
-fn random_rotation(rng: &mut ChaCha8Rng) -> Matrix3<f64> {
-    let axis = Vector3::new(
-        rng.random_range(-1.0..1.0),
-        rng.random_range(-1.0..1.0),
-        rng.random_range(-1.0..1.0),
-    );
-    let angle = rng.random_range(-3.1..3.1);
-    Rotation3::from_scaled_axis(axis.normalize() * angle).into_inner()
 }
 
 fn random_values(rng: &mut ChaCha8Rng, n: usize) -> Vec<f32> {

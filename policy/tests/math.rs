@@ -3,7 +3,9 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // tests may unwrap (CONVENTIONS 6)
 
-use nalgebra::{DVector, Matrix3, Rotation3, Vector3};
+mod common;
+use common::random_rotation;
+use nalgebra::{DVector, Matrix3, Vector3};
 use policy::grids::{reduced_coefficients, so3_healpix_grid, S2Grid};
 use policy::points::{
     coefficient_max_pool, farthest_point_sampling, knn, upsample_weights, UpsampleDistance,
@@ -14,16 +16,6 @@ use policy::so3::{
 use policy::PolicyError;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-
-fn random_rotation(rng: &mut ChaCha8Rng) -> Matrix3<f64> {
-    let axis = Vector3::new(
-        rng.random_range(-1.0..1.0),
-        rng.random_range(-1.0..1.0),
-        rng.random_range(-1.0..1.0),
-    );
-    let angle = rng.random_range(-3.1..3.1);
-    Rotation3::from_scaled_axis(axis.normalize() * angle).into_inner()
-}
 
 fn random_vec(rng: &mut ChaCha8Rng) -> [f64; 3] {
     [
