@@ -780,19 +780,35 @@ impl EdgeFeatures {
         Ok(Self::Dense { cols, values })
     }
 
+    /// All rows, borrowed.
+    pub fn view(&self) -> EdgeFeaturesRef<'_> {
+        match self {
+            Self::Dense { cols, values } => EdgeFeaturesRef::Dense {
+                cols: *cols,
+                values,
+            },
+            Self::Sparse {
+                cols,
+                ptr,
+                idx,
+                val,
+            } => EdgeFeaturesRef::Sparse {
+                cols: *cols,
+                ptr,
+                idx,
+                val,
+            },
+        }
+    }
+
     /// Number of rows.
     pub fn rows(&self) -> usize {
-        match self {
-            Self::Dense { cols, values } => values.len().checked_div(*cols).unwrap_or(0),
-            Self::Sparse { ptr, .. } => ptr.len().saturating_sub(1),
-        }
+        self.view().rows()
     }
 
     /// Values per row.
     pub fn cols(&self) -> usize {
-        match self {
-            Self::Dense { cols, .. } | Self::Sparse { cols, .. } => *cols,
-        }
+        self.view().cols()
     }
 
     /// The rows in `range`.
