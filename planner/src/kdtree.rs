@@ -1,88 +1,153 @@
-//! A static 3-D k-d tree over cloud points answering "is any point within r of p" exactly;
-//! the distance field sends it only the queries its bounds cannot decide.
+//! A static bounding-volume tree over cloud points answering "is any point within r of p"
+//! exactly; the distance field sends it only the queries its bounds cannot decide.
+//!
+//! Built in linear time (issue 3: the cloud structure is rebuilt per observation): the points
+//! are sorted by the Morton code of their position (three 10-bit radix passes), cut into
+//! leaves of [`LEAF`] consecutive points, and a complete binary tree of axis-aligned boxes is
+//! built bottom-up over the leaves. Queries descend through the boxes a ball reaches.
 
 use nalgebra::Point3;
 
+/// Points per leaf.
 const LEAF: usize = 8;
 
-/// Points reordered into an implicit balanced k-d tree (median splits on the widest axis).
+/// Points in Morton order under an implicit complete binary tree of boxes (node `i` has
+/// children `2i + 1` and `2i + 2`; leaf `k` is node `leaves − 1 + k`).
 #[derive(Clone, Debug, Default)]
 pub struct KdTree {
     pts: Vec<[f32; 3]>,
-    nodes: Vec<Node>,
+    /// Per node: min x y z, max x y z (an empty node has min > max).
+    boxes: Vec<[f32; 6]>,
+    /// Number of leaves (a power of two; 0 for an empty tree).
+    leaves: usize,
 }
 
-#[derive(Copy, Clone, Debug)]
-struct Node {
-    lo: usize,
-    hi: usize,
-    axis: u8,
-    split: f32,
-    left: u32,
-    right: u32,
+const EMPTY: [f32; 6] = [
+    f32::INFINITY,
+    f32::INFINITY,
+    f32::INFINITY,
+    f32::NEG_INFINITY,
+    f32::NEG_INFINITY,
+    f32::NEG_INFINITY,
+];
+
+/// Spreads the low 10 bits of `v` to every third bit.
+fn spread(v: u32) -> u32 {
+    let mut x = v & 0x3ff;
+    x = (x | (x << 16)) & 0x0300_00ff;
+    x = (x | (x << 8)) & 0x0300_f00f;
+    x = (x | (x << 4)) & 0x030c_30c3;
+    (x | (x << 2)) & 0x0924_9249
 }
 
-const NONE: u32 = u32::MAX;
+/// Squared distance from `q` to box `b` (0 inside; +∞ for an empty box).
+#[inline]
+fn box_dist2(b: &[f32; 6], q: &[f32; 3]) -> f32 {
+    if b[0] > b[3] {
+        return f32::INFINITY;
+    }
+    let mut d = 0.0;
+    for k in 0..3 {
+        let e = (b[k] - q[k]).max(0.0).max(q[k] - b[k + 3]);
+        d += e * e;
+    }
+    d
+}
 
 impl KdTree {
-    /// Builds the tree (O(n log n)).
+    /// Builds the tree (linear time).
     pub fn build(points: &[Point3<f32>]) -> Self {
-        let mut t = Self {
-            pts: points.iter().map(|p| [p.x, p.y, p.z]).collect(),
-            nodes: Vec::new(),
-        };
-        if !t.pts.is_empty() {
-            let n = t.pts.len();
-            t.build_rec(0, n);
+        let n = points.len();
+        if n == 0 {
+            return Self::default();
         }
-        t
-    }
-
-    fn build_rec(&mut self, lo: usize, hi: usize) -> u32 {
-        let id = self.nodes.len();
-        self.nodes.push(Node {
-            lo,
-            hi,
-            axis: 0,
-            split: 0.0,
-            left: NONE,
-            right: NONE,
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for p in points {
+            for k in 0..3 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        }
+        let scale: [f32; 3] = std::array::from_fn(|k| {
+            let e = hi[k] - lo[k];
+            if e > 0.0 {
+                1023.0 / e
+            } else {
+                0.0
+            }
         });
-        if hi - lo > LEAF {
-            let mut mn = [f32::INFINITY; 3];
-            let mut mx = [f32::NEG_INFINITY; 3];
-            for p in &self.pts[lo..hi] {
-                for k in 0..3 {
-                    mn[k] = mn[k].min(p[k]);
-                    mx[k] = mx[k].max(p[k]);
+        let quant =
+            |p: &Point3<f32>, k: usize| ((p[k] - lo[k]) * scale[k]).clamp(0.0, 1023.0) as u32;
+        let mut keys: Vec<(u32, u32)> = points
+            .iter()
+            .enumerate()
+            .map(|(i, p)| {
+                let m =
+                    spread(quant(p, 0)) | (spread(quant(p, 1)) << 1) | (spread(quant(p, 2)) << 2);
+                (m, i as u32)
+            })
+            .collect();
+        // LSD radix sort on the 30-bit codes, 10 bits a pass (stable).
+        let mut tmp = vec![(0u32, 0u32); n];
+        for pass in 0..3 {
+            let shift = 10 * pass;
+            let mut count = vec![0usize; 1025];
+            for (k, _) in &keys {
+                count[((k >> shift) & 0x3ff) as usize + 1] += 1;
+            }
+            for i in 0..1024 {
+                count[i + 1] += count[i];
+            }
+            for e in &keys {
+                let b = ((e.0 >> shift) & 0x3ff) as usize;
+                tmp[count[b]] = *e;
+                count[b] += 1;
+            }
+            std::mem::swap(&mut keys, &mut tmp);
+        }
+        let pts: Vec<[f32; 3]> = keys
+            .iter()
+            .map(|(_, i)| {
+                let p = &points[*i as usize];
+                [p.x, p.y, p.z]
+            })
+            .collect();
+        let leaves = n.div_ceil(LEAF).next_power_of_two();
+        let mut boxes = vec![EMPTY; 2 * leaves - 1];
+        for (k, chunk) in pts.chunks(LEAF).enumerate() {
+            let b = &mut boxes[leaves - 1 + k];
+            for p in chunk {
+                for a in 0..3 {
+                    b[a] = b[a].min(p[a]);
+                    b[a + 3] = b[a + 3].max(p[a]);
                 }
             }
-            let axis = (0..3)
-                .max_by(|a, b| (mx[*a] - mn[*a]).total_cmp(&(mx[*b] - mn[*b])))
-                .unwrap_or(0);
-            let mid = (lo + hi) / 2;
-            self.pts[lo..hi].select_nth_unstable_by(mid - lo, |a, b| a[axis].total_cmp(&b[axis]));
-            let split = self.pts[mid][axis];
-            let left = self.build_rec(lo, mid);
-            let right = self.build_rec(mid, hi);
-            let n = &mut self.nodes[id];
-            n.axis = axis as u8;
-            n.split = split;
-            n.left = left;
-            n.right = right;
         }
-        id as u32
+        for i in (0..leaves - 1).rev() {
+            let (l, r) = (boxes[2 * i + 1], boxes[2 * i + 2]);
+            boxes[i] = std::array::from_fn(|a| {
+                if a < 3 {
+                    l[a].min(r[a])
+                } else {
+                    l[a].max(r[a])
+                }
+            });
+        }
+        Self { pts, boxes, leaves }
+    }
+
+    /// The points of leaf node `id`.
+    #[inline]
+    fn leaf_points(&self, id: usize) -> &[[f32; 3]] {
+        let k = id - (self.leaves - 1);
+        let lo = (k * LEAF).min(self.pts.len());
+        let hi = (lo + LEAF).min(self.pts.len());
+        &self.pts[lo..hi]
     }
 
     /// True when some point lies within `r` of `p`.
     pub fn any_within(&self, p: &Point3<f64>, r: f64) -> bool {
-        if self.nodes.is_empty() {
-            return false;
-        }
-        let q = [p.x as f32, p.y as f32, p.z as f32];
-        // A hair of slack for the f32 round trip keeps the answer conservative.
-        let r = r as f32 + 1e-6;
-        self.within_rec(0, &q, r * r)
+        self.find_within(p, r, &mut |_| true).is_some()
     }
 
     /// The first point within `r` of `p` (nearer subtrees first, not the nearest point) for
@@ -93,64 +158,54 @@ impl KdTree {
         r: f64,
         hit: &mut F,
     ) -> Option<Point3<f64>> {
-        if self.nodes.is_empty() {
+        if self.leaves == 0 {
             return None;
         }
         let q = [p.x as f32, p.y as f32, p.z as f32];
+        // A hair of slack for the f32 round trip keeps the answer conservative.
         let r = r as f32 + 1e-6;
-        self.find_rec(0, &q, r * r, hit)
-    }
-
-    fn find_rec<F: FnMut(&Point3<f64>) -> bool>(
-        &self,
-        id: u32,
-        q: &[f32; 3],
-        r2: f32,
-        hit: &mut F,
-    ) -> Option<Point3<f64>> {
-        let n = self.nodes[id as usize];
-        if n.left == NONE {
-            for p in &self.pts[n.lo..n.hi] {
-                let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
-                if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= r2 {
-                    let pt = Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-                    if hit(&pt) {
-                        return Some(pt);
-                    }
-                }
-            }
+        let r2 = r * r;
+        if box_dist2(&self.boxes[0], &q) > r2 {
             return None;
         }
-        let diff = q[n.axis as usize] - n.split;
-        let (near, far) = if diff < 0.0 {
-            (n.left, n.right)
-        } else {
-            (n.right, n.left)
-        };
-        if let Some(p) = self.find_rec(near, q, r2, hit) {
-            return Some(p);
-        }
-        if diff * diff <= r2 {
-            return self.find_rec(far, q, r2, hit);
+        let mut stack = [0usize; 64];
+        let mut top = 1;
+        while top > 0 {
+            top -= 1;
+            let id = stack[top];
+            if id >= self.leaves - 1 {
+                for pt in self.leaf_points(id) {
+                    let d = [pt[0] - q[0], pt[1] - q[1], pt[2] - q[2]];
+                    if d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= r2 {
+                        let pt = Point3::new(f64::from(pt[0]), f64::from(pt[1]), f64::from(pt[2]));
+                        if hit(&pt) {
+                            return Some(pt);
+                        }
+                    }
+                }
+                continue;
+            }
+            let (l, rr) = (2 * id + 1, 2 * id + 2);
+            let (dl, dr) = (
+                box_dist2(&self.boxes[l], &q),
+                box_dist2(&self.boxes[rr], &q),
+            );
+            // Push the farther child first so the nearer one is visited first.
+            let (near, dn, far, df) = if dl <= dr {
+                (l, dl, rr, dr)
+            } else {
+                (rr, dr, l, dl)
+            };
+            if df <= r2 {
+                stack[top] = far;
+                top += 1;
+            }
+            if dn <= r2 {
+                stack[top] = near;
+                top += 1;
+            }
         }
         None
-    }
-
-    fn within_rec(&self, id: u32, q: &[f32; 3], r2: f32) -> bool {
-        let n = self.nodes[id as usize];
-        if n.left == NONE {
-            return self.pts[n.lo..n.hi].iter().any(|p| {
-                let d = [p[0] - q[0], p[1] - q[1], p[2] - q[2]];
-                d[0] * d[0] + d[1] * d[1] + d[2] * d[2] <= r2
-            });
-        }
-        let diff = q[n.axis as usize] - n.split;
-        let (near, far) = if diff < 0.0 {
-            (n.left, n.right)
-        } else {
-            (n.right, n.left)
-        };
-        self.within_rec(near, q, r2) || (diff * diff <= r2 && self.within_rec(far, q, r2))
     }
 }
 
