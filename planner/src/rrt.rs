@@ -1,5 +1,6 @@
 //! Path search (issue 3 item 5): RRT-Connect (Kuffner & LaValle, ICRA 2000) in joint space,
-//! seeded and deterministic for a given seed, then randomized shortcutting.
+//! with balanced trees (the smaller tree extends), seeded and deterministic for a given
+//! seed, then randomized shortcutting.
 
 use crate::checker::{lerp, Checker};
 use crate::error::PlanError;
@@ -160,8 +161,14 @@ pub fn plan_path(
                 });
             }
         }
-        std::mem::swap(&mut a, &mut b);
-        a_is_start = !a_is_start;
+        // Balanced trees (Kuffner & LaValle's variant): the smaller tree extends next. A
+        // tree confined behind a narrow passage (the goal inside MBM's cage) then gets the
+        // samples it needs to find the way out instead of half of them going to the
+        // other tree's trapped extensions: cage 29k → 5k checks per search (median).
+        if b.nodes.len() < a.nodes.len() {
+            std::mem::swap(&mut a, &mut b);
+            a_is_start = !a_is_start;
+        }
     }
     Err(PlanError::NoPath {
         iterations: params.max_iterations,
