@@ -256,8 +256,11 @@ pub struct ProblemResult {
     pub error: Option<String>,
     /// Cloud points (cloud mode).
     pub cloud_points: usize,
-    /// Cloud structure build time (s).
+    /// Cloud structure build time (s, wall clock).
     pub build_s: f64,
+    /// Cloud structure build time (s, thread CPU: what other processes on the machine do not
+    /// inflate).
+    pub build_cpu_s: f64,
     /// Path search (s).
     pub search_s: f64,
     /// Shortcutting (s).
@@ -296,6 +299,7 @@ pub fn run_problem(
         error: None,
         cloud_points: 0,
         build_s: 0.0,
+        build_cpu_s: 0.0,
         search_s: 0.0,
         shortcut_s: 0.0,
         timing_s: 0.0,
@@ -311,11 +315,15 @@ pub fn run_problem(
     let outcome = (|| -> Result<_, PlanError> {
         let (start, goal) = p.start_goal()?;
         let t = Instant::now();
+        let cpu = cpu_time::ThreadTime::try_now().ok();
         let world = p.world(mode)?;
         if mode == WorldMode::Cloud {
             r.cloud_points = world.cloud_len();
-            // Includes sampling the surfaces (well under a millisecond), as the FFI build does.
+            // Includes sampling the surfaces (about a millisecond), as the FFI build does.
             r.build_s = t.elapsed().as_secs_f64();
+            r.build_cpu_s = cpu
+                .and_then(|c| c.try_elapsed().ok())
+                .map_or(r.build_s, |d| d.as_secs_f64());
         }
         let t = Instant::now();
         let m = planner.plan_to_joints(&start, &goal, &world);
@@ -372,8 +380,10 @@ pub struct SceneSummary {
     pub timing_validate_ms: (f64, f64),
     /// Median / p95 exact (parry) dense re-check time (ms), included in `plan_ms`.
     pub exact_ms: (f64, f64),
-    /// Median / p95 cloud build time (ms).
+    /// Median / p95 cloud build time (ms, wall clock).
     pub build_ms: (f64, f64),
+    /// Median / p95 cloud build time (ms, thread CPU).
+    pub build_cpu_ms: (f64, f64),
     /// Median path length (rad).
     pub path_length_median: f64,
     /// Solved problems that needed at least one finer search after a dense re-check.
@@ -408,6 +418,7 @@ pub fn summarize(results: &[ProblemResult]) -> Vec<SceneSummary> {
                 timing_validate_ms: col(&|r| r.timing_s + r.validate_s),
                 exact_ms: col(&|r| r.exact_s),
                 build_ms: col(&|r| r.build_s),
+                build_cpu_ms: col(&|r| r.build_cpu_s),
                 replanned: ok.iter().filter(|r| r.replans > 0).count(),
                 path_length_median: {
                     let mut v: Vec<f64> = ok.iter().map(|r| r.path_length).collect();
