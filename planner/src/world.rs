@@ -193,9 +193,10 @@ impl Default for CloudParams {
 }
 
 /// Grid distances up to this many cells are stored exactly; larger ones only as "beyond".
-/// It must exceed the largest robot sphere radius plus the cell slack (8 cm + 1.7 cm at the
-/// default 1 cm cell) so that no sphere far from the cloud needs an exact query.
-pub const FIELD_CAP_CELLS: usize = 12;
+/// It should exceed the largest robot sphere radius plus the cell slack (8 cm + 1.7 cm at
+/// the default 1 cm cell) so that no sphere far from the cloud needs an exact query; each
+/// cell more costs two more vector operations per cell in the Y and Z passes.
+pub const FIELD_CAP_CELLS: usize = 10;
 const CAP2: u8 = (FIELD_CAP_CELLS * FIELD_CAP_CELLS) as u8;
 /// Stored squared distance meaning "more than the cap".
 const BEYOND: u8 = u8::MAX;
@@ -217,8 +218,10 @@ pub struct DistanceField {
     inv_h: f64,
     h: f64,
     dims: [usize; 3],
-    /// Squared grid distance per cell (x fastest), `BEYOND` past the cap.
+    /// Squared grid distance per cell (x fastest, rows `row` long), `BEYOND` past the cap.
     sq: Vec<u8>,
+    /// Stored row length (≥ `dims[0]`).
+    row: usize,
     /// Metres of each stored squared distance (`√v · h`; the cap for `BEYOND`).
     metres: [f32; 256],
     /// Bricks along x, y, z.
@@ -298,11 +301,28 @@ fn edt_3d_dense(f: &mut [f32], dims: [usize; 3]) {
     }
 }
 
-/// `out[i] = min(out[i], inp[i] + add)`, saturating (vectorizes to byte adds and mins).
+/// Row length granule (bytes): rows are padded to a multiple of it so that the byte loops
+/// below run whole vectors with no scalar tail.
+const LANES: usize = 32;
+
+/// `out[i] = min(out[i], inp[i] + add)`, saturating (byte adds and mins, `LANES` at a time;
+/// both lengths are multiples of `LANES`).
 #[inline]
 fn min_add_row(out: &mut [u8], inp: &[u8], add: u8) {
-    for (o, i) in out.iter_mut().zip(inp) {
-        *o = (*o).min(i.saturating_add(add));
+    for (o, i) in out.chunks_exact_mut(LANES).zip(inp.chunks_exact(LANES)) {
+        for k in 0..LANES {
+            o[k] = o[k].min(i[k].saturating_add(add));
+        }
+    }
+}
+
+/// `out[i] = inp[i] + add`, saturating, like [`min_add_row`].
+#[inline]
+fn add_row(out: &mut [u8], inp: &[u8], add: u8) {
+    for (o, i) in out.chunks_exact_mut(LANES).zip(inp.chunks_exact(LANES)) {
+        for k in 0..LANES {
+            o[k] = i[k].saturating_add(add);
+        }
     }
 }
 
@@ -336,9 +356,7 @@ fn window_pass(
             if touched {
                 min_add_row(out, inp, add);
             } else {
-                for (o, i) in out.iter_mut().zip(inp) {
-                    *o = i.saturating_add(add);
-                }
+                add_row(out, inp, add);
                 touched = true;
             }
         }
@@ -393,12 +411,15 @@ impl DistanceField {
             });
         }
         let (nx, ny, nz) = (dims[0], dims[1], dims[2]);
+        // Stored row length: x runs padded to whole vectors (the padding holds no site and
+        // is never read back).
+        let nxs = nx.next_multiple_of(LANES);
         let bdims = dims.map(|d| d.div_ceil(BRICK));
         let mut occupied = vec![FAR as f32; bdims[0] * bdims[1] * bdims[2]];
         // Sites: the cells holding a point (all inside the grid: it spans their bounds plus
         // the pad). X pass on the fly: rows are contiguous and sites binary, so two sweeps
         // over the rows holding a site give the capped 1-D squared distance.
-        let mut a = vec![BEYOND; cells];
+        let mut a = vec![BEYOND; nxs * ny * nz];
         let mut row_any = vec![false; ny * nz];
         for p in points {
             let c = (p.cast::<f64>() - origin) * (1.0 / h);
@@ -407,46 +428,39 @@ impl DistanceField {
                 (c.y as usize).min(ny - 1),
                 (c.z as usize).min(nz - 1),
             );
-            a[x + nx * (y + ny * z)] = 0;
+            a[x + nxs * (y + ny * z)] = 0;
             row_any[y + ny * z] = true;
             occupied[(x >> BRICK_SHIFT)
                 + bdims[0] * ((y >> BRICK_SHIFT) + bdims[1] * (z >> BRICK_SHIFT))] = 0.0;
         }
         let cap = FIELD_CAP_CELLS;
-        for (r, row) in a.chunks_exact_mut(nx).enumerate() {
+        // X pass: the same windowed minimum along each row holding a site, over a copy of
+        // the row with `cap` cells of nothing on either side.
+        let mut buf = vec![BEYOND; nxs + 2 * cap];
+        for (r, row) in a.chunks_exact_mut(nxs).enumerate() {
             if !row_any[r] {
                 continue;
             }
-            let mut last = usize::MAX;
-            for x in 0..nx {
-                if row[x] == 0 {
-                    last = x;
-                } else if last != usize::MAX && x - last <= cap {
-                    row[x] = ((x - last) * (x - last)) as u8;
-                }
-            }
-            last = usize::MAX;
-            for x in (0..nx).rev() {
-                if row[x] == 0 {
-                    last = x;
-                } else if last != usize::MAX && last - x <= cap {
-                    row[x] = row[x].min(((last - x) * (last - x)) as u8);
-                }
+            buf[cap..cap + nxs].copy_from_slice(row);
+            for d in 1..=cap {
+                let add = (d * d) as u8;
+                min_add_row(row, &buf[cap + d..cap + d + nxs], add);
+                min_add_row(row, &buf[cap - d..cap - d + nxs], add);
             }
         }
         // Y pass along the rows of each z slab, then Z pass with whole slabs as blocks, back
         // and forth between two grids.
-        let mut b = vec![BEYOND; cells];
+        let mut b = vec![BEYOND; nxs * ny * nz];
         let mut row_any_b = vec![false; ny * nz];
         for z in 0..nz {
-            window_pass(&a, &mut b, nx, ny * z, 1, ny, &row_any, &mut row_any_b);
+            window_pass(&a, &mut b, nxs, ny * z, 1, ny, &row_any, &mut row_any_b);
         }
         let slab_any: Vec<bool> = row_any_b
             .chunks_exact(ny)
             .map(|r| r.contains(&true))
             .collect();
         let mut slab_out = vec![false; nz];
-        window_pass(&b, &mut a, nx * ny, 0, 1, nz, &slab_any, &mut slab_out);
+        window_pass(&b, &mut a, nxs * ny, 0, 1, nz, &slab_any, &mut slab_out);
         // Anything over the cap is not exact (the window saw only sites within the cap).
         for v in &mut a {
             if *v > CAP2 {
@@ -476,6 +490,7 @@ impl DistanceField {
             h,
             dims,
             sq: a,
+            row: nxs,
             metres,
             bdims,
             coarse,
@@ -494,7 +509,7 @@ impl DistanceField {
         if c.x >= 0.0 && c.y >= 0.0 && c.z >= 0.0 {
             let (x, y, z) = (c.x as usize, c.y as usize, c.z as usize);
             if x < self.dims[0] && y < self.dims[1] && z < self.dims[2] {
-                let v = self.sq[x + self.dims[0] * (y + self.dims[1] * z)];
+                let v = self.sq[x + self.row * (y + self.dims[1] * z)];
                 if v != BEYOND {
                     let d = f64::from(self.metres[usize::from(v)]);
                     return (d - self.two_hd, d + self.two_hd);
