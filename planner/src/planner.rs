@@ -76,6 +76,31 @@ impl Default for ClosingVolume {
 }
 
 impl ClosingVolume {
+    /// A ball containing the volume at TCP pose `base_from_tcp` (centre, radius); `None`
+    /// when the volume is empty (a negative half extent).
+    pub fn bounding_ball(
+        &self,
+        base_from_tcp: &Transform<Base, Tcp>,
+    ) -> Option<(Point3<f64>, f64)> {
+        if self.half_extents.iter().any(|h| *h < 0.0) {
+            return None;
+        }
+        let c = base_from_tcp.transform_point(&Point3::new(0.0, 0.0, self.z_offset));
+        let h = self.half_extents;
+        Some((c, (h[0] * h[0] + h[1] * h[1] + h[2] * h[2]).sqrt()))
+    }
+
+    /// True when some point of the world's cloud lies in the volume (one radius query of the
+    /// cloud's tree around the volume's bounding ball, instead of a pass over every point).
+    pub fn holds_cloud_points(&self, base_from_tcp: &Transform<Base, Tcp>, world: &World) -> bool {
+        let (Some((c, r)), Some(f)) = (self.bounding_ball(base_from_tcp), world.field()) else {
+            return false;
+        };
+        f.tree()
+            .find_within(&c, r, &mut |p| self.contains(base_from_tcp, p))
+            .is_some()
+    }
+
     /// True when the base-frame point lies in the volume at TCP pose `base_from_tcp`.
     pub fn contains(&self, base_from_tcp: &Transform<Base, Tcp>, p: &Point3<f64>) -> bool {
         let l = base_from_tcp.inverse().transform_point(p);
@@ -221,6 +246,8 @@ impl Planner {
         let world = if keyframe.ignore_collisions {
             owned = world.without_cloud();
             &owned
+        } else if !cv.holds_cloud_points(&pose, world) {
+            world
         } else {
             match world.without_points(|p| cv.contains(&pose, p))? {
                 Some(w) => {
@@ -516,6 +543,54 @@ mod tests {
             }
             e => panic!("unexpected {e}"),
         }
+    }
+
+    /// The tree query for cloud points in the closing volume agrees with a pass over every
+    /// point, and an empty volume (negative extent) holds none.
+    #[test]
+    fn closing_volume_tree_query_matches_a_scan_of_the_points() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let pts: Vec<Point3<f32>> = (0..3000)
+            .map(|_| {
+                Point3::new(
+                    rng.random_range(0.2..0.6),
+                    rng.random_range(-0.2..0.2),
+                    rng.random_range(0.0..0.4),
+                )
+            })
+            .collect();
+        let cloud = PointCloud::new(FrameId::Base, pts.clone(), None).unwrap();
+        let world = World::from_cloud(&cloud, &CloudParams::default()).unwrap();
+        let cv = ClosingVolume::default();
+        let (mut inside, mut outside) = (0, 0);
+        for _ in 0..300 {
+            let pose = Transform::<Base, Tcp>::from_isometry(nalgebra::Isometry3::new(
+                nalgebra::Vector3::new(
+                    rng.random_range(0.1..0.7),
+                    rng.random_range(-0.3..0.3),
+                    rng.random_range(-0.1..0.5),
+                ),
+                nalgebra::Vector3::new(
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                    rng.random_range(-3.0..3.0),
+                ),
+            ));
+            let scan = pts.iter().any(|p| cv.contains(&pose, &p.cast::<f64>()));
+            assert_eq!(cv.holds_cloud_points(&pose, &world), scan);
+            if scan {
+                inside += 1;
+            } else {
+                outside += 1;
+            }
+            let empty = ClosingVolume {
+                half_extents: [-1.0; 3],
+                ..cv
+            };
+            assert!(!empty.holds_cloud_points(&pose, &world));
+        }
+        assert!(inside > 10 && outside > 10, "{inside} {outside}");
     }
 
     #[test]
