@@ -25,6 +25,12 @@ pub fn mbm_robot() -> Result<RobotModel, PlanError> {
     RobotModel::from_urdf(MBM_UR5_URDF, "ee_link")
 }
 
+/// The robot model of the MBM problems with the UR5's analytic IK fitted to its chain (goals
+/// given as TCP poses).
+pub fn mbm_robot_with_ik() -> Result<RobotModel, PlanError> {
+    mbm_robot()?.with_ur_ik(crate::kinematics::UR5)
+}
+
 /// A box obstacle.
 #[derive(Clone, Debug, Deserialize)]
 pub struct MbmBox {
@@ -283,14 +289,38 @@ pub struct ProblemResult {
     pub replans: usize,
     /// Wall-clock time of the whole plan excluding the cloud build (s).
     pub wall_s: f64,
+    /// IK and goal selection (s; 0 for joint-space goals), included in `total_s`.
+    pub goal_s: f64,
 }
 
-/// Plans one problem in the given mode.
+/// How a problem's goal is given to the planner.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize)]
+pub enum GoalKind {
+    /// The MBM goal configuration (`plan_to_joints`).
+    Joints,
+    /// The TCP pose of the goal configuration as a keyframe (`plan_to_keyframe`: IK, goal
+    /// selection among the free solutions, then the same pipeline); needs a model with IK
+    /// ([`mbm_robot_with_ik`]).
+    Pose,
+}
+
+/// Plans one problem in the given mode to its goal configuration.
 pub fn run_problem(
     planner: &Planner,
     scene: &str,
     p: &MbmProblem,
     mode: WorldMode,
+) -> ProblemResult {
+    run_problem_with(planner, scene, p, mode, GoalKind::Joints)
+}
+
+/// Plans one problem in the given mode, its goal given as `goal`.
+pub fn run_problem_with(
+    planner: &Planner,
+    scene: &str,
+    p: &MbmProblem,
+    mode: WorldMode,
+    goal_kind: GoalKind,
 ) -> ProblemResult {
     let mut r = ProblemResult {
         scene: scene.to_string(),
@@ -311,6 +341,7 @@ pub fn run_problem(
         duration_s: 0.0,
         replans: 0,
         wall_s: 0.0,
+        goal_s: 0.0,
     };
     let outcome = (|| -> Result<_, PlanError> {
         let (start, goal) = p.start_goal()?;
@@ -326,7 +357,18 @@ pub fn run_problem(
                 .map_or(r.build_s, |d| d.as_secs_f64());
         }
         let t = Instant::now();
-        let m = planner.plan_to_joints(&start, &goal, &world);
+        let m = match goal_kind {
+            GoalKind::Joints => planner.plan_to_joints(&start, &goal, &world),
+            GoalKind::Pose => {
+                let pose = planner.model.fk_tcp(&goal);
+                let kf = cell_types::Keyframe::new(pose, true, false).map_err(|e| {
+                    PlanError::BadWorld {
+                        what: e.to_string(),
+                    }
+                })?;
+                planner.plan_to_keyframe(&start, &kf, &world)
+            }
+        };
         r.wall_s = t.elapsed().as_secs_f64();
         m
     })();
@@ -343,6 +385,7 @@ pub fn run_problem(
             r.path_length = m.stats.path_length;
             r.duration_s = m.trajectory.duration();
             r.replans = m.stats.replans;
+            r.goal_s = m.stats.goal_s;
         }
         Err(e) => r.error = Some(e.to_string()),
     }
@@ -372,6 +415,8 @@ pub struct SceneSummary {
     pub plan_ms: (f64, f64),
     /// Median / p95 wall-clock time of the whole plan excluding cloud build (ms).
     pub plan_wall_ms: (f64, f64),
+    /// Median / p95 IK and goal selection time (ms; 0 for joint-space goals).
+    pub goal_ms: (f64, f64),
     /// Median / p95 search time (ms).
     pub search_ms: (f64, f64),
     /// Median / p95 shortcut time (ms).
@@ -413,6 +458,7 @@ pub fn summarize(results: &[ProblemResult]) -> Vec<SceneSummary> {
                 total: rs.len(),
                 plan_ms: col(&|r| r.total_s),
                 plan_wall_ms: col(&|r| r.wall_s),
+                goal_ms: col(&|r| r.goal_s),
                 search_ms: col(&|r| r.search_s),
                 shortcut_ms: col(&|r| r.shortcut_s),
                 timing_validate_ms: col(&|r| r.timing_s + r.validate_s),
@@ -461,6 +507,35 @@ mod tests {
     use super::*;
     use crate::planner::PlannerConfig;
     use crate::timing::PlannerLimits;
+
+    /// The fitted IK of the MBM robot: every problem's goal pose (its FK) has an IK solution
+    /// with the same pose, and one of them is the goal configuration itself (up to 2π wraps).
+    #[test]
+    fn mbm_robot_ik_recovers_the_goal_configurations() {
+        let model = mbm_robot_with_ik().unwrap();
+        let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
+        for ps in file.problems.values() {
+            for p in ps.iter().filter(|p| p.valid).take(5) {
+                let (start, goal) = p.start_goal().unwrap();
+                let pose = model.fk_tcp(&goal);
+                let sols = model.ik_near(&pose, &start).unwrap();
+                for s in &sols {
+                    let e = model.fk_tcp(s);
+                    assert!((e.translation() - pose.translation()).norm() < 1e-6);
+                    assert!(e.rotation().angle_to(&pose.rotation()) < 1e-6);
+                }
+                let wrapped = |a: f64, b: f64| {
+                    let d = (a - b).rem_euclid(std::f64::consts::TAU);
+                    d.min(std::f64::consts::TAU - d)
+                };
+                assert!(
+                    sols.iter()
+                        .any(|s| (0..6).all(|j| wrapped(s[j], goal[j]) < 1e-6)),
+                    "goal {goal:?} not among {sols:?}"
+                );
+            }
+        }
+    }
 
     #[test]
     fn surface_clouds_are_dense_and_start_goal_parse() {

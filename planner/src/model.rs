@@ -113,6 +113,60 @@ impl RobotModel {
         })
     }
 
+    /// Gives a model without IK (e.g. the MotionBenchMaker robot) the analytic IK of a UR arm
+    /// with DH lengths `ur`, when its chain is that arm: the chain root → DH base transform is
+    /// the pose of link `base_link` at zero (turned by a multiple of π/2 about its z, as UR
+    /// URDFs differ from the DH base by such a turn), the flange → TCP transform follows from
+    /// the zero configuration, and the fitted FK must equal the chain's FK (within 1 µm and
+    /// 1 µrad) on test configurations.
+    pub fn with_ur_ik(mut self, ur: UrParams) -> Result<Self, PlanError> {
+        let zero = [0.0; 6];
+        let base = self
+            .chain
+            .link_index("base_link")
+            .map_or_else(Isometry3::identity, |i| self.chain.link_poses(&zero)[i]);
+        let tests = [
+            [0.3, -1.2, 1.1, -0.4, 1.3, -2.0],
+            [-2.5, 0.7, -2.2, 2.9, -0.6, 0.1],
+            [1.0, -0.3, 0.4, 1.7, -2.2, 0.9],
+        ];
+        let mut worst = (f64::INFINITY, tests[0]);
+        for k in 0..4 {
+            let turn = nalgebra::UnitQuaternion::from_axis_angle(
+                &nalgebra::Vector3::z_axis(),
+                k as f64 * std::f64::consts::FRAC_PI_2,
+            );
+            let root_from_dh = base * turn;
+            let dh0 = *ur.forward(&zero).isometry();
+            let flange_from_tcp = (root_from_dh * dh0).inverse() * *self.fk_tcp(&zero).isometry();
+            let mut err_k = (0.0, tests[0]);
+            for q in tests {
+                let a = *self.fk_tcp(&q).isometry();
+                let b = root_from_dh * *ur.forward(&q).isometry() * flange_from_tcp;
+                let e = (a.translation.vector - b.translation.vector).norm()
+                    + a.rotation.angle_to(&b.rotation);
+                if e.is_nan() || e > err_k.0 {
+                    err_k = (e, q);
+                }
+            }
+            if err_k.0 <= 1e-6 {
+                self.ik = Some(IkData {
+                    ur,
+                    root_from_dh,
+                    flange_from_tcp,
+                });
+                return Ok(self);
+            }
+            if err_k.0 < worst.0 || worst.0.is_nan() {
+                worst = err_k;
+            }
+        }
+        Err(PlanError::ModelMismatch {
+            q: worst.1,
+            error_m: worst.0,
+        })
+    }
+
     /// The IK data, if this model has analytic IK.
     pub fn ik_data(&self) -> Option<&IkData> {
         self.ik.as_ref()

@@ -3,7 +3,10 @@
 
 use anyhow::Context;
 use clap::{Args, Subcommand};
-use planner::mbm::{mbm_robot, run_problem, summarize, time_collision_checks, MbmFile, WorldMode};
+use planner::mbm::{
+    mbm_robot, mbm_robot_with_ik, run_problem_with, summarize, time_collision_checks, GoalKind,
+    MbmFile, WorldMode,
+};
 use planner::{CloudParams, Planner, PlannerConfig, PlannerLimits, World};
 use std::time::Instant;
 
@@ -81,6 +84,12 @@ pub struct PlannerBenchArgs {
     /// Only the scenes whose name contains this.
     #[arg(long)]
     pub scene: Option<String>,
+    /// Give each goal as the TCP pose of the MBM goal configuration: the planner runs IK and
+    /// picks the solution (its time is the "IK+goal" column, and is in the plan time). The
+    /// gripper's closing volume is off (the MBM goals are not grasps: with it, the cloud
+    /// points it covers would be dropped and the cloud mode would plan in another world).
+    #[arg(long)]
+    pub goal_pose: bool,
     /// Also run OMPL's RRTConnect on the same problems with the same collision checker, using
     /// this Python (a venv with `ompl`, see planner/benches/ompl_rrtconnect.py), and print the
     /// ratio of the search medians.
@@ -186,7 +195,17 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
     }
     // Thread CPU time: other processes on the machine do not inflate the stage times.
     config.clock = planner::StageClock::ThreadCpu;
-    let planner = Planner::new(mbm_robot()?, PlannerLimits::default(), config)?;
+    let goal_kind = if a.goal_pose {
+        config.closing_volume.half_extents = [-1.0; 3];
+        GoalKind::Pose
+    } else {
+        GoalKind::Joints
+    };
+    let model = match goal_kind {
+        GoalKind::Joints => mbm_robot()?,
+        GoalKind::Pose => mbm_robot_with_ik()?,
+    };
+    let planner = Planner::new(model, PlannerLimits::default(), config)?;
     let modes: Vec<WorldMode> = match a.mode.as_deref() {
         None => vec![WorldMode::Primitives, WorldMode::Cloud],
         Some("primitives") => vec![WorldMode::Primitives],
@@ -209,7 +228,7 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
                 .filter(|p| p.valid)
                 .take(a.limit.unwrap_or(usize::MAX))
             {
-                let r = run_problem(&planner, scene, p, mode);
+                let r = run_problem_with(&planner, scene, p, mode, goal_kind);
                 if !a.json && !r.solved {
                     eprintln!("{scene} #{}: {:?}", p.index, r.error);
                 }
@@ -223,11 +242,12 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
                 t.elapsed().as_secs_f64()
             );
             println!(
-                "{:<18} {:>9} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>8} {:>8}",
+                "{:<18} {:>9} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>17} {:>8} {:>8}",
                 "scene",
                 "solved",
                 "plan ms med/p95",
                 "plan wall ms",
+                "IK+goal",
                 "search",
                 "shortcut",
                 "timing+valid.",
@@ -239,8 +259,8 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
             );
             for s in &summary {
                 println!(
-                    "{:<18} {:>4}/{:<4} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.2}/{:<8.2} {:>8.2}/{:<8.2} {:>8.2} {:>8}",
-                    s.scene, s.solved, s.total, s.plan_ms.0, s.plan_ms.1, s.plan_wall_ms.0, s.plan_wall_ms.1, s.search_ms.0, s.search_ms.1,
+                    "{:<18} {:>4}/{:<4} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.3}/{:<8.3} {:>8.2}/{:<8.2} {:>8.2}/{:<8.2} {:>8.2} {:>8}",
+                    s.scene, s.solved, s.total, s.plan_ms.0, s.plan_ms.1, s.plan_wall_ms.0, s.plan_wall_ms.1, s.goal_ms.0, s.goal_ms.1, s.search_ms.0, s.search_ms.1,
                     s.shortcut_ms.0, s.shortcut_ms.1, s.timing_validate_ms.0, s.timing_validate_ms.1,
                     s.exact_ms.0, s.exact_ms.1, s.build_ms.0, s.build_ms.1, s.build_cpu_ms.0, s.build_cpu_ms.1, s.path_length_median, s.replanned
                 );
