@@ -515,7 +515,7 @@ mod tests {
         let model = mbm_robot_with_ik().unwrap();
         let file = MbmFile::parse(&std::fs::read_to_string(MBM_PROBLEMS_PATH).unwrap()).unwrap();
         for ps in file.problems.values() {
-            for p in ps.iter().filter(|p| p.valid).take(5) {
+            for p in ps.iter().filter(|p| p.valid) {
                 let (start, goal) = p.start_goal().unwrap();
                 let pose = model.fk_tcp(&goal);
                 let sols = model.ik_near(&pose, &start).unwrap();
@@ -523,6 +523,7 @@ mod tests {
                     let e = model.fk_tcp(s);
                     assert!((e.translation() - pose.translation()).norm() < 1e-6);
                     assert!(e.rotation().angle_to(&pose.rotation()) < 1e-6);
+                    assert!(model.within_limits(s));
                 }
                 let wrapped = |a: f64, b: f64| {
                     let d = (a - b).rem_euclid(std::f64::consts::TAU);
