@@ -3,7 +3,7 @@
 //!
 //! Built in linear time (issue 3: the cloud structure is rebuilt per observation): the points
 //! are sorted by the Morton code of their position (three 10-bit radix passes), cut into
-//! leaves of [`LEAF`] consecutive points, and a complete binary tree of axis-aligned boxes is
+//! leaves of `LEAF` (8) consecutive points, and a complete binary tree of axis-aligned boxes is
 //! built bottom-up over the leaves. Queries descend through the boxes a ball reaches.
 
 use nalgebra::Point3;
