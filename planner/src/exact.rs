@@ -2,7 +2,7 @@
 //! primitive of every link as a parry shape (cylinder, box, ball, capsule, with its URDF
 //! origin), placed with the link poses of forward kinematics, and tested against the same
 //! [`World`] the search used: its static obstacles as parry shapes (boxes, cylinders, balls,
-//! the table as a half-space), its cloud points (candidates from the k-d tree's radius query
+//! the table as a half-space), its cloud points (candidates from the point tree's radius query
 //! around each part's bounding ball, then parry's point query), and the robot itself between
 //! links whose rigid bodies are [`SELF_BODY_GAP`] or more moving joints apart (the sphere
 //! model's allowed-collision rule, from the URDF adjacency).

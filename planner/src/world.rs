@@ -543,7 +543,7 @@ impl DistanceField {
         }
     }
 
-    /// The k-d tree over the cloud points (exact radius queries).
+    /// The bounding-volume tree over the cloud points (exact radius queries).
     pub fn tree(&self) -> &KdTree {
         &self.tree
     }
