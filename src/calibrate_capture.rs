@@ -12,7 +12,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use calibration::capture::{CameraView, Capture, CaptureFolder, CaptureSet};
-use calibration::detect::{detect_chessboard, render_board_ir, DetectParams, IrLevels};
+use calibration::detect::{detect_board, render_board_ir, DetectParams, IrLevels};
 use calibration::simulate::{simulate_set_with, PoseCheck, SimCamera, SimConfig, Truth};
 use calibration::{BoardConfig, Intrinsics};
 use cell_types::config::{CameraSection, CellConfig};
@@ -295,7 +295,7 @@ impl PreparedCapture {
                     &png,
                 )?;
                 // A camera that does not find the board records no view.
-                if let Ok(corners) = detect_chessboard(&img, board, &DetectParams::default()) {
+                if let Ok(corners) = detect_board(&img, board, &DetectParams::default()) {
                     views.push(CameraView {
                         camera,
                         corners,
@@ -408,10 +408,11 @@ pub fn real_cell_layout(cfg: &CellConfig, config_dir: &Path) -> anyhow::Result<S
     let mut sim = SimConfig::default_cell();
     if let Some(b) = &cfg.calibration.board {
         sim.board = BoardConfig {
+            kind: b.kind,
             rows: b.rows,
             cols: b.cols,
             square_m: b.square_mm * 1e-3,
-            ..sim.board
+            spacing: b.spacing.unwrap_or(calibration::board::DEFAULT_TAG_SPACING),
         };
     }
     let previous = crate::real_cell::read_calibration(cfg, config_dir).ok();

@@ -1,42 +1,59 @@
-//! The calibration board on the flange (issue 8 item 1): a planar grid of corners (the inner
-//! corners of a chessboard, or the corners of a ChArUco/AprilGrid board; only their layout
-//! matters to the solver).
+//! The calibration board on the flange (issue 8 item 1): a planar set of corners with known
+//! ids, either the inner corners of a chessboard or the tag corners of a Kalibr AprilGrid
+//! (only their layout matters to the solver).
 //!
 //! Board frame (`cell_types::Board`): origin at corner 0, x along a row (increasing column),
 //! y along a column (increasing row), z out of the printed face (towards a camera that sees
-//! it). Corner `id = row * cols + col` sits at `(col * square, row * square, 0)`.
+//! it); seen from the front, x points right and y up.
+//! - Chessboard: corner `id = row * cols + col` sits at `(col * square, row * square, 0)`.
+//! - AprilGrid (Kalibr's layout): `rows x cols` tag36h11 tags of side `square_m` (the tag's
+//!   black border included), `spacing * square_m` apart, tag `t = row * cols + col` with its
+//!   lower-left corner at `(col, row) * (1 + spacing) * square_m`; a black square of side
+//!   `spacing * square_m` fills each gap crossing, so every tag corner is an X-junction.
+//!   Corner `id = 4 t + k` is the tag's lower-left, lower-right, upper-right, upper-left
+//!   corner for k = 0..3 (Kalibr's order), which lets a detector label partial views.
 
 use nalgebra::Point3;
 use serde::{Deserialize, Serialize};
 
 use crate::error::CalibrationError;
 
-/// What kind of target is printed (informational; the solver only uses the corner layout).
-#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum BoardKind {
-    /// A plain chessboard: corners are its inner corners.
-    Chessboard,
-    /// A ChArUco board: corners are the chessboard corners, identified by the markers.
-    #[default]
-    Charuco,
-    /// A Kalibr AprilGrid: corners are tag corners on a regular grid.
-    AprilGrid,
+/// What kind of target is printed (the configuration's `[calibration.board] kind`).
+pub use cell_types::config::BoardKind;
+
+/// Kalibr's default gap between AprilGrid tags, as a fraction of the tag size.
+pub const DEFAULT_TAG_SPACING: f64 = 0.3;
+
+/// AprilGrid tag spacings the detector finds boards with: the `aprilgrid` crate's grid
+/// search assumes Kalibr's 0.3 (its spacing parameter is not used), and tolerates 0.25 to
+/// 0.4 in our rendered-board tests (0.2 fails).
+pub const TAG_SPACING_RANGE: std::ops::RangeInclusive<f64> = 0.25..=0.4;
+
+/// Tags in the tag36h11 family (the most an AprilGrid can hold).
+pub const TAG36H11_CODES: usize = 587;
+
+fn default_tag_spacing() -> f64 {
+    DEFAULT_TAG_SPACING
 }
 
-/// A board's corner layout: `rows x cols` corners at `square_m` spacing.
+/// A board's layout: for a chessboard `rows x cols` inner corners `square_m` apart, for an
+/// AprilGrid `rows x cols` tags of side `square_m`, `spacing * square_m` apart.
 #[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BoardConfig {
     /// The printed target type.
     #[serde(default)]
     pub kind: BoardKind,
-    /// Corner rows (inner corners along y).
+    /// Chessboard: inner-corner rows (along y); AprilGrid: tag rows.
     pub rows: u32,
-    /// Corner columns (inner corners along x).
+    /// Chessboard: inner-corner columns (along x); AprilGrid: tag columns.
     pub cols: u32,
-    /// Corner spacing (m).
+    /// Chessboard: square side (m); AprilGrid: tag side, black border included (m).
     pub square_m: f64,
+    /// AprilGrid only: gap between tags as a fraction of the tag side (Kalibr's
+    /// `tagSpacing`).
+    #[serde(default = "default_tag_spacing")]
+    pub spacing: f64,
 }
 
 impl Default for BoardConfig {
@@ -49,12 +66,27 @@ impl Default for BoardConfig {
             rows: 7,
             cols: 10,
             square_m: 0.035,
+            spacing: DEFAULT_TAG_SPACING,
         }
     }
 }
 
 impl BoardConfig {
-    /// Checks the layout: at least 2x2 corners, at most 10 000, positive finite spacing.
+    /// A 4 x 3-tag AprilGrid of 80 mm tags, 24 mm apart (43 x 34 cm printed): 8 mm bits,
+    /// 3 px or more for a D455's 848 x 480 IR image up to about 1.1 m away.
+    pub fn default_april_grid() -> Self {
+        Self {
+            kind: BoardKind::AprilGrid,
+            rows: 3,
+            cols: 4,
+            square_m: 0.08,
+            spacing: DEFAULT_TAG_SPACING,
+        }
+    }
+
+    /// Checks the layout: at least 2x2 corners (chessboard) or tags (AprilGrid), at most
+    /// 10 000 corners or 587 tags, positive finite sizes, an AprilGrid gap in
+    /// [`TAG_SPACING_RANGE`].
     pub fn validate(&self) -> Result<(), CalibrationError> {
         if self.rows < 2 || self.cols < 2 {
             return Err(CalibrationError::InvalidBoard {
@@ -71,12 +103,39 @@ impl BoardConfig {
                 why: format!("square size {} m", self.square_m),
             });
         }
+        if self.kind == BoardKind::AprilGrid {
+            if self.rows as usize * self.cols as usize > TAG36H11_CODES {
+                return Err(CalibrationError::InvalidBoard {
+                    why: format!(
+                        "{} x {} tags is more than the {TAG36H11_CODES} tags of tag36h11",
+                        self.rows, self.cols
+                    ),
+                });
+            }
+            if !(self.spacing.is_finite() && TAG_SPACING_RANGE.contains(&self.spacing)) {
+                return Err(CalibrationError::InvalidBoard {
+                    why: format!(
+                        "tag spacing {} is outside {:?} of the tag size, where the AprilGrid detector works (Kalibr's default is {DEFAULT_TAG_SPACING})",
+                        self.spacing, TAG_SPACING_RANGE
+                    ),
+                });
+            }
+        }
         Ok(())
+    }
+
+    /// Distance between neighbouring AprilGrid tags' lower-left corners (m).
+    pub fn tag_pitch(&self) -> f64 {
+        self.square_m * (1.0 + self.spacing)
     }
 
     /// Number of corners.
     pub fn corner_count(&self) -> usize {
-        self.rows as usize * self.cols as usize
+        let grid = self.rows as usize * self.cols as usize;
+        match self.kind {
+            BoardKind::Chessboard => grid,
+            BoardKind::AprilGrid => 4 * grid,
+        }
     }
 
     /// Corner `id` in the board frame, or `None` for an id past the last corner.
@@ -84,12 +143,42 @@ impl BoardConfig {
         if id as usize >= self.corner_count() {
             return None;
         }
-        let (row, col) = (id / self.cols, id % self.cols);
-        Some(Point3::new(
-            f64::from(col) * self.square_m,
-            f64::from(row) * self.square_m,
-            0.0,
-        ))
+        match self.kind {
+            BoardKind::Chessboard => {
+                let (row, col) = (id / self.cols, id % self.cols);
+                Some(Point3::new(
+                    f64::from(col) * self.square_m,
+                    f64::from(row) * self.square_m,
+                    0.0,
+                ))
+            }
+            BoardKind::AprilGrid => {
+                let (tag, k) = (id / 4, id % 4);
+                let (row, col) = (tag / self.cols, tag % self.cols);
+                let (dx, dy) = [(0.0, 0.0), (1.0, 0.0), (1.0, 1.0), (0.0, 1.0)][k as usize];
+                let p = self.tag_pitch();
+                Some(Point3::new(
+                    f64::from(col) * p + dx * self.square_m,
+                    f64::from(row) * p + dy * self.square_m,
+                    0.0,
+                ))
+            }
+        }
+    }
+
+    /// The printed pattern's extent in the board frame, `[min, max]` of x and y: the outer
+    /// squares of a chessboard or the corner squares of an AprilGrid (white margin excluded).
+    pub fn pattern_bounds(&self) -> [[f64; 2]; 2] {
+        let (rows, cols) = (f64::from(self.rows), f64::from(self.cols));
+        let s = self.square_m;
+        match self.kind {
+            BoardKind::Chessboard => [[-s, -s], [cols * s, rows * s]],
+            BoardKind::AprilGrid => {
+                let g = self.spacing * s;
+                let p = self.tag_pitch();
+                [[-g, -g], [cols * p, rows * p]]
+            }
+        }
     }
 
     /// All corners in id order, in the board frame.
@@ -101,11 +190,8 @@ impl BoardConfig {
 
     /// The board's centre (centre of the corner grid) in the board frame.
     pub fn centre(&self) -> Point3<f64> {
-        Point3::new(
-            f64::from(self.cols - 1) * self.square_m / 2.0,
-            f64::from(self.rows - 1) * self.square_m / 2.0,
-            0.0,
-        )
+        let [lo, hi] = self.pattern_bounds();
+        Point3::new((lo[0] + hi[0]) / 2.0, (lo[1] + hi[1]) / 2.0, 0.0)
     }
 }
 
@@ -120,6 +206,7 @@ mod tests {
             rows: 3,
             cols: 4,
             square_m: 0.02,
+            spacing: DEFAULT_TAG_SPACING,
         };
         b.validate().unwrap();
         assert_eq!(b.corner_count(), 12);
@@ -142,15 +229,76 @@ mod tests {
             (200, 200, 0.01),
         ] {
             let b = BoardConfig {
-                kind: BoardKind::Charuco,
+                kind: BoardKind::Chessboard,
                 rows,
                 cols,
                 square_m: sq,
+                spacing: DEFAULT_TAG_SPACING,
             };
             assert!(matches!(
                 b.validate(),
                 Err(CalibrationError::InvalidBoard { .. })
             ));
+        }
+    }
+
+    fn april_grid(rows: u32, cols: u32) -> BoardConfig {
+        BoardConfig {
+            kind: BoardKind::AprilGrid,
+            rows,
+            cols,
+            square_m: 0.05,
+            spacing: 0.3,
+        }
+    }
+
+    #[test]
+    fn april_grid_corners_go_round_each_tag_in_kalibr_order() {
+        let b = april_grid(2, 3);
+        b.validate().unwrap();
+        assert_eq!(b.corner_count(), 24);
+        let at = |id: u32| b.corner(id).unwrap();
+        let near =
+            |p: Point3<f64>, x: f64, y: f64| (p.x - x).abs() < 1e-12 && (p.y - y).abs() < 1e-12;
+        // Tag 0: lower-left, lower-right, upper-right, upper-left.
+        assert!(near(at(0), 0.0, 0.0));
+        assert!(near(at(1), 0.05, 0.0));
+        assert!(near(at(2), 0.05, 0.05));
+        assert!(near(at(3), 0.0, 0.05));
+        // Tag 4 is row 1, column 1: one pitch (65 mm) right and up.
+        assert!(near(at(16), 0.065, 0.065));
+        assert!(near(at(18), 0.115, 0.115));
+        assert!(b.corner(24).is_none());
+        // The pattern runs from the first corner square to the last one.
+        let [lo, hi] = b.pattern_bounds();
+        assert!((lo[0] + 0.015).abs() < 1e-12 && (hi[0] - 0.195).abs() < 1e-12);
+        assert!((hi[1] - 0.13).abs() < 1e-12);
+        let c = b.centre();
+        assert!((c.x - 0.09).abs() < 1e-12 && (c.y - 0.0575).abs() < 1e-12);
+    }
+
+    #[test]
+    fn april_grid_layouts_beyond_the_tag_family_or_with_bad_gaps_are_rejected() {
+        for b in [
+            april_grid(30, 20),
+            BoardConfig {
+                spacing: 0.0,
+                ..april_grid(3, 4)
+            },
+            BoardConfig {
+                spacing: f64::NAN,
+                ..april_grid(3, 4)
+            },
+            BoardConfig {
+                spacing: 1.5,
+                ..april_grid(3, 4)
+            },
+        ] {
+            let err = b.validate().unwrap_err();
+            assert!(
+                matches!(err, CalibrationError::InvalidBoard { .. }),
+                "{b:?}"
+            );
         }
     }
 }

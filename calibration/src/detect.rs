@@ -1,5 +1,6 @@
-//! Chessboard corners in IR images (issue 8 item 1), and a renderer of the board's IR image
-//! for tests and the simulator.
+//! Board corners in IR images (issue 8 item 1), and a renderer of the board's IR image for
+//! tests and the simulator. [`detect_board`] picks the detector of the board's kind: the
+//! chessboard detector below, or [`crate::aprilgrid`]'s.
 //!
 //! Detection, for a plain chessboard whose every inner corner is in view:
 //! 1. Gaussian blur, then the saddle response `Ixy^2 - Ixx Iyy` of the Hessian (positive at
@@ -11,7 +12,7 @@
 //! 4. Labelling: of the 8 symmetries of the grid, keep the one whose extents match the
 //!    board, whose axes have the board frame's handedness seen from the front, and where the
 //!    square diagonally inside corner 0 is dark. A board with `rows + cols` even looks the
-//!    same turned by 180° (as a plain chessboard it is ambiguous, use a ChArUco board or an
+//!    same turned by 180° (as a plain chessboard it is ambiguous, use an AprilGrid or an
 //!    odd sum): that is an error rather than a guess.
 //!
 //! Pixels follow this crate's convention: (0, 0) is the centre of the top-left pixel.
@@ -25,7 +26,7 @@ use std::collections::{HashMap, VecDeque};
 use cell_types::{CameraFrame, Image};
 use nalgebra::{Isometry3, Matrix2, Point2, Point3, Vector2};
 
-use crate::board::BoardConfig;
+use crate::board::{BoardConfig, BoardKind};
 use crate::camera::raw_depth_to_m;
 use crate::camera::Intrinsics;
 use crate::capture::{CameraView, Corner, DepthSample};
@@ -54,6 +55,14 @@ impl Default for IrLevels {
 
 /// Grey level of the board at board-frame point `(x, y)`, or `None` off the board.
 fn board_level(board: &BoardConfig, x: f64, y: f64, levels: &IrLevels) -> Option<f64> {
+    match board.kind {
+        BoardKind::Chessboard => chessboard_level(board, x, y, levels),
+        BoardKind::AprilGrid => crate::aprilgrid::level(board, x, y, levels),
+    }
+}
+
+/// Grey level of a chessboard at board-frame point `(x, y)`, or `None` off the board.
+fn chessboard_level(board: &BoardConfig, x: f64, y: f64, levels: &IrLevels) -> Option<f64> {
     let s = board.square_m;
     let (cols, rows) = (f64::from(board.cols), f64::from(board.rows));
     if x < -1.5 * s || y < -1.5 * s || x > (cols + 0.5) * s || y > (rows + 0.5) * s {
@@ -79,17 +88,14 @@ pub fn render_board_ir(
     let board_from_camera = camera_from_board.inverse();
     let n = camera_from_board.rotation * nalgebra::Vector3::z();
     let t = camera_from_board.translation.vector;
-    // Only pixels near the board's projection need rays.
-    let s = board.square_m;
+    // Only pixels near the board's projection (pattern and margin) need rays.
+    let [lo_b, hi_b] = board.pattern_bounds();
+    let m = board.square_m;
     let outline = [
-        Point3::new(-1.5 * s, -1.5 * s, 0.0),
-        Point3::new((f64::from(board.cols) + 0.5) * s, -1.5 * s, 0.0),
-        Point3::new(-1.5 * s, (f64::from(board.rows) + 0.5) * s, 0.0),
-        Point3::new(
-            (f64::from(board.cols) + 0.5) * s,
-            (f64::from(board.rows) + 0.5) * s,
-            0.0,
-        ),
+        Point3::new(lo_b[0] - m, lo_b[1] - m, 0.0),
+        Point3::new(hi_b[0] + m, lo_b[1] - m, 0.0),
+        Point3::new(lo_b[0] - m, hi_b[1] + m, 0.0),
+        Point3::new(hi_b[0] + m, hi_b[1] + m, 0.0),
     ];
     let mut lo = Vector2::new(f64::from(w), f64::from(h));
     let mut hi = Vector2::new(0.0, 0.0);
@@ -459,7 +465,20 @@ fn board_window(
     }
 }
 
-/// Detects the inner corners of `board` in an IR image; returns them with their ids.
+/// Detects `board`'s corners in an IR image with the detector of its kind; returns them
+/// with their ids.
+pub fn detect_board(
+    img: &Image<u8>,
+    board: &BoardConfig,
+    params: &DetectParams,
+) -> Result<Vec<Corner>, CalibrationError> {
+    match board.kind {
+        BoardKind::Chessboard => detect_chessboard(img, board, params),
+        BoardKind::AprilGrid => crate::aprilgrid::detect_april_grid(img, board),
+    }
+}
+
+/// Detects the inner corners of a chessboard in an IR image; returns them with their ids.
 pub fn detect_chessboard(
     img: &Image<u8>,
     board: &BoardConfig,
@@ -602,7 +621,7 @@ pub fn detect_chessboard(
             "no labelling of the grid fits the board (wrong rows/cols, or seen from behind)".into(),
         )),
         n => Err(not_found(format!(
-            "{n} labellings fit: a {} x {} chessboard looks the same turned by 180 degrees; use rows + cols odd or a ChArUco board",
+            "{n} labellings fit: a {} x {} chessboard looks the same turned by 180 degrees; use rows + cols odd or an AprilGrid",
             board.rows, board.cols
         ))),
     }
@@ -625,7 +644,7 @@ pub fn view_from_frame(
                 frame.camera
             ),
         })?;
-    let corners = detect_chessboard(ir, board, params)?;
+    let corners = detect_board(ir, board, params)?;
     let depth = &frame.depth;
     let board_depth = corners
         .iter()
@@ -649,7 +668,7 @@ pub fn view_from_frame(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::board::BoardKind;
+    use crate::board::DEFAULT_TAG_SPACING;
     use crate::camera::DepthMode;
     use nalgebra::{Translation3, UnitQuaternion};
     use rand::{Rng, SeedableRng};
@@ -661,6 +680,7 @@ mod tests {
             rows: 7,
             cols: 10,
             square_m: 0.035,
+            spacing: DEFAULT_TAG_SPACING,
         }
     }
 

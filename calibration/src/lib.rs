@@ -2,9 +2,9 @@
 //!
 //! Modules: [`camera`] (the D455 camera model, issue 7 item 1), [`fusion`] (the fused point
 //! cloud, issue 7 item 3), [`view`] (PLY export and point splats, issue 7 item 5), and the
-//! camera-to-robot calibration of issue 8: [`board`] (the target on the flange), [`capture`]
-//! (captures and the resumable captures folder), [`detect`] (chessboard corners in IR
-//! images), [`simulate`](mod@simulate) (synthetic captures with known truth), [`geometry`] (PnP,
+//! camera-to-robot calibration of issue 8: [`board`] (the target on the flange),
+//! [`capture`] (captures and the resumable captures folder), [`detect`] (board corners in IR
+//! images: chessboards, and Kalibr AprilGrids through [`aprilgrid`]), [`simulate`](mod@simulate) (synthetic captures with known truth), [`geometry`] (PnP,
 //! closed-form hand-eye), [`solve`](mod@solve) (the joint bundle adjustment) and [`report`] (report,
 //! overlap check, `calibration.toml`).
 //!
@@ -27,8 +27,10 @@
 //! joint files against the planner's FK with [`CaptureSet::check_joints`] (this crate may
 //! not depend on the planner).
 //!
-//! Libraries: `nalgebra` (the workspace's matrix library) for geometry; no image-processing
-//! library is needed because the fusion works on depth images pixel by pixel. The bundle
+//! Libraries: `nalgebra` (the workspace's matrix library) for geometry; the fusion works on
+//! depth images pixel by pixel without an image library. AprilGrid targets are detected
+//! with the `aprilgrid` crate (pure Rust, Kalibr's detector: saddle points, quads, tag36h11
+//! decoding), fed through `image`'s `GrayImage`; the chessboard detector is our own. The bundle
 //! adjustment uses `levenberg-marquardt` (rust-cv; a port of MINPACK's `lmder` on nalgebra):
 //! a well-tested trust-region LM with pivoted QR and column scaling, which is what a dense
 //! problem of a few dozen unknowns needs; we supply the residuals and the analytic
@@ -37,6 +39,7 @@
 //! robot corrections are eliminated by variable projection.) `serde_json` and `toml` write
 //! the captures, report and calibration files; `rand_distr` draws the simulated noise.
 
+pub mod aprilgrid;
 pub mod board;
 pub mod camera;
 pub mod capture;

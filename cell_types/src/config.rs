@@ -249,16 +249,36 @@ pub struct CalibrationSection {
     pub board: Option<BoardSection>,
 }
 
-/// `[calibration.board]`: the printed chessboard mounted on the tool flange.
+/// What kind of calibration target is printed: it sets the corner layout and the detector.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case")]
+pub enum BoardKind {
+    /// A plain chessboard: corners are its inner corners; the whole board must be in view.
+    #[default]
+    Chessboard,
+    /// A Kalibr AprilGrid of tag36h11 tags: corners are the tag corners, each tag names its
+    /// own four, so partial views count.
+    AprilGrid,
+}
+
+/// `[calibration.board]`: the printed target mounted on the tool flange.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct BoardSection {
-    /// Inner-corner rows.
+    /// `"chessboard"` (default) or `"april_grid"` (Kalibr's layout, tag36h11).
+    #[serde(default)]
+    pub kind: BoardKind,
+    /// Chessboard: inner-corner rows; AprilGrid: tag rows.
     pub rows: u32,
-    /// Inner-corner columns.
+    /// Chessboard: inner-corner columns; AprilGrid: tag columns.
     pub cols: u32,
-    /// Square size, as printed and measured (mm).
+    /// Chessboard: square size; AprilGrid: tag size, black border included; as printed and
+    /// measured (mm).
     pub square_mm: f64,
+    /// AprilGrid only: gap between tags as a fraction of the tag size (Kalibr's
+    /// `tagSpacing`; default 0.3).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spacing: Option<f64>,
 }
 
 /// `[recording]`: where episode recordings go.
@@ -525,19 +545,50 @@ impl CellConfig {
             }
         }
         if let Some(b) = &self.calibration.board {
-            if b.rows < 3 || b.cols < 3 || b.rows > 64 || b.cols > 64 {
-                return invalid(
-                    "calibration.board",
-                    &format!("{} x {}", b.rows, b.cols),
-                    "a chessboard has 3 to 64 inner corners per side",
-                );
-            }
-            if (b.rows + b.cols) % 2 == 0 {
-                return invalid(
-                    "calibration.board",
-                    &format!("{} x {}", b.rows, b.cols),
-                    "rows + cols must be odd, so that the board's half-turn can be told apart",
-                );
+            match b.kind {
+                BoardKind::Chessboard => {
+                    if b.rows < 3 || b.cols < 3 || b.rows > 64 || b.cols > 64 {
+                        return invalid(
+                            "calibration.board",
+                            &format!("{} x {}", b.rows, b.cols),
+                            "a chessboard has 3 to 64 inner corners per side",
+                        );
+                    }
+                    if (b.rows + b.cols) % 2 == 0 {
+                        return invalid(
+                            "calibration.board",
+                            &format!("{} x {}", b.rows, b.cols),
+                            "rows + cols must be odd, so that the board's half-turn can be told apart",
+                        );
+                    }
+                    if b.spacing.is_some() {
+                        return invalid(
+                            "calibration.board.spacing",
+                            "set",
+                            "spacing is for kind = \"april_grid\"; remove it for a chessboard",
+                        );
+                    }
+                }
+                BoardKind::AprilGrid => {
+                    // tag36h11 has 587 tags.
+                    if b.rows < 1 || b.cols < 2 || b.rows * b.cols > 587 {
+                        return invalid(
+                            "calibration.board",
+                            &format!("{} x {} tags", b.rows, b.cols),
+                            "an AprilGrid has at least 1 x 2 and at most 587 tag36h11 tags",
+                        );
+                    }
+                    if let Some(g) = b.spacing {
+                        // The AprilGrid detector's grid search works from 0.25 to 0.4.
+                        if !(g.is_finite() && (0.25..=0.4).contains(&g)) {
+                            return invalid(
+                                "calibration.board.spacing",
+                                &g.to_string(),
+                                "the gap between tags, as a fraction of the tag size, must be 0.25 to 0.4 (Kalibr's default 0.3)",
+                            );
+                        }
+                    }
+                }
             }
             positive_finite("calibration.board.square_mm", b.square_mm, false)?;
         }
@@ -688,6 +739,22 @@ mod tests {
         let ok = board.replace("cols = 9", "cols = 10");
         let cfg = CellConfig::from_toml_str(&ok, "test").unwrap();
         assert_eq!(cfg.calibration.board.map(|b| b.cols), Some(10));
+        // An AprilGrid has no parity rule, but its gap must be a fraction of the tag.
+        let grid = board.replace("rows = 7", "kind = \"april_grid\"\nrows = 3\nspacing = 0.3");
+        let cfg = CellConfig::from_toml_str(&grid, "test").unwrap();
+        let b = cfg.calibration.board.unwrap();
+        assert_eq!(
+            (b.kind, b.rows, b.cols, b.spacing),
+            (BoardKind::AprilGrid, 3, 9, Some(0.3))
+        );
+        let wide = grid.replace("spacing = 0.3", "spacing = 3.0");
+        expect_invalid(&wide, "calibration.board.spacing");
+        let huge = grid.replace("rows = 3", "rows = 70");
+        expect_invalid(&huge, "calibration.board");
+        let chess_gap = ok.replace("rows = 7", "rows = 7\nspacing = 0.3");
+        expect_invalid(&chess_gap, "calibration.board.spacing");
+        let unknown = board.replace("rows = 7", "kind = \"charuco\"\nrows = 7");
+        assert!(CellConfig::from_toml_str(&unknown, "test").is_err());
     }
 
     #[test]

@@ -27,6 +27,15 @@ pub enum NoiseChoice {
     Ir,
 }
 
+/// The simulated cell's calibration target.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
+pub enum BoardChoice {
+    /// 7 x 10 inner corners, 35 mm squares.
+    Chessboard,
+    /// Kalibr AprilGrid: 4 x 3 tag36h11 tags of 80 mm, 0.3 spacing.
+    AprilGrid,
+}
+
 /// Subcommands of `equact calibrate`.
 #[derive(Subcommand, Debug)]
 pub enum CalibrateCommand {
@@ -49,6 +58,9 @@ pub enum CalibrateCommand {
         /// depth 1.002 z + 2 mm (solve with --refine-intrinsics to recover them).
         #[arg(long)]
         camera_errors: bool,
+        /// The target on the flange.
+        #[arg(long, value_enum, default_value_t = BoardChoice::Chessboard)]
+        board: BoardChoice,
     },
     /// Move the arm through planned board poses and capture the board in every camera's IR
     /// image (the built-in simulated cell, or the real cell of --config; resumes an
@@ -100,8 +112,13 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             poses,
             noise,
             camera_errors,
+            board,
         } => {
-            let mut cfg = SimConfig::default_cell();
+            let mut cfg = match board {
+                BoardChoice::Chessboard => SimConfig::default_cell(),
+                BoardChoice::AprilGrid => SimConfig::default_cell()
+                    .with_board(calibration::BoardConfig::default_april_grid()),
+            };
             cfg.poses = poses;
             if camera_errors {
                 cfg.camera_errors = calibration::simulate::CameraErrors::typical();
