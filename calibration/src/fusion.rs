@@ -1492,9 +1492,9 @@ mod tests {
                             let p = if !xyz.is_empty() && rng.random_bool(0.05) {
                                 xyz[rng.random_range(0..xyz.len())]
                             } else {
-                                Point3::from(c + Vector3::from_fn(|_, _| {
-                                    rng.random_range(-spread..=spread)
-                                }))
+                                Point3::from(
+                                    c + Vector3::from_fn(|_, _| rng.random_range(-spread..=spread)),
+                                )
                             };
                             xyz.push(p);
                         }
@@ -1548,7 +1548,9 @@ mod tests {
             ..FusionParams::default()
         };
         let pipe = FusionPipeline::new(calib(&[0, 1]), params.clone()).unwrap();
-        let (dense, _) = pipe.fuse_dense(&[frame(0, 950), frame(1, 900)], &[]).unwrap();
+        let (dense, _) = pipe
+            .fuse_dense(&[frame(0, 950), frame(1, 900)], &[])
+            .unwrap();
         let (inside, outside): (Vec<usize>, Vec<usize>) =
             (0..dense.len()).partition(|&i| params.focus.contains(&dense.xyz[i]));
         assert!(inside.len() > params.points_inside && outside.len() > 512);

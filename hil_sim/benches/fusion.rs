@@ -21,7 +21,9 @@
 //!   CPU time of the two single-threaded runs, which the load does not inflate.
 //!
 //! `cargo bench -p hil_sim --bench fusion [-- --python /path/to/python3 --reps 5 --inner 3]`
-//! `--profile N` runs only our pipeline N times (for callgrind) and prints nothing else.
+//! `--profile N` runs only our pipeline N times (for callgrind) and prints nothing else;
+//! `--profile-sample N` runs `FusionPipeline::sample` (farthest point sampling) N times on
+//! its output.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -99,6 +101,7 @@ fn main() -> anyhow::Result<()> {
     let mut reps = 5usize;
     let mut inner = 3usize;
     let mut profile = None;
+    let mut profile_sample = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -106,6 +109,9 @@ fn main() -> anyhow::Result<()> {
             "--reps" => reps = args.next().unwrap_or_default().parse()?,
             "--inner" => inner = args.next().unwrap_or_default().parse()?,
             "--profile" => profile = Some(args.next().unwrap_or_default().parse::<usize>()?),
+            "--profile-sample" => {
+                profile_sample = Some(args.next().unwrap_or_default().parse::<usize>()?)
+            }
             _ => {} // cargo passes --bench
         }
     }
@@ -123,6 +129,14 @@ fn main() -> anyhow::Result<()> {
         }
         return Ok(());
     }
+    if let Some(n) = profile_sample {
+        let frames = render_rig(&rig, &geometry, 0, Duration::ZERO)?;
+        let (dense, _) = pipe.fuse_dense(&frames, &robot)?;
+        for _ in 0..n {
+            std::hint::black_box(pipe.sample(&dense)?);
+        }
+        return Ok(());
+    }
     let threads = rig[0].threads;
     for c in &mut rig {
         c.threads = 1;
@@ -136,7 +150,7 @@ fn main() -> anyhow::Result<()> {
 
     let (fuse_dense_ms, dense) = median_ms(reps, || pipe.fuse_dense(&frames, &robot));
     let (dense, stats) = dense?;
-    let (sample_ms, sampled) = median_ms(reps, || pipe.sample(&dense));
+    let (sample_ms, sample_cpu_ms, sampled) = median_wall_cpu_ms(reps, || pipe.sample(&dense));
     let sampled = sampled?;
 
     // The same input as Open3D's: every valid pixel deprojected to the base frame (no crop,
@@ -285,6 +299,7 @@ fn main() -> anyhow::Result<()> {
         "pipeline": {
             "fuse_dense_ms": fuse_dense_ms,
             "fps_sample_ms": sample_ms,
+            "fps_sample_cpu_ms": sample_cpu_ms,
             "stats": stats,
             "sampled_points": sampled.len(),
         },
