@@ -64,6 +64,20 @@ fn median_wall_cpu_ms<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, f64, T)
     )
 }
 
+/// FNV-1a of the points' bits: equal clouds (same points, same order) hash equal, so that
+/// runs before and after a change show that its output did not change.
+fn cloud_hash(points: &Points) -> String {
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    for p in &points.xyz {
+        for v in [p.x, p.y, p.z] {
+            for b in v.to_bits().to_le_bytes() {
+                h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+            }
+        }
+    }
+    format!("{h:016x}")
+}
+
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
@@ -235,6 +249,7 @@ fn main() -> anyhow::Result<()> {
         counts = json!({
             "input_points": merged.len(), "after_crop": cropped.len(),
             "after_voxel": voxels.len(), "after_outliers": inliers.len(),
+            "voxels_hash": cloud_hash(&voxels), "inliers_hash": cloud_hash(&inliers),
         });
         let ours = crop_ms + voxel_ms + sor_ms;
         let mut round = json!({
@@ -301,7 +316,9 @@ fn main() -> anyhow::Result<()> {
             "fps_sample_ms": sample_ms,
             "fps_sample_cpu_ms": sample_cpu_ms,
             "stats": stats,
+            "dense_hash": cloud_hash(&dense),
             "sampled_points": sampled.len(),
+            "sampled_hash": cloud_hash(&sampled),
         },
         "same_work_as_open3d": {
             "ours_counts": counts,

@@ -404,7 +404,9 @@ impl KnnScratch {
                                 search.gather(p, r, cand)
                             };
                             if found > k {
-                                let kth = keep_smallest(&mut cand[..found], k + 1);
+                                // The k + 1 smallest (the point itself among them) into
+                                // cand[..=k], the largest of them at k.
+                                let kth = *cand[..found].select_nth_unstable(k).1;
                                 prev = Some((p, f32::from_bits(kth).sqrt()));
                                 break capped_mean(&cand[..=k], k, cap);
                             }
@@ -556,51 +558,16 @@ impl Search<'_> {
     }
 }
 
-/// Moves the `n` smallest of `v` (`n` in 1..=len) into `v[..n]`, in no order, and returns
-/// the largest of them: a max-heap of the first `n`, each further value replacing the top
-/// when smaller (the search radius leaves only a few more than `n` candidates).
-fn keep_smallest(v: &mut [u32], n: usize) -> u32 {
-    let (head, tail) = v.split_at_mut(n);
-    for i in (0..n / 2).rev() {
-        sift_down(head, i);
-    }
-    for &x in tail.iter() {
-        if x < head[0] {
-            head[0] = x;
-            sift_down(head, 0);
-        }
-    }
-    head[0]
-}
-
-/// Restores the max-heap order below `i`.
-fn sift_down(h: &mut [u32], mut i: usize) {
-    loop {
-        let l = 2 * i + 1;
-        if l >= h.len() {
-            return;
-        }
-        let c = if l + 1 < h.len() && h[l + 1] > h[l] {
-            l + 1
-        } else {
-            l
-        };
-        if h[c] <= h[i] {
-            return;
-        }
-        h.swap(i, c);
-        i = c;
-    }
-}
-
 /// Mean of the capped distances of `best` (squared, as bits; the point itself among them at
-/// distance 0), the missing ones of `k` counted at the cap.
+/// distance 0), the missing ones of `k` counted at the cap. Summed in f64, which for these
+/// few f32 values is exact in practice whatever their order (the selection leaves them in
+/// none in particular).
 fn capped_mean(best: &[u32], k: usize, cap: f32) -> f32 {
-    let sum: f32 = best
+    let sum: f64 = best
         .iter()
-        .map(|&d2| f32::from_bits(d2).sqrt().min(cap))
+        .map(|&d2| f64::from(f32::from_bits(d2).sqrt().min(cap)))
         .sum();
-    (sum + (k + 1 - best.len()) as f32 * cap) / k as f32
+    ((sum + (k + 1 - best.len()) as f64 * f64::from(cap)) / k as f64) as f32
 }
 
 /// `bbox` shrunk to at most `budget` cells: the widest axis first, to a window centred on the
