@@ -321,19 +321,28 @@ impl EdgeWindows {
         }
         self.max.resize(data.len(), 0);
         self.min.resize(data.len(), 0);
+        // The first and last pixels' windows are clamped at the border; the loop between
+        // them has no branches and vectorises.
+        let lo = |v: u16| v.wrapping_sub(1);
         for ((row, max), min) in data
             .chunks_exact(w)
             .zip(self.max.chunks_exact_mut(w))
             .zip(self.min.chunks_exact_mut(w))
         {
-            for u in 0..w {
-                let (l, r) = (u.saturating_sub(1), (u + 1).min(w - 1));
-                let (a, b, c) = (row[l], row[u], row[r]);
-                max[u] = a.max(b).max(c);
-                min[u] = a
-                    .wrapping_sub(1)
-                    .min(b.wrapping_sub(1))
-                    .min(c.wrapping_sub(1));
+            let (first, last) = (row[..2.min(w)].iter(), row[w.saturating_sub(2)..].iter());
+            max[0] = first.clone().copied().fold(0, u16::max);
+            min[0] = first.map(|&v| lo(v)).fold(u16::MAX, u16::min);
+            max[w - 1] = last.clone().copied().fold(0, u16::max);
+            min[w - 1] = last.map(|&v| lo(v)).fold(u16::MAX, u16::min);
+            if w >= 3 {
+                let mid = row
+                    .windows(3)
+                    .zip(&mut max[1..w - 1])
+                    .zip(&mut min[1..w - 1]);
+                for ((abc, max), min) in mid {
+                    *max = abc[0].max(abc[1]).max(abc[2]);
+                    *min = lo(abc[0]).min(lo(abc[1])).min(lo(abc[2]));
+                }
             }
         }
     }
@@ -870,11 +879,23 @@ pub fn remove_robot(points: &Points, robot: &[Capsule], margin: f64) -> Points {
     if robot.is_empty() {
         return points.clone();
     }
+    // Each capsule's box, grown by its reach and a margin far above rounding: a point
+    // outside it is farther than the reach, so only points inside are measured.
+    let boxes: Vec<([f64; 3], [f64; 3])> = robot
+        .iter()
+        .map(|c| {
+            let reach = (c.radius + margin) * (1.0 + 1e-9) + 1e-9;
+            (
+                [0, 1, 2].map(|a| c.a[a].min(c.b[a]) - reach),
+                [0, 1, 2].map(|a| c.a[a].max(c.b[a]) + reach),
+            )
+        })
+        .collect();
     points.select(|i| {
         let p = points.xyz[i].cast::<f64>();
-        robot
-            .iter()
-            .all(|c| c.axis_distance(&p) > c.radius + margin)
+        robot.iter().zip(&boxes).all(|(c, (lo, hi))| {
+            (0..3).any(|a| p[a] < lo[a] || p[a] > hi[a]) || c.axis_distance(&p) > c.radius + margin
+        })
     })
 }
 
@@ -1375,7 +1396,7 @@ mod tests {
             let inv = (1.0 / voxel) as f32;
             let o = Vector3::new(origin[0] as f32, origin[1] as f32, origin[2] as f32);
             let all = CellBox::around(pts.xyz.iter().map(|p| grid::voxel_coords(p, &o, inv)));
-            if let Some(all) = all.filter(|b| b.cells() <= grid::DENSE_VOXEL_CELLS) {
+            if let Some(all) = all.filter(|b| b.brick_cells() <= grid::DENSE_VOXEL_CELLS) {
                 scratch.voxelise(&pts, voxel, origin, Some(all), &mut out);
                 assert_eq!(out, reference, "trial {trial} (given grid)");
             }
