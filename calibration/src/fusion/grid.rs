@@ -10,8 +10,9 @@ use nalgebra::{Point3, Vector3};
 
 use super::{voxel_centroid, voxel_colour, voxel_downsample_hashed, Points};
 
-/// Marks an unoccupied cell of the voxel grid.
-const EMPTY: u32 = u32::MAX;
+/// Marks an unoccupied cell of the voxel grid (slots hold voxel index + 1, so that a fresh
+/// grid is zeroed memory, which the allocator hands out without writing it).
+const EMPTY: u32 = 0;
 
 /// The most cells a dense voxel grid may have (32 MB of slots; the EquAct workspace at 5 mm
 /// needs 3.3 M, padded to whole bricks); larger boxes fall back to the hash map.
@@ -122,7 +123,7 @@ impl CellBox {
 /// Voxelisation buffers: a dense grid of voxel slots and the per-voxel sums.
 #[derive(Default)]
 pub(super) struct VoxelScratch {
-    /// Per grid cell, the index of its voxel, or `EMPTY`; all `EMPTY` between calls.
+    /// Per grid cell, the index of its voxel plus one, or `EMPTY`; all `EMPTY` between calls.
     slots: Vec<u32>,
     /// Per voxel, its grid cell (to reset `slots` afterwards).
     cells: Vec<u32>,
@@ -164,7 +165,9 @@ impl VoxelScratch {
     /// Sums the points per voxel of `grid`; false when a point lies outside it.
     fn accumulate(&mut self, points: &Points, grid: &CellBox, o: &Vector3<f32>, inv: f32) -> bool {
         let n_cells = grid.brick_cells();
-        if self.slots.len() < n_cells {
+        if self.slots.is_empty() {
+            self.slots = vec![EMPTY; n_cells];
+        } else if self.slots.len() < n_cells {
             self.slots.resize(n_cells, EMPTY);
         }
         self.cells.clear();
@@ -180,14 +183,14 @@ impl VoxelScratch {
             };
             let mut slot = self.slots[cell];
             if slot == EMPTY {
-                slot = self.sums.len() as u32;
+                slot = self.sums.len() as u32 + 1;
                 self.slots[cell] = slot;
                 self.cells.push(cell as u32);
                 self.sums.push([0.0; 3]);
                 self.colours.push([0; 3]);
                 self.counts.push(0);
             }
-            let s = slot as usize;
+            let s = slot as usize - 1;
             let sum = &mut self.sums[s];
             sum[0] += f64::from(p.x);
             sum[1] += f64::from(p.y);
@@ -244,6 +247,8 @@ pub(super) struct KnnScratch {
     walls: [Vec<[f32; 2]>; 3],
     /// Candidates' squared distances, as bits (non-negative floats order like their bits).
     cand: Vec<u32>,
+    /// Candidates beyond the previous point's k-th distance (see `Block::within`).
+    far: Vec<u32>,
     /// The points around the current cell.
     block: Block,
     /// Per input point, the result.
@@ -327,8 +332,13 @@ impl KnnScratch {
         }
 
         // Counting sort by cell.
-        self.start.clear();
-        self.start.resize(grid.cells() + 1, 0);
+        if self.start.is_empty() {
+            // Fresh buffers: zeroed memory comes from the allocator unwritten.
+            self.start = vec![0; grid.cells() + 1];
+        } else {
+            self.start.clear();
+            self.start.resize(grid.cells() + 1, 0);
+        }
         self.cell_of.clear();
         for p in points {
             let c = if finite(p) {
@@ -374,6 +384,7 @@ impl KnnScratch {
             slack,
         };
         let cand = &mut self.cand;
+        let far = &mut self.far;
         let block = &mut self.block;
         let mut prev: Option<([f32; 3], f32)> = None;
         let gf = g as f32;
@@ -395,15 +406,15 @@ impl KnnScratch {
                             - p.iter().fold(0.0f32, |m, v| m.max(v.abs())) * 1e-6;
                         // First a guess (the previous point's k-th distance: neighbouring
                         // points see similar densities), then the bound, then the cap.
-                        let (guess, bound) = match prev {
+                        let (guess, bound, split) = match prev {
                             Some((q, kth)) => {
                                 let d = ((p[0] - q[0]).powi(2)
                                     + (p[1] - q[1]).powi(2)
                                     + (p[2] - q[2]).powi(2))
                                 .sqrt();
-                                (kth * GUESS, ((kth + d) * (1.0 + SLACK)).min(cap))
+                                (kth * GUESS, ((kth + d) * (1.0 + SLACK)).min(cap), kth)
                             }
-                            None => (cap, cap),
+                            None => (cap, cap, cap),
                         };
                         let mut r = guess.min(bound);
                         let mut distances = false;
@@ -411,25 +422,36 @@ impl KnnScratch {
                             // Every point within r, the point itself included (at distance
                             // 0). With more than k of them, the k nearest are among them
                             // whatever r was.
-                            let found = if r <= covered {
+                            // The candidates come split at the previous point's k-th
+                            // distance: the near ones in cand[..near], the others in
+                            // far[..beyond]. Usually about k are near, so the selection
+                            // works on a few values.
+                            let (near, beyond) = if r <= covered {
                                 if !distances {
                                     block.distances(p);
                                     distances = true;
                                 }
-                                block.within(r, cand)
+                                block.within(split.min(r), r, cand, far)
                             } else {
-                                search.gather(p, r, cand)
+                                (search.gather(p, r, cand), 0)
                             };
-                            if found > k {
+                            if near > k {
                                 // The k + 1 smallest (the point itself among them) into
                                 // cand[..=k], the largest of them at k.
-                                let kth = *cand[..found].select_nth_unstable(k).1;
+                                let kth = *cand[..near].select_nth_unstable(k).1;
                                 prev = Some((p, f32::from_bits(kth).sqrt()));
-                                break capped_mean(&cand[..=k], k, cap);
+                                break capped_mean(&cand[..=k], &[], k, cap);
+                            }
+                            if near + beyond > k {
+                                // All the near ones and the nearest of the others.
+                                let m = k - near;
+                                let kth = *far[..beyond].select_nth_unstable(m).1;
+                                prev = Some((p, f32::from_bits(kth).sqrt()));
+                                break capped_mean(&cand[..near], &far[..=m], k, cap);
                             }
                             if r >= cap {
                                 prev = None;
-                                break capped_mean(&cand[..found], k, cap);
+                                break capped_mean(&cand[..near], &far[..beyond], k, cap);
                             }
                             // Then all the block holds, the bound (which holds k neighbours
                             // unless f32 rounding bit), the cap.
@@ -490,20 +512,32 @@ impl Block {
         }
     }
 
-    /// The squared distances (as bits) up to `r` (from the last `distances`) into `cand`;
-    /// returns how many.
-    fn within(&self, r: f32, cand: &mut Vec<u32>) -> usize {
+    /// The squared distances (as bits, from the last `distances`) up to `split` into
+    /// `near`, those above it and up to `r` into `far`; returns how many of each.
+    fn within(
+        &self,
+        split: f32,
+        r: f32,
+        near: &mut Vec<u32>,
+        far: &mut Vec<u32>,
+    ) -> (usize, usize) {
         let n = self.d2.len();
-        if cand.len() < n {
-            cand.resize(n, 0);
+        for buf in [&mut *near, &mut *far] {
+            if buf.len() < n {
+                buf.resize(n, 0);
+            }
         }
-        let r2 = r * r;
-        let mut used = 0;
+        let (s2, r2) = (split * split, r * r);
+        let (mut n_near, mut n_far) = (0, 0);
         for &d2 in &self.d2 {
-            cand[used] = d2.to_bits();
-            used += usize::from(d2 <= r2);
+            let bits = d2.to_bits();
+            near[n_near] = bits;
+            far[n_far] = bits;
+            let is_near = d2 <= s2;
+            n_near += usize::from(is_near);
+            n_far += usize::from(!is_near & (d2 <= r2));
         }
-        used
+        (n_near, n_far)
     }
 }
 
@@ -575,16 +609,17 @@ impl Search<'_> {
     }
 }
 
-/// Mean of the capped distances of `best` (squared, as bits; the point itself among them at
+/// Mean of the capped distances of `best` and `more` (squared, as bits; the point itself among them at
 /// distance 0), the missing ones of `k` counted at the cap. Summed in f64, which for these
 /// few f32 values is exact in practice whatever their order (the selection leaves them in
 /// none in particular).
-fn capped_mean(best: &[u32], k: usize, cap: f32) -> f32 {
+fn capped_mean(best: &[u32], more: &[u32], k: usize, cap: f32) -> f32 {
     let sum: f64 = best
         .iter()
+        .chain(more)
         .map(|&d2| f64::from(f32::from_bits(d2).sqrt().min(cap)))
         .sum();
-    ((sum + (k + 1 - best.len()) as f64 * f64::from(cap)) / k as f64) as f32
+    ((sum + (k + 1 - best.len() - more.len()) as f64 * f64::from(cap)) / k as f64) as f32
 }
 
 /// `bbox` shrunk to at most `budget` cells: the widest axis first, to a window centred on the
