@@ -23,7 +23,7 @@
 //! `cargo bench -p hil_sim --bench fusion [-- --python /path/to/python3 --reps 5 --inner 3]`
 //! `--profile N` runs only our pipeline N times (for callgrind) and prints nothing else;
 //! `--profile-sample N` runs `FusionPipeline::sample` (farthest point sampling) N times on
-//! its output.
+//! its output; `--profile-stages N` runs our voxel and outlier stages on Open3D's input.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -116,6 +116,7 @@ fn main() -> anyhow::Result<()> {
     let mut inner = 3usize;
     let mut profile = None;
     let mut profile_sample = None;
+    let mut profile_stages = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -123,6 +124,9 @@ fn main() -> anyhow::Result<()> {
             "--reps" => reps = args.next().unwrap_or_default().parse()?,
             "--inner" => inner = args.next().unwrap_or_default().parse()?,
             "--profile" => profile = Some(args.next().unwrap_or_default().parse::<usize>()?),
+            "--profile-stages" => {
+                profile_stages = Some(args.next().unwrap_or_default().parse::<usize>()?)
+            }
             "--profile-sample" => {
                 profile_sample = Some(args.next().unwrap_or_default().parse::<usize>()?)
             }
@@ -227,6 +231,18 @@ fn main() -> anyhow::Result<()> {
     .chain(["--reps".into(), inner.to_string()])
     .collect();
 
+    if let Some(n) = profile_stages {
+        for _ in 0..n {
+            let voxels = voxel_downsample(&cropped, params.voxel_m, o3d_origin);
+            std::hint::black_box(remove_statistical_outliers(
+                &voxels,
+                params.outlier_k,
+                params.outlier_std_ratio,
+                params.voxel_m * 3.0,
+            ));
+        }
+        return Ok(());
+    }
     // Rounds alternate ours and Open3D so that both see the same machine load (the build
     // machine is shared); the speed-ups are the medians of the per-round ratios.
     let mut rounds = Vec::new();

@@ -151,8 +151,19 @@ impl VoxelScratch {
     ) {
         let inv = (1.0 / voxel_m) as f32;
         let o = Vector3::new(origin[0] as f32, origin[1] as f32, origin[2] as f32);
-        let grid =
-            grid.or_else(|| CellBox::around(points.xyz.iter().map(|p| voxel_coords(p, &o, inv))));
+        // The box around the points from their extreme coordinates: a point's cell grows with
+        // each coordinate, so these bound every cell (NaN ones excepted, which land in cell
+        // 0 and, when that is outside, send the call to the hash map).
+        let grid = grid.or_else(|| {
+            let mut lo = Point3::from([f32::INFINITY; 3]);
+            let mut hi = Point3::from([f32::NEG_INFINITY; 3]);
+            for p in &points.xyz {
+                lo = lo.inf(p);
+                hi = hi.sup(p);
+            }
+            (lo.x <= hi.x && lo.y <= hi.y && lo.z <= hi.z)
+                .then(|| CellBox::spanning(voxel_coords(&lo, &o, inv), voxel_coords(&hi, &o, inv)))
+        });
         if let Some(g) = grid.filter(|g| g.brick_cells() <= DENSE_VOXEL_CELLS) {
             if self.accumulate(points, &g, &o, inv) {
                 self.write(points.rgb.len() == points.len(), out);
