@@ -10,12 +10,12 @@ use nalgebra::{Point3, Vector3};
 
 use super::{voxel_centroid, voxel_colour, voxel_downsample_hashed, Points};
 
-/// Marks an unoccupied cell of the voxel grid (slots hold voxel index + 1, so that a fresh
-/// grid is zeroed memory, which the allocator hands out without writing it).
+/// Marks an unoccupied cell or brick of the voxel grid (entries hold an index + 1, so that
+/// a fresh brick table is zeroed memory, which the allocator hands out without writing it).
 const EMPTY: u32 = 0;
 
-/// The most cells a dense voxel grid may have (32 MB of slots; the EquAct workspace at 5 mm
-/// needs 3.3 M, padded to whole bricks); larger boxes fall back to the hash map.
+/// The most cells a voxel grid may have (a brick table of 512 kB; the EquAct workspace at
+/// 5 mm needs 3.3 M cells, padded to whole bricks); larger boxes fall back to the hash map.
 pub(super) const DENSE_VOXEL_CELLS: usize = 1 << 23;
 
 /// Cells per brick edge of the voxel slots (see `CellBox::brick_index`).
@@ -93,12 +93,12 @@ impl CellBox {
             .saturating_mul(BRICK * BRICK * BRICK)
     }
 
-    /// The index of cell `c` in a grid stored brick by brick (`BRICK`^3 cells each, x
-    /// fastest inside a brick and among bricks), or `None` outside the box. Neighbouring
-    /// cells then mostly share cache lines, which a row-major grid of this size does not
-    /// along y and z.
+    /// Cell `c` in a grid stored brick by brick (`BRICK`^3 cells each, x fastest inside a
+    /// brick and among bricks): its brick and its index in it, or `None` outside the box.
+    /// Neighbouring cells then mostly share cache lines, which a row-major grid of this size
+    /// does not along y and z.
     #[inline]
-    pub fn brick_index(&self, c: [i64; 3]) -> Option<usize> {
+    pub fn brick_index(&self, c: [i64; 3]) -> Option<(usize, usize)> {
         let mut r = [0usize; 3];
         for a in 0..3 {
             let v = c[a] - self.lo[a];
@@ -110,7 +110,7 @@ impl CellBox {
         let nb = self.dims.map(|d| d.div_ceil(BRICK));
         let brick = ((r[2] / BRICK) * nb[1] + r[1] / BRICK) * nb[0] + r[0] / BRICK;
         let inner = ((r[2] % BRICK) * BRICK + r[1] % BRICK) * BRICK + r[0] % BRICK;
-        Some(brick * (BRICK * BRICK * BRICK) + inner)
+        Some((brick, inner))
     }
 
     /// Cell `c` moved into the box (nearest cell on each axis).
@@ -120,13 +120,19 @@ impl CellBox {
     }
 }
 
-/// Voxelisation buffers: a dense grid of voxel slots and the per-voxel sums.
+/// Voxelisation buffers: a grid of voxel slots in bricks, allocated for the bricks that
+/// hold points only, and the per-voxel sums.
 #[derive(Default)]
 pub(super) struct VoxelScratch {
-    /// Per grid cell, the index of its voxel plus one, or `EMPTY`; all `EMPTY` between calls.
-    slots: Vec<u32>,
-    /// Per voxel, its grid cell (to reset `slots` afterwards).
-    cells: Vec<u32>,
+    /// Per brick of the grid, where its slots start in `pool` divided by `BRICK`^3, plus one,
+    /// or `EMPTY`; all `EMPTY` between calls.
+    bricks: Vec<u32>,
+    /// The slots of the bricks in use: per cell, the index of its voxel plus one, or
+    /// `EMPTY`. A surface cloud fills few of the workspace's bricks, so this stays small
+    /// and cached where a dense grid of the workspace takes 13 MB.
+    pool: Vec<u32>,
+    /// The bricks in use (to reset `bricks` afterwards).
+    used: Vec<u32>,
     /// Per voxel, the sum of its points (f64: 10^4 points of one voxel lose no precision).
     sums: Vec<[f64; 3]>,
     /// Per voxel, the sum of its colours.
@@ -175,28 +181,36 @@ impl VoxelScratch {
 
     /// Sums the points per voxel of `grid`; false when a point lies outside it.
     fn accumulate(&mut self, points: &Points, grid: &CellBox, o: &Vector3<f32>, inv: f32) -> bool {
-        let n_cells = grid.brick_cells();
-        if self.slots.is_empty() {
-            self.slots = vec![EMPTY; n_cells];
-        } else if self.slots.len() < n_cells {
-            self.slots.resize(n_cells, EMPTY);
+        const CELLS: usize = BRICK * BRICK * BRICK;
+        let n_bricks = grid.brick_cells() / CELLS;
+        if self.bricks.is_empty() {
+            self.bricks = vec![EMPTY; n_bricks];
+        } else if self.bricks.len() < n_bricks {
+            self.bricks.resize(n_bricks, EMPTY);
         }
-        self.cells.clear();
+        self.pool.clear();
         self.sums.clear();
         self.colours.clear();
         self.counts.clear();
         let has_rgb = points.rgb.len() == points.len();
         let mut inside = true;
         for (i, p) in points.xyz.iter().enumerate() {
-            let Some(cell) = grid.brick_index(voxel_coords(p, o, inv)) else {
+            let Some((brick, inner)) = grid.brick_index(voxel_coords(p, o, inv)) else {
                 inside = false;
                 break;
             };
-            let mut slot = self.slots[cell];
+            let mut base = self.bricks[brick];
+            if base == EMPTY {
+                base = (self.pool.len() / CELLS) as u32 + 1;
+                self.bricks[brick] = base;
+                self.used.push(brick as u32);
+                self.pool.resize(self.pool.len() + CELLS, EMPTY);
+            }
+            let cell = (base as usize - 1) * CELLS + inner;
+            let mut slot = self.pool[cell];
             if slot == EMPTY {
                 slot = self.sums.len() as u32 + 1;
-                self.slots[cell] = slot;
-                self.cells.push(cell as u32);
+                self.pool[cell] = slot;
                 self.sums.push([0.0; 3]);
                 self.colours.push([0; 3]);
                 self.counts.push(0);
@@ -213,9 +227,10 @@ impl VoxelScratch {
             }
             self.counts[s] += 1;
         }
-        for &c in &self.cells {
-            self.slots[c as usize] = EMPTY;
+        for &b in &self.used {
+            self.bricks[b as usize] = EMPTY;
         }
+        self.used.clear();
         inside
     }
 
