@@ -286,11 +286,12 @@ pub(super) struct KnnScratch {
 /// its border cells (still exact, only slower for them).
 const KNN_MIN_CELLS: usize = 1 << 20;
 
-/// Neighbour-grid cells per distance cap: a cell's 3x3x3 block (about 100 points of a 5 mm
-/// voxel cloud) then serves radii up to 15 mm, past the typical k-th distance (about 13 mm
-/// at k = 20). Measured with callgrind on the benchmark's cloud: 2.5 costs 22 % more
-/// instructions; smaller cells leave most k-th distances outside the block.
-const KNN_CELLS_PER_CAP: f64 = 3.0;
+/// Neighbour-grid cells per distance cap: a cell's 3x3x3 block (about 80 points of a 5 mm
+/// voxel cloud) then serves radii up to 13.6 mm, around the typical k-th distance (about
+/// 13 mm at k = 20). Outlier-stage CPU time on the benchmark's cloud with 2.6, 3.0, 3.3 and
+/// 3.6: 31, 27.6, 26.6 and 28.7 ms (the per-candidate cost of the block now outweighs the
+/// searches past it that a smaller block leaves).
+const KNN_CELLS_PER_CAP: f64 = 3.3;
 
 /// The first search radius as a multiple of the previous point's k-th distance (callgrind
 /// on the benchmark's cloud: 1.0, 1.05 and 1.3 cost 21 %, 4 % and 11 % more instructions).
