@@ -443,7 +443,12 @@ impl KnnScratch {
                             }
                             None => (cap, cap, cap),
                         };
+                        // When the previous k-th distance fits the block, try the block first
+                        // (the search past it costs several times more).
                         let mut r = guess.min(bound);
+                        if split < covered {
+                            r = r.min(covered);
+                        }
                         let mut distances = false;
                         let mean = loop {
                             // Every point within r, the point itself included (at distance
