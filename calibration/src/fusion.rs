@@ -11,7 +11,7 @@
 //! minima and maxima. Voxels live in a dense grid over the (small, known) workspace instead
 //! of a hash map. The outlier filter's k nearest neighbours come from a dense grid of points
 //! counting-sorted by cell (module `grid`): exact, and usually served by one contiguous block
-//! of ~100 points per cell, which beats a k-d tree on an evenly spread voxel cloud.
+//! of ~80 points per cell, which beats a k-d tree on an evenly spread voxel cloud.
 //!
 //! Bad input never panics: zero depth is "no measurement", non-finite depth scales and
 //! transforms are typed errors, as are missing frames, unknown cameras and cameras with no

@@ -308,14 +308,17 @@ impl KnnScratch {
     ///
     /// Exact: each point gathers the points within a radius r and, when more than k lie
     /// within it, its k nearest are among them. r is first a guess (the previous point's
-    /// k-th distance `d_k(p)`, a little more: the points come in cell order, so neighbouring
-    /// points with similar densities follow each other), then a bound that provably holds k
+    /// k-th distance `d_k(p)`, a little more, but no more than the block below serves when
+    /// `d_k(p)` fits it: the points come in cell order, so neighbouring points with similar
+    /// densities follow each other), then a bound that provably holds k
     /// neighbours (`d_k(p) + |p - q|`: p's k neighbours, or p itself in place of q, are all
     /// that close to q), then the cap; after a failed guess, first the largest radius the
     /// block below serves. Radii up to one cell edge are served from the points of the
     /// cell's 3x3x3 block, copied once per cell so that distances vectorise (computed once
     /// per point, whatever the radius); larger ones from the grid rows whose cells come
-    /// within r.
+    /// within r. The block's candidates come split at the previous point's k-th distance,
+    /// so that choosing the k + 1 nearest (the point itself among them) orders only the few
+    /// on one side of it; their distances are summed in f64.
     /// Points clamped into a border cell are only extra candidates with their true
     /// distances, and border cells count as open towards the outside, so clamping keeps
     /// the search exact.
