@@ -21,7 +21,7 @@
 //!   CPU time of the two single-threaded runs, which the load does not inflate.
 //! - `pipeline.fps_sample_ms` / `fps_sample_cpu_ms`: `FusionPipeline::sample` (farthest point
 //!   sampling to the policy's points) on the fused cloud, which Open3D's side does not do.
-//! - The `*_hash` fields fingerprint the clouds (cropped, voxels, inliers, dense, sampled):
+//! - The `*_hash` fields fingerprint the clouds (voxels, inliers, dense, sampled):
 //!   equal hashes before and after a change show that it kept the output bit for bit.
 //!
 //! `cargo bench -p hil_sim --bench fusion [-- --python /path/to/python3 --reps 5 --inner 3]`
