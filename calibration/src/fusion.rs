@@ -11,12 +11,13 @@
 //! minima and maxima. Voxels live in a dense grid over the (small, known) workspace instead
 //! of a hash map. The outlier filter's k nearest neighbours come from a dense grid of points
 //! counting-sorted by cell (module `grid`): exact, and usually served by one contiguous block
-//! of ~100 points per cell, which beats a k-d tree on an evenly spread voxel cloud.
+//! of ~80 points per cell, which beats a k-d tree on an evenly spread voxel cloud.
 //!
 //! Bad input never panics: zero depth is "no measurement", non-finite depth scales and
 //! transforms are typed errors, as are missing frames, unknown cameras and cameras with no
 //! valid pixel.
 
+mod fps;
 mod grid;
 
 use std::collections::HashMap;
@@ -320,19 +321,28 @@ impl EdgeWindows {
         }
         self.max.resize(data.len(), 0);
         self.min.resize(data.len(), 0);
+        // The first and last pixels' windows are clamped at the border; the loop between
+        // them has no branches and vectorises.
+        let lo = |v: u16| v.wrapping_sub(1);
         for ((row, max), min) in data
             .chunks_exact(w)
             .zip(self.max.chunks_exact_mut(w))
             .zip(self.min.chunks_exact_mut(w))
         {
-            for u in 0..w {
-                let (l, r) = (u.saturating_sub(1), (u + 1).min(w - 1));
-                let (a, b, c) = (row[l], row[u], row[r]);
-                max[u] = a.max(b).max(c);
-                min[u] = a
-                    .wrapping_sub(1)
-                    .min(b.wrapping_sub(1))
-                    .min(c.wrapping_sub(1));
+            let (first, last) = (row[..2.min(w)].iter(), row[w.saturating_sub(2)..].iter());
+            max[0] = first.clone().copied().fold(0, u16::max);
+            min[0] = first.map(|&v| lo(v)).fold(u16::MAX, u16::min);
+            max[w - 1] = last.clone().copied().fold(0, u16::max);
+            min[w - 1] = last.map(|&v| lo(v)).fold(u16::MAX, u16::min);
+            if w >= 3 {
+                let mid = row
+                    .windows(3)
+                    .zip(&mut max[1..w - 1])
+                    .zip(&mut min[1..w - 1]);
+                for ((abc, max), min) in mid {
+                    *max = abc[0].max(abc[1]).max(abc[2]);
+                    *min = lo(abc[0]).min(lo(abc[1])).min(lo(abc[2]));
+                }
             }
         }
     }
@@ -869,11 +879,23 @@ pub fn remove_robot(points: &Points, robot: &[Capsule], margin: f64) -> Points {
     if robot.is_empty() {
         return points.clone();
     }
+    // Each capsule's box, grown by its reach and a margin far above rounding: a point
+    // outside it is farther than the reach, so only points inside are measured.
+    let boxes: Vec<([f64; 3], [f64; 3])> = robot
+        .iter()
+        .map(|c| {
+            let reach = (c.radius + margin) * (1.0 + 1e-9) + 1e-9;
+            (
+                [0, 1, 2].map(|a| c.a[a].min(c.b[a]) - reach),
+                [0, 1, 2].map(|a| c.a[a].max(c.b[a]) + reach),
+            )
+        })
+        .collect();
     points.select(|i| {
         let p = points.xyz[i].cast::<f64>();
-        robot
-            .iter()
-            .all(|c| c.axis_distance(&p) > c.radius + margin)
+        robot.iter().zip(&boxes).all(|(c, (lo, hi))| {
+            (0..3).any(|a| p[a] < lo[a] || p[a] > hi[a]) || c.axis_distance(&p) > c.radius + margin
+        })
     })
 }
 
@@ -932,6 +954,9 @@ pub fn mean_neighbour_distances(points: &[Point3<f32>], k: usize, cell_m: f64) -
 
 /// Farthest point sampling of `count` of the points `candidates` (indices into `xyz`),
 /// starting from a random one. Returns the chosen indices (all candidates if fewer).
+/// Each next point is the first candidate farthest from those chosen (squared distances in
+/// f32); buckets of nearby candidates skip the distance updates that cannot change
+/// anything (module `fps`), which gives the same samples as the textbook loop.
 pub fn farthest_point_sample(
     xyz: &[Point3<f32>],
     candidates: &[usize],
@@ -945,27 +970,8 @@ pub fn farthest_point_sample(
     if candidates.len() <= count {
         return candidates.to_vec();
     }
-    let mut dist = vec![f32::INFINITY; candidates.len()];
-    let mut out = Vec::with_capacity(count);
-    let mut current = rng.random_range(0..candidates.len());
-    for _ in 0..count {
-        out.push(candidates[current]);
-        let c = xyz[candidates[current]];
-        let mut far = 0;
-        let mut far_d = -1.0f32;
-        for (j, d) in dist.iter_mut().enumerate() {
-            let dj = (xyz[candidates[j]] - c).norm_squared();
-            if dj < *d {
-                *d = dj;
-            }
-            if *d > far_d {
-                far_d = *d;
-                far = j;
-            }
-        }
-        current = far;
-    }
-    out
+    let first = rng.random_range(0..candidates.len());
+    fps::sample(xyz, candidates, count, first)
 }
 
 /// Point-to-plane agreement of cloud `a` with cloud `b`: for each point of `a` with at least
@@ -1390,7 +1396,7 @@ mod tests {
             let inv = (1.0 / voxel) as f32;
             let o = Vector3::new(origin[0] as f32, origin[1] as f32, origin[2] as f32);
             let all = CellBox::around(pts.xyz.iter().map(|p| grid::voxel_coords(p, &o, inv)));
-            if let Some(all) = all.filter(|b| b.cells() <= grid::DENSE_VOXEL_CELLS) {
+            if let Some(all) = all.filter(|b| b.brick_cells() <= grid::DENSE_VOXEL_CELLS) {
                 scratch.voxelise(&pts, voxel, origin, Some(all), &mut out);
                 assert_eq!(out, reference, "trial {trial} (given grid)");
             }
@@ -1483,6 +1489,105 @@ mod tests {
         }
         // 25 points on a 0.49 m square: a 5x5 lattice has spacing ~0.12 m.
         assert!(min_d > 0.09, "{min_d}");
+    }
+
+    #[test]
+    fn bucketed_farthest_point_sampling_equals_the_textbook_loop() {
+        use rand::Rng;
+        let mut rng = ChaCha8Rng::seed_from_u64(17);
+        for trial in 0..40 {
+            let mut xyz = Vec::new();
+            match trial % 4 {
+                // A lattice: many equal distances, so ties must go to the first candidate.
+                0 => xyz.extend(grid_plane(rng.random_range(5..40), 0.01).xyz),
+                // Clusters of different spreads, with duplicates.
+                1 | 2 => {
+                    for _ in 0..rng.random_range(1..6) {
+                        let c = Vector3::new(
+                            rng.random_range(-1.0f32..1.0),
+                            rng.random_range(-1.0f32..1.0),
+                            rng.random_range(-1.0f32..1.0),
+                        );
+                        let spread = rng.random_range(0.0f32..0.3);
+                        for _ in 0..rng.random_range(1..800) {
+                            let p = if !xyz.is_empty() && rng.random_bool(0.05) {
+                                xyz[rng.random_range(0..xyz.len())]
+                            } else {
+                                Point3::from(
+                                    c + Vector3::from_fn(|_, _| rng.random_range(-spread..=spread)),
+                                )
+                            };
+                            xyz.push(p);
+                        }
+                    }
+                }
+                // All on one line, and all in one point.
+                _ => {
+                    let n = rng.random_range(2..500);
+                    let same = rng.random_bool(0.3);
+                    xyz.extend((0..n).map(|i| {
+                        let t = if same { 0.25 } else { i as f32 * 0.003 };
+                        Point3::new(t, 0.5, -t)
+                    }));
+                }
+            }
+            // A subset of the points as candidates, in shuffled order.
+            let mut candidates: Vec<usize> =
+                (0..xyz.len()).filter(|_| rng.random_bool(0.8)).collect();
+            candidates.shuffle(&mut rng);
+            if candidates.len() < 2 {
+                continue;
+            }
+            let count = rng.random_range(1..candidates.len());
+            let first = rng.random_range(0..candidates.len());
+            assert_eq!(
+                fps::sample(&xyz, &candidates, count, first),
+                fps::textbook(&xyz, &candidates, count, first),
+                "trial {trial}: {} candidates, {count} samples",
+                candidates.len()
+            );
+        }
+        // Non-finite candidates keep the textbook behaviour.
+        let mut xyz = grid_plane(10, 0.01).xyz;
+        xyz[7] = Point3::new(f32::NAN, 0.0, 0.0);
+        xyz[8] = Point3::new(f32::INFINITY, 0.0, 0.0);
+        let all: Vec<usize> = (0..xyz.len()).collect();
+        assert_eq!(
+            fps::sample(&xyz, &all, 30, 3),
+            fps::textbook(&xyz, &all, 30, 3)
+        );
+    }
+
+    #[test]
+    fn sampling_a_fused_cloud_equals_the_textbook_loop() {
+        // The pipeline's split and shuffle around the textbook sampler, on a fused cloud.
+        let params = FusionParams {
+            focus: Bounds {
+                min: [0.3, -0.39, -0.06],
+                max: [0.96, 0.1, 0.53],
+            },
+            ..FusionParams::default()
+        };
+        let pipe = FusionPipeline::new(calib(&[0, 1]), params.clone()).unwrap();
+        let (dense, _) = pipe
+            .fuse_dense(&[frame(0, 950), frame(1, 900)], &[])
+            .unwrap();
+        let (inside, outside): (Vec<usize>, Vec<usize>) =
+            (0..dense.len()).partition(|&i| params.focus.contains(&dense.xyz[i]));
+        assert!(inside.len() > params.points_inside && outside.len() > 512);
+        let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+        use rand::Rng;
+        let mut chosen = {
+            let first = rng.random_range(0..inside.len());
+            fps::textbook(&dense.xyz, &inside, params.points_inside, first)
+        };
+        chosen.extend({
+            let first = rng.random_range(0..outside.len());
+            fps::textbook(&dense.xyz, &outside, 512, first)
+        });
+        chosen.shuffle(&mut rng);
+        let expected: Vec<Point3<f32>> = chosen.iter().map(|&i| dense.xyz[i]).collect();
+        assert_eq!(pipe.sample(&dense).unwrap().xyz, expected);
     }
 
     #[test]

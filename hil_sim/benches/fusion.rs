@@ -19,9 +19,15 @@
 //!   the per-round ratios. Open3D works on f64 points (converted outside the timing).
 //! - Wall times on a loaded machine swing with the load; the `cpu_*` ratios compare thread
 //!   CPU time of the two single-threaded runs, which the load does not inflate.
+//! - `pipeline.fps_sample_ms` / `fps_sample_cpu_ms`: `FusionPipeline::sample` (farthest point
+//!   sampling to the policy's points) on the fused cloud, which Open3D's side does not do.
+//! - The `*_hash` fields fingerprint the clouds (voxels, inliers, dense, sampled):
+//!   equal hashes before and after a change show that it kept the output bit for bit.
 //!
 //! `cargo bench -p hil_sim --bench fusion [-- --python /path/to/python3 --reps 5 --inner 3]`
-//! `--profile N` runs only our pipeline N times (for callgrind) and prints nothing else.
+//! `--profile N` runs only our pipeline N times (for callgrind) and prints nothing else;
+//! `--profile-sample N` runs `FusionPipeline::sample` (farthest point sampling) N times on
+//! its output; `--profile-stages N` runs our voxel and outlier stages on Open3D's input.
 
 use std::path::PathBuf;
 use std::process::Command;
@@ -62,6 +68,20 @@ fn median_wall_cpu_ms<T>(reps: usize, mut f: impl FnMut() -> T) -> (f64, f64, T)
     )
 }
 
+/// FNV-1a of the points' bits: equal clouds (same points, same order) hash equal, so that
+/// runs before and after a change show that its output did not change.
+fn cloud_hash(points: &Points) -> String {
+    let mut h = 0xcbf2_9ce4_8422_2325u64;
+    for p in &points.xyz {
+        for v in [p.x, p.y, p.z] {
+            for b in v.to_bits().to_le_bytes() {
+                h = (h ^ u64::from(b)).wrapping_mul(0x0000_0100_0000_01b3);
+            }
+        }
+    }
+    format!("{h:016x}")
+}
+
 fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
@@ -99,6 +119,8 @@ fn main() -> anyhow::Result<()> {
     let mut reps = 5usize;
     let mut inner = 3usize;
     let mut profile = None;
+    let mut profile_sample = None;
+    let mut profile_stages = None;
     let mut args = std::env::args().skip(1);
     while let Some(a) = args.next() {
         match a.as_str() {
@@ -106,6 +128,12 @@ fn main() -> anyhow::Result<()> {
             "--reps" => reps = args.next().unwrap_or_default().parse()?,
             "--inner" => inner = args.next().unwrap_or_default().parse()?,
             "--profile" => profile = Some(args.next().unwrap_or_default().parse::<usize>()?),
+            "--profile-stages" => {
+                profile_stages = Some(args.next().unwrap_or_default().parse::<usize>()?)
+            }
+            "--profile-sample" => {
+                profile_sample = Some(args.next().unwrap_or_default().parse::<usize>()?)
+            }
             _ => {} // cargo passes --bench
         }
     }
@@ -123,6 +151,14 @@ fn main() -> anyhow::Result<()> {
         }
         return Ok(());
     }
+    if let Some(n) = profile_sample {
+        let frames = render_rig(&rig, &geometry, 0, Duration::ZERO)?;
+        let (dense, _) = pipe.fuse_dense(&frames, &robot)?;
+        for _ in 0..n {
+            std::hint::black_box(pipe.sample(&dense)?);
+        }
+        return Ok(());
+    }
     let threads = rig[0].threads;
     for c in &mut rig {
         c.threads = 1;
@@ -136,7 +172,7 @@ fn main() -> anyhow::Result<()> {
 
     let (fuse_dense_ms, dense) = median_ms(reps, || pipe.fuse_dense(&frames, &robot));
     let (dense, stats) = dense?;
-    let (sample_ms, sampled) = median_ms(reps, || pipe.sample(&dense));
+    let (sample_ms, sample_cpu_ms, sampled) = median_wall_cpu_ms(reps, || pipe.sample(&dense));
     let sampled = sampled?;
 
     // The same input as Open3D's: every valid pixel deprojected to the base frame (no crop,
@@ -199,6 +235,18 @@ fn main() -> anyhow::Result<()> {
     .chain(["--reps".into(), inner.to_string()])
     .collect();
 
+    if let Some(n) = profile_stages {
+        for _ in 0..n {
+            let voxels = voxel_downsample(&cropped, params.voxel_m, o3d_origin);
+            std::hint::black_box(remove_statistical_outliers(
+                &voxels,
+                params.outlier_k,
+                params.outlier_std_ratio,
+                params.voxel_m * 3.0,
+            ));
+        }
+        return Ok(());
+    }
     // Rounds alternate ours and Open3D so that both see the same machine load (the build
     // machine is shared); the speed-ups are the medians of the per-round ratios.
     let mut rounds = Vec::new();
@@ -221,6 +269,7 @@ fn main() -> anyhow::Result<()> {
         counts = json!({
             "input_points": merged.len(), "after_crop": cropped.len(),
             "after_voxel": voxels.len(), "after_outliers": inliers.len(),
+            "voxels_hash": cloud_hash(&voxels), "inliers_hash": cloud_hash(&inliers),
         });
         let ours = crop_ms + voxel_ms + sor_ms;
         let mut round = json!({
@@ -285,8 +334,11 @@ fn main() -> anyhow::Result<()> {
         "pipeline": {
             "fuse_dense_ms": fuse_dense_ms,
             "fps_sample_ms": sample_ms,
+            "fps_sample_cpu_ms": sample_cpu_ms,
             "stats": stats,
+            "dense_hash": cloud_hash(&dense),
             "sampled_points": sampled.len(),
+            "sampled_hash": cloud_hash(&sampled),
         },
         "same_work_as_open3d": {
             "ours_counts": counts,

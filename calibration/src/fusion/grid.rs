@@ -10,12 +10,16 @@ use nalgebra::{Point3, Vector3};
 
 use super::{voxel_centroid, voxel_colour, voxel_downsample_hashed, Points};
 
-/// Marks an unoccupied cell of the voxel grid.
-const EMPTY: u32 = u32::MAX;
+/// Marks an unoccupied cell or brick of the voxel grid (entries hold an index + 1, so that
+/// a fresh brick table is zeroed memory, which the allocator hands out without writing it).
+const EMPTY: u32 = 0;
 
-/// The most cells a dense voxel grid may have (32 MB of slots; the EquAct workspace at 5 mm
-/// needs 3.1 M); larger boxes fall back to the hash map.
+/// The most cells a voxel grid may have (a brick table of 512 kB; the EquAct workspace at
+/// 5 mm needs 3.3 M cells, padded to whole bricks); larger boxes fall back to the hash map.
 pub(super) const DENSE_VOXEL_CELLS: usize = 1 << 23;
+
+/// Cells per brick edge of the voxel slots (see `CellBox::brick_index`).
+const BRICK: usize = 4;
 
 /// Cell coordinates are clamped to +-2^20 (the range of the packed hash keys).
 const COORD_LIMIT: i64 = 1 << 20;
@@ -81,18 +85,32 @@ impl CellBox {
         self.dims.iter().fold(1usize, |n, &d| n.saturating_mul(d))
     }
 
-    /// The flat index of cell `c`, or `None` outside the box.
+    /// Number of cells with each axis padded to whole bricks of `BRICK` cells (saturating).
+    pub fn brick_cells(&self) -> usize {
+        self.dims
+            .iter()
+            .fold(1usize, |n, &d| n.saturating_mul(d.div_ceil(BRICK)))
+            .saturating_mul(BRICK * BRICK * BRICK)
+    }
+
+    /// Cell `c` in a grid stored brick by brick (`BRICK`^3 cells each, x fastest inside a
+    /// brick and among bricks): its brick and its index in it, or `None` outside the box.
+    /// Neighbouring cells then mostly share cache lines, which a row-major grid of this size
+    /// does not along y and z.
     #[inline]
-    pub fn index(&self, c: [i64; 3]) -> Option<usize> {
-        let mut idx = 0usize;
-        for a in (0..3).rev() {
-            let r = c[a] - self.lo[a];
-            if r < 0 || r as usize >= self.dims[a] {
+    pub fn brick_index(&self, c: [i64; 3]) -> Option<(usize, usize)> {
+        let mut r = [0usize; 3];
+        for a in 0..3 {
+            let v = c[a] - self.lo[a];
+            if v < 0 || v as usize >= self.dims[a] {
                 return None;
             }
-            idx = idx * self.dims[a] + r as usize;
+            r[a] = v as usize;
         }
-        Some(idx)
+        let nb = self.dims.map(|d| d.div_ceil(BRICK));
+        let brick = ((r[2] / BRICK) * nb[1] + r[1] / BRICK) * nb[0] + r[0] / BRICK;
+        let inner = ((r[2] % BRICK) * BRICK + r[1] % BRICK) * BRICK + r[0] % BRICK;
+        Some((brick, inner))
     }
 
     /// Cell `c` moved into the box (nearest cell on each axis).
@@ -102,13 +120,19 @@ impl CellBox {
     }
 }
 
-/// Voxelisation buffers: a dense grid of voxel slots and the per-voxel sums.
+/// Voxelisation buffers: a grid of voxel slots in bricks, allocated for the bricks that
+/// hold points only, and the per-voxel sums.
 #[derive(Default)]
 pub(super) struct VoxelScratch {
-    /// Per grid cell, the index of its voxel, or `EMPTY`; all `EMPTY` between calls.
-    slots: Vec<u32>,
-    /// Per voxel, its grid cell (to reset `slots` afterwards).
-    cells: Vec<u32>,
+    /// Per brick of the grid, where its slots start in `pool` divided by `BRICK`^3, plus one,
+    /// or `EMPTY`; all `EMPTY` between calls.
+    bricks: Vec<u32>,
+    /// The slots of the bricks in use: per cell, the index of its voxel plus one, or
+    /// `EMPTY`. A surface cloud fills few of the workspace's bricks, so this stays small
+    /// and cached where a dense grid of the workspace takes 13 MB.
+    pool: Vec<u32>,
+    /// The bricks in use (to reset `bricks` afterwards).
+    used: Vec<u32>,
     /// Per voxel, the sum of its points (f64: 10^4 points of one voxel lose no precision).
     sums: Vec<[f64; 3]>,
     /// Per voxel, the sum of its colours.
@@ -133,9 +157,20 @@ impl VoxelScratch {
     ) {
         let inv = (1.0 / voxel_m) as f32;
         let o = Vector3::new(origin[0] as f32, origin[1] as f32, origin[2] as f32);
-        let grid =
-            grid.or_else(|| CellBox::around(points.xyz.iter().map(|p| voxel_coords(p, &o, inv))));
-        if let Some(g) = grid.filter(|g| g.cells() <= DENSE_VOXEL_CELLS) {
+        // The box around the points from their extreme coordinates: a point's cell grows with
+        // each coordinate, so these bound every cell (NaN ones excepted, which land in cell
+        // 0 and, when that is outside, send the call to the hash map).
+        let grid = grid.or_else(|| {
+            let mut lo = Point3::from([f32::INFINITY; 3]);
+            let mut hi = Point3::from([f32::NEG_INFINITY; 3]);
+            for p in &points.xyz {
+                lo = lo.inf(p);
+                hi = hi.sup(p);
+            }
+            (lo.x <= hi.x && lo.y <= hi.y && lo.z <= hi.z)
+                .then(|| CellBox::spanning(voxel_coords(&lo, &o, inv), voxel_coords(&hi, &o, inv)))
+        });
+        if let Some(g) = grid.filter(|g| g.brick_cells() <= DENSE_VOXEL_CELLS) {
             if self.accumulate(points, &g, &o, inv) {
                 self.write(points.rgb.len() == points.len(), out);
                 return;
@@ -146,31 +181,41 @@ impl VoxelScratch {
 
     /// Sums the points per voxel of `grid`; false when a point lies outside it.
     fn accumulate(&mut self, points: &Points, grid: &CellBox, o: &Vector3<f32>, inv: f32) -> bool {
-        let n_cells = grid.cells();
-        if self.slots.len() < n_cells {
-            self.slots.resize(n_cells, EMPTY);
+        const CELLS: usize = BRICK * BRICK * BRICK;
+        let n_bricks = grid.brick_cells() / CELLS;
+        if self.bricks.is_empty() {
+            self.bricks = vec![EMPTY; n_bricks];
+        } else if self.bricks.len() < n_bricks {
+            self.bricks.resize(n_bricks, EMPTY);
         }
-        self.cells.clear();
+        self.pool.clear();
         self.sums.clear();
         self.colours.clear();
         self.counts.clear();
         let has_rgb = points.rgb.len() == points.len();
         let mut inside = true;
         for (i, p) in points.xyz.iter().enumerate() {
-            let Some(cell) = grid.index(voxel_coords(p, o, inv)) else {
+            let Some((brick, inner)) = grid.brick_index(voxel_coords(p, o, inv)) else {
                 inside = false;
                 break;
             };
-            let mut slot = self.slots[cell];
+            let mut base = self.bricks[brick];
+            if base == EMPTY {
+                base = (self.pool.len() / CELLS) as u32 + 1;
+                self.bricks[brick] = base;
+                self.used.push(brick as u32);
+                self.pool.resize(self.pool.len() + CELLS, EMPTY);
+            }
+            let cell = (base as usize - 1) * CELLS + inner;
+            let mut slot = self.pool[cell];
             if slot == EMPTY {
-                slot = self.sums.len() as u32;
-                self.slots[cell] = slot;
-                self.cells.push(cell as u32);
+                slot = self.sums.len() as u32 + 1;
+                self.pool[cell] = slot;
                 self.sums.push([0.0; 3]);
                 self.colours.push([0; 3]);
                 self.counts.push(0);
             }
-            let s = slot as usize;
+            let s = slot as usize - 1;
             let sum = &mut self.sums[s];
             sum[0] += f64::from(p.x);
             sum[1] += f64::from(p.y);
@@ -182,9 +227,10 @@ impl VoxelScratch {
             }
             self.counts[s] += 1;
         }
-        for &c in &self.cells {
-            self.slots[c as usize] = EMPTY;
+        for &b in &self.used {
+            self.bricks[b as usize] = EMPTY;
         }
+        self.used.clear();
         inside
     }
 
@@ -227,6 +273,8 @@ pub(super) struct KnnScratch {
     walls: [Vec<[f32; 2]>; 3],
     /// Candidates' squared distances, as bits (non-negative floats order like their bits).
     cand: Vec<u32>,
+    /// Candidates beyond the previous point's k-th distance (see `Block::within`).
+    far: Vec<u32>,
     /// The points around the current cell.
     block: Block,
     /// Per input point, the result.
@@ -238,11 +286,12 @@ pub(super) struct KnnScratch {
 /// its border cells (still exact, only slower for them).
 const KNN_MIN_CELLS: usize = 1 << 20;
 
-/// Neighbour-grid cells per distance cap: a cell's 3x3x3 block (about 100 points of a 5 mm
-/// voxel cloud) then serves radii up to 15 mm, past the typical k-th distance (about 13 mm
-/// at k = 20). Measured with callgrind on the benchmark's cloud: 2.5 costs 22 % more
-/// instructions; smaller cells leave most k-th distances outside the block.
-const KNN_CELLS_PER_CAP: f64 = 3.0;
+/// Neighbour-grid cells per distance cap: a cell's 3x3x3 block (about 80 points of a 5 mm
+/// voxel cloud) then serves radii up to 13.6 mm, around the typical k-th distance (about
+/// 13 mm at k = 20). Outlier-stage CPU time on the benchmark's cloud with 2.6, 3.0, 3.3 and
+/// 3.6: 31, 27.6, 26.6 and 28.7 ms (the per-candidate cost of the block now outweighs the
+/// searches past it that a smaller block leaves).
+const KNN_CELLS_PER_CAP: f64 = 3.3;
 
 /// The first search radius as a multiple of the previous point's k-th distance (callgrind
 /// on the benchmark's cloud: 1.0, 1.05 and 1.3 cost 21 %, 4 % and 11 % more instructions).
@@ -259,14 +308,17 @@ impl KnnScratch {
     ///
     /// Exact: each point gathers the points within a radius r and, when more than k lie
     /// within it, its k nearest are among them. r is first a guess (the previous point's
-    /// k-th distance `d_k(p)`, a little more: the points come in cell order, so neighbouring
-    /// points with similar densities follow each other), then a bound that provably holds k
+    /// k-th distance `d_k(p)`, a little more, but no more than the block below serves when
+    /// `d_k(p)` fits it: the points come in cell order, so neighbouring points with similar
+    /// densities follow each other), then a bound that provably holds k
     /// neighbours (`d_k(p) + |p - q|`: p's k neighbours, or p itself in place of q, are all
     /// that close to q), then the cap; after a failed guess, first the largest radius the
     /// block below serves. Radii up to one cell edge are served from the points of the
     /// cell's 3x3x3 block, copied once per cell so that distances vectorise (computed once
     /// per point, whatever the radius); larger ones from the grid rows whose cells come
-    /// within r.
+    /// within r. The block's candidates come split at the previous point's k-th distance,
+    /// so that choosing the k + 1 nearest (the point itself among them) orders only the few
+    /// on one side of it; their distances are summed in f64.
     /// Points clamped into a border cell are only extra candidates with their true
     /// distances, and border cells count as open towards the outside, so clamping keeps
     /// the search exact.
@@ -310,8 +362,13 @@ impl KnnScratch {
         }
 
         // Counting sort by cell.
-        self.start.clear();
-        self.start.resize(grid.cells() + 1, 0);
+        if self.start.is_empty() {
+            // Fresh buffers: zeroed memory comes from the allocator unwritten.
+            self.start = vec![0; grid.cells() + 1];
+        } else {
+            self.start.clear();
+            self.start.resize(grid.cells() + 1, 0);
+        }
         self.cell_of.clear();
         for p in points {
             let c = if finite(p) {
@@ -357,6 +414,7 @@ impl KnnScratch {
             slack,
         };
         let cand = &mut self.cand;
+        let far = &mut self.far;
         let block = &mut self.block;
         let mut prev: Option<([f32; 3], f32)> = None;
         let gf = g as f32;
@@ -378,39 +436,57 @@ impl KnnScratch {
                             - p.iter().fold(0.0f32, |m, v| m.max(v.abs())) * 1e-6;
                         // First a guess (the previous point's k-th distance: neighbouring
                         // points see similar densities), then the bound, then the cap.
-                        let (guess, bound) = match prev {
+                        let (guess, bound, split) = match prev {
                             Some((q, kth)) => {
                                 let d = ((p[0] - q[0]).powi(2)
                                     + (p[1] - q[1]).powi(2)
                                     + (p[2] - q[2]).powi(2))
                                 .sqrt();
-                                (kth * GUESS, ((kth + d) * (1.0 + SLACK)).min(cap))
+                                (kth * GUESS, ((kth + d) * (1.0 + SLACK)).min(cap), kth)
                             }
-                            None => (cap, cap),
+                            None => (cap, cap, cap),
                         };
+                        // When the previous k-th distance fits the block, try the block first
+                        // (the search past it costs several times more).
                         let mut r = guess.min(bound);
+                        if split < covered {
+                            r = r.min(covered);
+                        }
                         let mut distances = false;
                         let mean = loop {
                             // Every point within r, the point itself included (at distance
                             // 0). With more than k of them, the k nearest are among them
                             // whatever r was.
-                            let found = if r <= covered {
+                            // The candidates come split at the previous point's k-th
+                            // distance: the near ones in cand[..near], the others in
+                            // far[..beyond]. Usually about k are near, so the selection
+                            // works on a few values.
+                            let (near, beyond) = if r <= covered {
                                 if !distances {
                                     block.distances(p);
                                     distances = true;
                                 }
-                                block.within(r, cand)
+                                block.within(split.min(r), r, cand, far)
                             } else {
-                                search.gather(p, r, cand)
+                                (search.gather(p, r, cand), 0)
                             };
-                            if found > k {
-                                let kth = keep_smallest(&mut cand[..found], k + 1);
+                            if near > k {
+                                // The k + 1 smallest (the point itself among them) into
+                                // cand[..=k], the largest of them at k.
+                                let kth = *cand[..near].select_nth_unstable(k).1;
                                 prev = Some((p, f32::from_bits(kth).sqrt()));
-                                break capped_mean(&cand[..=k], k, cap);
+                                break capped_mean(&cand[..=k], &[], k, cap);
+                            }
+                            if near + beyond > k {
+                                // All the near ones and the nearest of the others.
+                                let m = k - near;
+                                let kth = *far[..beyond].select_nth_unstable(m).1;
+                                prev = Some((p, f32::from_bits(kth).sqrt()));
+                                break capped_mean(&cand[..near], &far[..=m], k, cap);
                             }
                             if r >= cap {
                                 prev = None;
-                                break capped_mean(&cand[..found], k, cap);
+                                break capped_mean(&cand[..near], &far[..beyond], k, cap);
                             }
                             // Then all the block holds, the bound (which holds k neighbours
                             // unless f32 rounding bit), the cap.
@@ -471,20 +547,32 @@ impl Block {
         }
     }
 
-    /// The squared distances (as bits) up to `r` (from the last `distances`) into `cand`;
-    /// returns how many.
-    fn within(&self, r: f32, cand: &mut Vec<u32>) -> usize {
+    /// The squared distances (as bits, from the last `distances`) up to `split` into
+    /// `near`, those above it and up to `r` into `far`; returns how many of each.
+    fn within(
+        &self,
+        split: f32,
+        r: f32,
+        near: &mut Vec<u32>,
+        far: &mut Vec<u32>,
+    ) -> (usize, usize) {
         let n = self.d2.len();
-        if cand.len() < n {
-            cand.resize(n, 0);
+        for buf in [&mut *near, &mut *far] {
+            if buf.len() < n {
+                buf.resize(n, 0);
+            }
         }
-        let r2 = r * r;
-        let mut used = 0;
+        let (s2, r2) = (split * split, r * r);
+        let (mut n_near, mut n_far) = (0, 0);
         for &d2 in &self.d2 {
-            cand[used] = d2.to_bits();
-            used += usize::from(d2 <= r2);
+            let bits = d2.to_bits();
+            near[n_near] = bits;
+            far[n_far] = bits;
+            let is_near = d2 <= s2;
+            n_near += usize::from(is_near);
+            n_far += usize::from(!is_near & (d2 <= r2));
         }
-        used
+        (n_near, n_far)
     }
 }
 
@@ -556,51 +644,17 @@ impl Search<'_> {
     }
 }
 
-/// Moves the `n` smallest of `v` (`n` in 1..=len) into `v[..n]`, in no order, and returns
-/// the largest of them: a max-heap of the first `n`, each further value replacing the top
-/// when smaller (the search radius leaves only a few more than `n` candidates).
-fn keep_smallest(v: &mut [u32], n: usize) -> u32 {
-    let (head, tail) = v.split_at_mut(n);
-    for i in (0..n / 2).rev() {
-        sift_down(head, i);
-    }
-    for &x in tail.iter() {
-        if x < head[0] {
-            head[0] = x;
-            sift_down(head, 0);
-        }
-    }
-    head[0]
-}
-
-/// Restores the max-heap order below `i`.
-fn sift_down(h: &mut [u32], mut i: usize) {
-    loop {
-        let l = 2 * i + 1;
-        if l >= h.len() {
-            return;
-        }
-        let c = if l + 1 < h.len() && h[l + 1] > h[l] {
-            l + 1
-        } else {
-            l
-        };
-        if h[c] <= h[i] {
-            return;
-        }
-        h.swap(i, c);
-        i = c;
-    }
-}
-
-/// Mean of the capped distances of `best` (squared, as bits; the point itself among them at
-/// distance 0), the missing ones of `k` counted at the cap.
-fn capped_mean(best: &[u32], k: usize, cap: f32) -> f32 {
-    let sum: f32 = best
+/// Mean of the capped distances of `best` and `more` (squared, as bits; the point itself among them at
+/// distance 0), the missing ones of `k` counted at the cap. Summed in f64, which for these
+/// few f32 values is exact in practice whatever their order (the selection leaves them in
+/// none in particular).
+fn capped_mean(best: &[u32], more: &[u32], k: usize, cap: f32) -> f32 {
+    let sum: f64 = best
         .iter()
-        .map(|&d2| f32::from_bits(d2).sqrt().min(cap))
+        .chain(more)
+        .map(|&d2| f64::from(f32::from_bits(d2).sqrt().min(cap)))
         .sum();
-    (sum + (k + 1 - best.len()) as f32 * cap) / k as f32
+    ((sum + (k + 1 - best.len() - more.len()) as f64 * f64::from(cap)) / k as f64) as f32
 }
 
 /// `bbox` shrunk to at most `budget` cells: the widest axis first, to a window centred on the
