@@ -35,7 +35,9 @@ use crate::grids::{so3_healpix_grid, GridRotation, S2Resolution};
 use crate::heads::TRANS_KNN;
 use crate::init::{random_weights, ExtraSizes};
 use crate::model::{BlockIndices, EquFieldUnet, GripperState, ModelConfig};
-use crate::points::{check_finite, farthest_point_sampling, knn, UpsampleDistance};
+use crate::points::{
+    check_finite, coefficient_max_pool_choices, farthest_point_sampling, knn, UpsampleDistance,
+};
 use crate::rotation_head::{flat_wigner, RotationHead, SO3_COEFFS};
 use crate::so3::WignerCalculator;
 use crate::weights::Weights;
@@ -982,7 +984,7 @@ impl Policy {
             };
             let enc_b = encode(&moved, &[])?;
             let (errors, best_b) = errors_of(&enc_b)?;
-            let changed_blocks: Vec<String> = enc_a
+            let mut changed_blocks: Vec<String> = enc_a
                 .blocks
                 .iter()
                 .zip(&enc_b.blocks)
@@ -990,13 +992,15 @@ impl Policy {
                     changed_choices(&x.indices, &y.indices).map(|what| format!("{}.{what}", x.name))
                 })
                 .collect();
-            let knn_b = set_lists(knn(&enc_b.coord, &mq, TRANS_KNN)?);
-            let changed_query_lists = knn_a.iter().zip(&knn_b).filter(|(x, y)| x != y).count();
+            // The index choices can be forced onto the moved input; the max-pool's cannot.
             let errors_same_choices = if changed_blocks.is_empty() {
+                changed_blocks.extend(self.changed_max_pool(&enc_a, &enc_b)?);
                 None
             } else {
                 Some(errors_of(&encode(&moved, &choices_a)?)?.0)
             };
+            let knn_b = set_lists(knn(&enc_b.coord, &mq, TRANS_KNN)?);
+            let changed_query_lists = knn_a.iter().zip(&knn_b).filter(|(x, y)| x != y).count();
             let d = best_b.transpose() * rm * best_a;
             let argmax_angle = ((d.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
             out.push(MotionEquivariance {
@@ -1006,6 +1010,36 @@ impl Policy {
                 errors_same_choices,
                 argmax_angle,
             });
+        }
+        Ok(out)
+    }
+
+    /// `block.max_pool` for every pooling block whose max-pool choices differ between two
+    /// encodings with the same pooling neighbours (a block of the moved input wins where a
+    /// block of near-equal norm won before).
+    fn changed_max_pool(
+        &self,
+        a: &crate::model::Encoded,
+        b: &crate::model::Encoded,
+    ) -> Result<Vec<String>> {
+        let lmax = self.cfg.model.lmax;
+        let k = crate::so3::num_coefficients(lmax);
+        let mut out = Vec::new();
+        for j in 1..a.blocks.len().min(b.blocks.len()) {
+            let (Some(nb), prev_a, prev_b) = (
+                &a.blocks[j].indices.pool_knn,
+                &a.blocks[j - 1],
+                &b.blocks[j - 1],
+            ) else {
+                continue;
+            };
+            let n = prev_a.coord.len();
+            let c = prev_a.embedding.len() / (n * k).max(1);
+            let ca = coefficient_max_pool_choices(&prev_a.embedding, n, lmax, c, nb)?;
+            let cb = coefficient_max_pool_choices(&prev_b.embedding, n, lmax, c, nb)?;
+            if ca != cb {
+                out.push(format!("{}.max_pool", a.blocks[j].name));
+            }
         }
         Ok(out)
     }
@@ -1024,12 +1058,13 @@ pub struct MotionEquivariance {
     /// Relative errors (translation logits, open logit, rotation logits).
     pub errors: [f64; 3],
     /// `block.choice` for every U-net choice whose set differs (`fps`, `pool_knn`,
-    /// `up_knn`, `graph`): a discontinuity of the network (ties up to f32 rounding).
+    /// `up_knn`, `graph`; `max_pool` when none of those did but a max-pool choice did): a
+    /// discontinuity of the network (ties up to f32 rounding).
     pub changed_blocks: Vec<String>,
     /// Translation queries whose nearest-node set (the head's 100-NN edges) differs.
     pub changed_query_lists: usize,
-    /// The errors with the moved input run on the unmoved input's U-net choices, when any
-    /// differ (what remains is the continuous part of the error).
+    /// The errors with the moved input run on the unmoved input's U-net index choices, when
+    /// any differ (what remains is the continuous part of the error, and max-pool flips).
     pub errors_same_choices: Option<[f64; 3]>,
     /// Angle (rad) between the moved input's best rotation and the motion times the
     /// unmoved input's best rotation.
