@@ -1016,7 +1016,10 @@ impl Policy {
 
     /// `block.max_pool` for every pooling block whose max-pool choices differ between two
     /// encodings with the same pooling neighbours (a block of the moved input wins where a
-    /// block of near-equal norm won before).
+    /// block of near-equal norm won before); the first such block also says how many
+    /// choices flipped, how many of them were between gripper points, and the largest
+    /// relative norm gap of a flip in the unmoved input (`down1.max_pool(flips 2, gripper 2,
+    /// gap 3e-7)`).
     fn changed_max_pool(
         &self,
         a: &crate::model::Encoded,
@@ -1024,6 +1027,7 @@ impl Policy {
     ) -> Result<Vec<String>> {
         let lmax = self.cfg.model.lmax;
         let k = crate::so3::num_coefficients(lmax);
+        let ng = self.cfg.model.n_gripper_pos;
         let mut out = Vec::new();
         for j in 1..a.blocks.len().min(b.blocks.len()) {
             let (Some(nb), prev_a, prev_b) = (
@@ -1037,9 +1041,38 @@ impl Policy {
             let c = prev_a.embedding.len() / (n * k).max(1);
             let ca = coefficient_max_pool_choices(&prev_a.embedding, n, lmax, c, nb)?;
             let cb = coefficient_max_pool_choices(&prev_b.embedding, n, lmax, c, nb)?;
-            if ca != cb {
-                out.push(format!("{}.max_pool", a.blocks[j].name));
+            if ca == cb {
+                continue;
             }
+            if !out.is_empty() {
+                out.push(format!("{}.max_pool", a.blocks[j].name));
+                continue;
+            }
+            // Gripper points are the last ng nodes while the nodes are still the input's
+            // (the first pooling block reads the full-resolution nodes).
+            let full = n == a.xyz.len();
+            let x = &prev_a.embedding;
+            let norm = |node: usize, idx: usize| {
+                let (l, ch) = (idx / c % (lmax + 1), idx % c);
+                (l * l..(l + 1) * (l + 1))
+                    .map(|i| f64::from(x[(node * k + i) * c + ch]).powi(2))
+                    .sum::<f64>()
+            };
+            let (mut flips, mut gripper, mut gap) = (0, 0, 0.0f64);
+            for (idx, (&p, &q)) in ca.iter().zip(&cb).enumerate() {
+                if p != q && p != usize::MAX && q != usize::MAX {
+                    flips += 1;
+                    if full && p >= n - ng && q >= n - ng {
+                        gripper += 1;
+                    }
+                    let (np, nq) = (norm(p, idx), norm(q, idx));
+                    gap = gap.max((np - nq).abs() / np.max(nq).max(f64::MIN_POSITIVE));
+                }
+            }
+            out.push(format!(
+                "{}.max_pool(flips {flips}, gripper {gripper}, gap {gap:.1e})",
+                a.blocks[j].name
+            ));
         }
         Ok(out)
     }
