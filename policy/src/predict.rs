@@ -242,7 +242,9 @@ pub enum PolicyMode {
     },
     /// Equivariant mode with a gated activation in place of every separable S2 activation
     /// (l = 0: SiLU of the gating scalars; l > 0: times their sigmoid): exactly equivariant
-    /// and cheaper than any grid; same weights. Euclidean up-sampling and turning jitter as
+    /// and cheaper than any grid. The weights keep their shapes, but the nonlinearity differs,
+    /// so weights trained with S2 activations compute something else here: this mode is for
+    /// weights trained in it. Euclidean up-sampling and turning jitter as
     /// [`PolicyMode::Equivariant`].
     Gated,
 }
