@@ -74,6 +74,8 @@ pub struct S2Grid {
     to_grid32: Vec<f32>,
     /// `from_grid` in f32.
     from_grid32: Vec<f32>,
+    /// A gated activation instead of the grid (no grid points): exactly equivariant.
+    pub gated: bool,
 }
 
 impl S2Grid {
@@ -130,6 +132,33 @@ impl S2Grid {
             from_grid32: from_grid.iter().map(|v| *v as f32).collect(),
             to_grid,
             from_grid,
+            gated: false,
+        })
+    }
+
+    /// The gated activation for (lmax, mmax) in place of a grid (equivariant mode's exact
+    /// option): no grid points; [`S2Grid::activate`] and
+    /// [`crate::layers::separable_s2_activation`] then multiply every l > 0 channel by a
+    /// sigmoid gate instead of sampling the sphere.
+    pub fn gate(lmax: usize, mmax: usize) -> Result<Self> {
+        if lmax > MAX_DEGREE || mmax > lmax {
+            return Err(PolicyError::UnsupportedDegree {
+                lmax,
+                mmax,
+                max_supported: MAX_DEGREE,
+            });
+        }
+        Ok(Self {
+            lmax,
+            mmax,
+            lat: 0,
+            long: 0,
+            reduced: reduced_coefficients(lmax, mmax),
+            to_grid: Vec::new(),
+            from_grid: Vec::new(),
+            to_grid32: Vec::new(),
+            from_grid32: Vec::new(),
+            gated: true,
         })
     }
 
@@ -165,9 +194,19 @@ impl S2Grid {
     /// Runs as two matrix products over all nodes and channels at once: the values are
     /// reordered coefficient-major (`[n_reduced, n·c]`), taken to the grid, activated, and
     /// brought back with the transposed from-grid matrix.
+    ///
+    /// A gated "grid" ([`S2Grid::gate`]) instead gates each channel by its own l = 0 value:
+    /// l = 0 → SiLU(x₀), l > 0 → x · σ(x₀).
     pub fn activate(&self, x: &[f32], n: usize, c: usize) -> Result<Vec<f32>> {
         let nr = self.reduced.len();
         check_len("S2 activation input", x.len(), &[n, nr, c])?;
+        if self.gated {
+            let gates: Vec<f32> = x
+                .chunks_exact(nr * c)
+                .flat_map(|node| node[..c].iter().copied())
+                .collect();
+            return Ok(gate_activation(x, &gates, &gates, nr, c));
+        }
         let cols = n * c;
         let mut grid = self.to_grid_columns(&swap_outer(x, n, nr, c), cols)?;
         // SiLU once per grid value (a vectorisable exp: the finer equivariant grids make
@@ -186,6 +225,30 @@ impl S2Grid {
         )?;
         Ok(swap_outer(&out, nr, n, c))
     }
+}
+
+/// The gated activation on `x` `[n, nr, c]`: row 0 (l = 0) becomes SiLU(`scalars[node, ch]`)
+/// and every other row is multiplied by σ(`gates[node, ch]`). Rotations act on each (l,
+/// channel) block alone, so multiplying a block by an invariant scalar commutes with them:
+/// exactly equivariant, at O(n·nr·c) instead of two products with the grid matrices.
+pub fn gate_activation(x: &[f32], scalars: &[f32], gates: &[f32], nr: usize, c: usize) -> Vec<f32> {
+    let mut y = x.to_vec();
+    for (node, yn) in y.chunks_exact_mut(nr * c).enumerate() {
+        let (s, g) = (
+            &scalars[node * c..(node + 1) * c],
+            &gates[node * c..(node + 1) * c],
+        );
+        let sig: Vec<f32> = g.iter().map(|v| 1.0 / (1.0 + (-v).exp())).collect();
+        for (ch, v) in yn[..c].iter_mut().enumerate() {
+            *v = s[ch] / (1.0 + (-s[ch]).exp());
+        }
+        for row in yn[c..].chunks_exact_mut(c) {
+            for (v, sg) in row.iter_mut().zip(&sig) {
+                *v *= sg;
+            }
+        }
+    }
+    y
 }
 
 /// e^x in f32 arithmetic only (no libm call), so loops over it vectorise. Relative error
@@ -326,6 +389,9 @@ pub enum S2Resolution {
     Reference,
     /// `n` × `n` grids for every (lmax, mmax) (equivariant mode; 48 gives ~1e-7).
     Square(usize),
+    /// No grids: a gated activation (l > 0 channels times a sigmoid of the layer's gating
+    /// scalars), exactly equivariant; same weights.
+    Gated,
 }
 
 impl S2Resolution {
@@ -334,6 +400,7 @@ impl S2Resolution {
         match self {
             Self::Reference => S2Grid::reference(lmax, mmax),
             Self::Square(n) => S2Grid::with_resolution(lmax, mmax, n, n),
+            Self::Gated => S2Grid::gate(lmax, mmax),
         }
     }
 }

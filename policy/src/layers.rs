@@ -1074,6 +1074,9 @@ pub fn rotate_embedding(x: &[f32], c: usize, d: &nalgebra::DMatrix<f64>) -> Resu
 
 /// The separable S2 activation: l > 0 rows through `grid` (to grid, SiLU, back); the l = 0
 /// row replaced by SiLU(`gating`). `x` is `[n, grid.reduced.len(), c]`, `gating` `[n, c]`.
+/// With a gated grid ([`crate::grids::S2Grid::gate`]) the l > 0 rows are instead multiplied
+/// by σ(`gating`) (the same scalars: the weights keep their shapes), which is exactly
+/// equivariant.
 pub fn separable_s2_activation(
     grid: &crate::grids::S2Grid,
     gating: &[f32],
@@ -1083,6 +1086,9 @@ pub fn separable_s2_activation(
     let nr = grid.reduced.len();
     let n = rows_of("S2 activation input", x.len(), nr * c)?;
     check_len("S2 activation gating", gating.len(), &[n, c])?;
+    if grid.gated {
+        return Ok(crate::grids::gate_activation(x, gating, gating, nr, c));
+    }
     let mut y = grid.activate(x, n, c)?;
     for node in 0..n {
         for ch in 0..c {

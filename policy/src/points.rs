@@ -108,6 +108,36 @@ pub fn coefficient_max_pool(
     neighbours: &[Vec<usize>],
 ) -> Result<Vec<f32>> {
     let nc = crate::so3::num_coefficients(lmax);
+    let choice = coefficient_max_pool_choices(x, n, lmax, c, neighbours)?;
+    let mut out = vec![0.0f32; neighbours.len() * nc * c];
+    for m in 0..neighbours.len() {
+        for l in 0..=lmax {
+            for ch in 0..c {
+                let j = choice[(m * (lmax + 1) + l) * c + ch];
+                if j == usize::MAX {
+                    continue;
+                }
+                for i in l * l..(l + 1) * (l + 1) {
+                    out[(m * nc + i) * c + ch] = x[(j * nc + i) * c + ch];
+                }
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// The choices of [`coefficient_max_pool`]: for every centre, degree and channel, the index
+/// of the neighbour that supplies the block (`usize::MAX` for a centre without neighbours:
+/// its blocks stay zero), `[neighbours.len(), lmax + 1, c]`. A choice
+/// between blocks of near-equal norm is a discontinuity of the network.
+pub fn coefficient_max_pool_choices(
+    x: &[f32],
+    n: usize,
+    lmax: usize,
+    c: usize,
+    neighbours: &[Vec<usize>],
+) -> Result<Vec<usize>> {
+    let nc = crate::so3::num_coefficients(lmax);
     if x.len() != n * nc * c {
         return Err(PolicyError::ShapeMismatch {
             name: "max-pool features".into(),
@@ -115,7 +145,7 @@ pub fn coefficient_max_pool(
             got: vec![x.len()],
         });
     }
-    let mut out = vec![0.0f32; neighbours.len() * nc * c];
+    let mut out = vec![usize::MAX; neighbours.len() * (lmax + 1) * c];
     for (m, nb) in neighbours.iter().enumerate() {
         for &j in nb {
             if j >= n {
@@ -140,9 +170,7 @@ pub fn coefficient_max_pool(
                     }
                 }
                 if let Some((_, j)) = best {
-                    for i in l * l..(l + 1) * (l + 1) {
-                        out[(m * nc + i) * c + ch] = x[(j * nc + i) * c + ch];
-                    }
+                    out[(m * (lmax + 1) + l) * c + ch] = j;
                 }
             }
         }

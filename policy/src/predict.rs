@@ -32,9 +32,12 @@ use rand_chacha::ChaCha8Rng;
 use crate::error::{PolicyError, Result};
 use crate::fixtures::{read_safetensors, StoredTensor, TensorData};
 use crate::grids::{so3_healpix_grid, GridRotation, S2Resolution};
+use crate::heads::TRANS_KNN;
 use crate::init::{random_weights, ExtraSizes};
-use crate::model::{EquFieldUnet, GripperState, ModelConfig};
-use crate::points::{check_finite, farthest_point_sampling, UpsampleDistance};
+use crate::model::{BlockIndices, EquFieldUnet, GripperState, ModelConfig};
+use crate::points::{
+    check_finite, coefficient_max_pool_choices, farthest_point_sampling, knn, UpsampleDistance,
+};
 use crate::rotation_head::{flat_wigner, RotationHead, SO3_COEFFS};
 use crate::so3::WignerCalculator;
 use crate::weights::Weights;
@@ -76,6 +79,14 @@ pub const INSTRUCTION_TOKENS: usize = 53;
 pub const INSTRUCTION_DIM: usize = 512;
 /// Radius of the reference's gripper-point jitter (m).
 pub const GRIPPER_JITTER: f64 = 1e-5;
+/// Radius of the gripper-point jitter in the equivariant modes (m). The edges among the
+/// gripper points take their direction from differences of f32 coordinates, which are
+/// rounded to ~3e-8 m near 0.5 m: at 1e-5 m apart that is a few mrad of direction noise,
+/// which dominated the equivariance error once the S2 grids were exact (2e-5..1e-4 relative
+/// on the tiny network). 5e-4 m cuts it 50-fold and keeps every gripper-gripper distance
+/// (≤ 1e-3 m) below the radial bases' inner cut-off (1 % of the smallest radius, 1.98e-3 m):
+/// those edges still see an all-zero radial basis, as in the reference.
+pub const EQUIVARIANT_GRIPPER_JITTER: f64 = 5e-4;
 
 /// A precomputed instruction embedding `[tokens, dim]` (CLIP text model, last hidden state).
 #[derive(Debug, Clone, PartialEq)]
@@ -219,15 +230,34 @@ impl GripperPose {
 /// Parity (the reference as it is) or equivariant mode.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PolicyMode {
-    /// The reference's coarse S2 grids, L1 up-sampling weights, gripper jitter in the base
-    /// frame.
+    /// The reference's coarse S2 grids, L1 up-sampling weights, gripper jitter of radius
+    /// [`GRIPPER_JITTER`] in the base frame.
     Parity,
     /// `s2_grid` × `s2_grid` S2 activation grids, Euclidean up-sampling weights, gripper
-    /// jitter in the gripper's own frame (so it turns with the gripper).
+    /// jitter of radius [`EQUIVARIANT_GRIPPER_JITTER`] in the gripper's own frame (so it
+    /// turns with the gripper, and f32 rounding barely turns the gripper-gripper edges).
     Equivariant {
         /// Latitude and longitude samples of every S2 activation grid.
         s2_grid: usize,
     },
+    /// Equivariant mode with a gated activation in place of every separable S2 activation
+    /// (l = 0: SiLU of the gating scalars; l > 0: times their sigmoid): exactly equivariant
+    /// and cheaper than any grid. The weights keep their shapes, but the nonlinearity differs,
+    /// so weights trained with S2 activations compute something else here: this mode is for
+    /// weights trained in it. Euclidean up-sampling and turning jitter as
+    /// [`PolicyMode::Equivariant`].
+    Gated,
+}
+
+impl PolicyMode {
+    /// A short name: `parity`, `equivariant_s2_N` or `gated`.
+    pub fn name(&self) -> String {
+        match self {
+            Self::Parity => "parity".into(),
+            Self::Equivariant { s2_grid } => format!("equivariant_s2_{s2_grid}"),
+            Self::Gated => "gated".into(),
+        }
+    }
 }
 
 /// The coarse-to-fine translation sampling of the reference (evaluation mode).
@@ -374,6 +404,10 @@ impl PolicyConfig {
             }
             PolicyMode::Equivariant { s2_grid } => {
                 self.model.s2_resolution = S2Resolution::Square(s2_grid);
+                self.model.upsample_distance = UpsampleDistance::Euclidean;
+            }
+            PolicyMode::Gated => {
+                self.model.s2_resolution = S2Resolution::Gated;
                 self.model.upsample_distance = UpsampleDistance::Euclidean;
             }
         }
@@ -655,20 +689,24 @@ impl Policy {
         let state = gripper.state();
         let turn = match cfg.mode {
             PolicyMode::Parity => Matrix3::identity(),
-            PolicyMode::Equivariant { .. } => *gripper
+            PolicyMode::Equivariant { .. } | PolicyMode::Gated => *gripper
                 .base_from_tcp
                 .rotation()
                 .to_rotation_matrix()
                 .matrix(),
         };
+        let jitter = match cfg.mode {
+            PolicyMode::Parity => GRIPPER_JITTER,
+            PolicyMode::Equivariant { .. } | PolicyMode::Gated => EQUIVARIANT_GRIPPER_JITTER,
+        };
         let mut gripper_eps = Vec::with_capacity(cfg.model.n_gripper_pos);
         while gripper_eps.len() < cfg.model.n_gripper_pos {
             let e = Vector3::new(
-                rng.random_range(-GRIPPER_JITTER..GRIPPER_JITTER),
-                rng.random_range(-GRIPPER_JITTER..GRIPPER_JITTER),
-                rng.random_range(-GRIPPER_JITTER..GRIPPER_JITTER),
+                rng.random_range(-jitter..jitter),
+                rng.random_range(-jitter..jitter),
+                rng.random_range(-jitter..jitter),
             );
-            if e.norm() < GRIPPER_JITTER {
+            if e.norm() < jitter {
                 let e = turn * e;
                 gripper_eps.push([e.x as f32, e.y as f32, e.z as f32]);
             }
@@ -869,7 +907,7 @@ impl Policy {
     /// Equivariance of the network on a prepared input under each `motion` (x → R x + t):
     /// relative errors of the translation logits at the moved queries, of the open logit, and
     /// of the rotation logits on the moved rotation grid (max abs difference / max abs value).
-    /// The unmoved input is encoded once.
+    /// The unmoved input is encoded once. [`Policy::equivariance_report`] says more.
     pub fn equivariance_errors(
         &self,
         prep: &PreparedInput,
@@ -878,46 +916,225 @@ impl Policy {
         rot_query: [f32; 3],
         motions: &[Isometry3<f64>],
     ) -> Result<Vec<[f64; 3]>> {
-        let run = |p: &PreparedInput, q: &[[f32; 3]], rq: [f32; 3]| -> Result<_> {
-            let enc = self.model.encode(
+        Ok(self
+            .equivariance_report(prep, instruction, queries, rot_query, motions)?
+            .into_iter()
+            .map(|m| m.errors)
+            .collect())
+    }
+
+    /// [`Policy::equivariance_errors`] with what lies behind each motion's error: which
+    /// discrete choices (FPS picks, pooling, up-sampling and graph neighbour sets, the
+    /// translation queries' nearest-node sets) differ between the input and the moved input,
+    /// the errors again with the moved input forced onto the input's U-net choices (only
+    /// when some differ: what remains is the continuous part), and whether the best rotation
+    /// (coarse-grid argmax refined by the pattern search) moves with the input.
+    pub fn equivariance_report(
+        &self,
+        prep: &PreparedInput,
+        instruction: &InstructionEmbedding,
+        queries: &[[f32; 3]],
+        rot_query: [f32; 3],
+        motions: &[Isometry3<f64>],
+    ) -> Result<Vec<MotionEquivariance>> {
+        let encode = |p: &PreparedInput, ov: &[(String, BlockIndices)]| {
+            self.model.encode(
                 &p.xyz,
                 &p.rgb,
                 &p.gripper,
                 &p.gripper_eps,
                 instruction.values(),
-                &[],
-            )?;
-            self.model.query(&enc, q, rq)
+                ov,
+            )
         };
-        let a = run(prep, queries, rot_query)?;
+        let enc_a = encode(prep, &[])?;
+        let a = self.model.query(&enc_a, queries, rot_query)?;
+        let best_a = self.best_rotation(&a.rot.so3_coeffs)?;
+        let knn_a = set_lists(knn(&enc_a.coord, queries, TRANS_KNN)?);
+        let choices_a: Vec<(String, BlockIndices)> = enc_a
+            .blocks
+            .iter()
+            .map(|b| (b.name.clone(), b.indices.clone()))
+            .collect();
         let f = |v: &[f32]| v.iter().map(|x| f64::from(*x)).collect::<Vec<_>>();
         let mut out = Vec::with_capacity(motions.len());
         for motion in motions {
             let (moved, mq, mrq) = move_input(prep, queries, rot_query, motion);
-            let b = run(&moved, &mq, mrq)?;
             let rm = motion.rotation.to_rotation_matrix().into_inner();
-            let grid: Vec<GridRotation> = self
-                .model
-                .heads()
-                .grid()
+            let errors_of = |enc: &crate::model::Encoded| -> Result<([f64; 3], Matrix3<f64>)> {
+                let b = self.model.query(enc, &mq, mrq)?;
+                let grid: Vec<GridRotation> = self
+                    .model
+                    .heads()
+                    .grid()
+                    .iter()
+                    .map(|g| GridRotation {
+                        angles: g.angles,
+                        matrix: rm * g.matrix,
+                    })
+                    .collect();
+                let b_rot = self.model.heads().logits_on(&b.rot.so3_coeffs, &grid)?;
+                let errors = [
+                    relative_error(&f(&b.trans_logits), &f(&a.trans_logits)),
+                    relative_error(
+                        &[f64::from(b.rot.open_logit)],
+                        &[f64::from(a.rot.open_logit)],
+                    ),
+                    relative_error(&b_rot, &a.rot.rot_logits),
+                ];
+                Ok((errors, self.best_rotation(&b.rot.so3_coeffs)?))
+            };
+            let enc_b = encode(&moved, &[])?;
+            let (errors, best_b) = errors_of(&enc_b)?;
+            let mut changed_blocks: Vec<String> = enc_a
+                .blocks
                 .iter()
-                .map(|g| GridRotation {
-                    angles: g.angles,
-                    matrix: rm * g.matrix,
+                .zip(&enc_b.blocks)
+                .filter_map(|(x, y)| {
+                    changed_choices(&x.indices, &y.indices).map(|what| format!("{}.{what}", x.name))
                 })
                 .collect();
-            let b_rot = self.model.heads().logits_on(&b.rot.so3_coeffs, &grid)?;
-            out.push([
-                relative_error(&f(&b.trans_logits), &f(&a.trans_logits)),
-                relative_error(
-                    &[f64::from(b.rot.open_logit)],
-                    &[f64::from(a.rot.open_logit)],
-                ),
-                relative_error(&b_rot, &a.rot.rot_logits),
-            ]);
+            // The index choices can be forced onto the moved input; the max-pool's cannot.
+            let errors_same_choices = if changed_blocks.is_empty() {
+                changed_blocks.extend(self.changed_max_pool(&enc_a, &enc_b)?);
+                None
+            } else {
+                Some(errors_of(&encode(&moved, &choices_a)?)?.0)
+            };
+            let knn_b = set_lists(knn(&enc_b.coord, &mq, TRANS_KNN)?);
+            let changed_query_lists = knn_a.iter().zip(&knn_b).filter(|(x, y)| x != y).count();
+            let d = best_b.transpose() * rm * best_a;
+            let argmax_angle = ((d.trace() - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
+            out.push(MotionEquivariance {
+                errors,
+                changed_blocks,
+                changed_query_lists,
+                errors_same_choices,
+                argmax_angle,
+            });
         }
         Ok(out)
     }
+
+    /// `block.max_pool` for every pooling block whose max-pool choices differ between two
+    /// encodings with the same pooling neighbours (a block of the moved input wins where a
+    /// block of near-equal norm won before); the first such block also says how many
+    /// choices flipped, how many of them were between gripper points, and the largest
+    /// relative norm gap of a flip in the unmoved input (`down1.max_pool(flips 2, gripper 2,
+    /// gap 3e-7)`).
+    fn changed_max_pool(
+        &self,
+        a: &crate::model::Encoded,
+        b: &crate::model::Encoded,
+    ) -> Result<Vec<String>> {
+        let lmax = self.cfg.model.lmax;
+        let k = crate::so3::num_coefficients(lmax);
+        let ng = self.cfg.model.n_gripper_pos;
+        let mut out = Vec::new();
+        for j in 1..a.blocks.len().min(b.blocks.len()) {
+            let (Some(nb), prev_a, prev_b) = (
+                &a.blocks[j].indices.pool_knn,
+                &a.blocks[j - 1],
+                &b.blocks[j - 1],
+            ) else {
+                continue;
+            };
+            let n = prev_a.coord.len();
+            let c = prev_a.embedding.len() / (n * k).max(1);
+            let ca = coefficient_max_pool_choices(&prev_a.embedding, n, lmax, c, nb)?;
+            let cb = coefficient_max_pool_choices(&prev_b.embedding, n, lmax, c, nb)?;
+            if ca == cb {
+                continue;
+            }
+            if !out.is_empty() {
+                out.push(format!("{}.max_pool", a.blocks[j].name));
+                continue;
+            }
+            // Gripper points are the last ng nodes while the nodes are still the input's
+            // (the first pooling block reads the full-resolution nodes).
+            let full = n == a.xyz.len();
+            let x = &prev_a.embedding;
+            let norm = |node: usize, idx: usize| {
+                let (l, ch) = (idx / c % (lmax + 1), idx % c);
+                (l * l..(l + 1) * (l + 1))
+                    .map(|i| f64::from(x[(node * k + i) * c + ch]).powi(2))
+                    .sum::<f64>()
+            };
+            let (mut flips, mut gripper, mut gap) = (0, 0, 0.0f64);
+            for (idx, (&p, &q)) in ca.iter().zip(&cb).enumerate() {
+                if p != q && p != usize::MAX && q != usize::MAX {
+                    flips += 1;
+                    if full && p >= n - ng && q >= n - ng {
+                        gripper += 1;
+                    }
+                    let (np, nq) = (norm(p, idx), norm(q, idx));
+                    gap = gap.max((np - nq).abs() / np.max(nq).max(f64::MIN_POSITIVE));
+                }
+            }
+            out.push(format!(
+                "{}.max_pool(flips {flips}, gripper {gripper}, gap {gap:.1e})",
+                a.blocks[j].name
+            ));
+        }
+        Ok(out)
+    }
+
+    /// The best rotation of `coeffs`: the coarse-grid argmax refined by the pattern search.
+    pub fn best_rotation(&self, coeffs: &[f64]) -> Result<Matrix3<f64>> {
+        let (i, v) = self.coarse_argmax(coeffs);
+        let start = self.grid.get(i).map_or(Matrix3::identity(), |g| g.matrix);
+        Ok(self.refine(coeffs, start, v)?.0)
+    }
+}
+
+/// One motion of [`Policy::equivariance_report`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct MotionEquivariance {
+    /// Relative errors (translation logits, open logit, rotation logits).
+    pub errors: [f64; 3],
+    /// `block.choice` for every U-net choice whose set differs (`fps`, `pool_knn`,
+    /// `up_knn`, `graph`; `max_pool` when none of those did but a max-pool choice did): a
+    /// discontinuity of the network (ties up to f32 rounding).
+    pub changed_blocks: Vec<String>,
+    /// Translation queries whose nearest-node set (the head's 100-NN edges) differs.
+    pub changed_query_lists: usize,
+    /// The errors with the moved input run on the unmoved input's U-net index choices, when
+    /// any differ (what remains is the continuous part of the error, and max-pool flips).
+    pub errors_same_choices: Option<[f64; 3]>,
+    /// Angle (rad) between the moved input's best rotation and the motion times the
+    /// unmoved input's best rotation.
+    pub argmax_angle: f64,
+}
+
+/// Each list as a sorted set (neighbour order among near-equal distances does not matter).
+fn set_lists(mut v: Vec<Vec<usize>>) -> Vec<Vec<usize>> {
+    v.iter_mut().for_each(|l| l.sort_unstable());
+    v
+}
+
+/// The first of a block's choices whose sets differ, by name.
+fn changed_choices(a: &BlockIndices, b: &BlockIndices) -> Option<&'static str> {
+    if a.fps != b.fps {
+        return Some("fps");
+    }
+    let sets = |v: &Option<Vec<Vec<usize>>>| v.clone().map(set_lists);
+    if sets(&a.pool_knn) != sets(&b.pool_knn) {
+        return Some("pool_knn");
+    }
+    if sets(&a.up_knn) != sets(&b.up_knn) {
+        return Some("up_knn");
+    }
+    let edges = |g: &Option<(Vec<usize>, Vec<usize>)>| {
+        g.as_ref().map(|(s, d)| {
+            let mut e: Vec<(usize, usize)> = d.iter().copied().zip(s.iter().copied()).collect();
+            e.sort_unstable();
+            e
+        })
+    };
+    if edges(&a.graph) != edges(&b.graph) {
+        return Some("graph");
+    }
+    None
 }
 
 /// The prepared input, queries and rotation query moved by `motion` (the gripper jitter

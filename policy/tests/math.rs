@@ -7,6 +7,7 @@ mod common;
 use common::random_rotation;
 use nalgebra::{DVector, Matrix3, Vector3};
 use policy::grids::{reduced_coefficients, so3_healpix_grid, S2Grid};
+use policy::layers::{rotate_embedding, separable_s2_activation};
 use policy::points::{
     coefficient_max_pool, farthest_point_sampling, knn, upsample_weights, UpsampleDistance,
 };
@@ -287,6 +288,50 @@ fn s2_activation_becomes_equivariant_on_finer_grids() {
     let fine = err(&S2Grid::with_resolution(3, 3, 40, 41).unwrap());
     assert!(fine < coarse / 10.0, "coarse {coarse} fine {fine}");
     assert_eq!(reduced_coefficients(3, 2).len(), 14);
+}
+
+#[test]
+fn gated_activation_commutes_with_rotations() {
+    // Every l > 0 block is multiplied by an invariant scalar, so D(R) commutes with it up to
+    // f32 rounding, both gated by the layer's own scalars and by each channel's l = 0 value.
+    let mut rng = ChaCha8Rng::seed_from_u64(15);
+    let lmax = 3;
+    let calc = WignerCalculator::new(lmax).unwrap();
+    let (n, c) = (16, 5);
+    let k = 16;
+    let x: Vec<f32> = (0..n * k * c)
+        .map(|_| rng.random_range(-2.0..2.0))
+        .collect();
+    let gating: Vec<f32> = (0..n * c).map(|_| rng.random_range(-3.0..3.0)).collect();
+    let g = S2Grid::gate(lmax, lmax).unwrap();
+    assert_eq!(g.num_points(), 0);
+    for _ in 0..5 {
+        let r = random_rotation(&mut rng);
+        let d = calc.wigner(lmax, &r).unwrap();
+        let rotate = |v: &[f32]| rotate_embedding(v, c, &d).unwrap();
+        let rel = |a: &[f32], b: &[f32]| {
+            let m = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+            a.iter()
+                .zip(b)
+                .map(|(p, q)| (p - q).abs())
+                .fold(0.0f32, f32::max)
+                / m
+        };
+        let own = rel(
+            &rotate(&g.activate(&x, n, c).unwrap()),
+            &g.activate(&rotate(&x), n, c).unwrap(),
+        );
+        let sep = rel(
+            &rotate(&separable_s2_activation(&g, &gating, &x, c).unwrap()),
+            &separable_s2_activation(&g, &gating, &rotate(&x), c).unwrap(),
+        );
+        assert!(own < 2e-6 && sep < 2e-6, "own gate {own}, layer gate {sep}");
+    }
+    // The l = 0 row is SiLU of the gate, the others are scaled by its sigmoid.
+    let y = separable_s2_activation(&g, &gating, &x, c).unwrap();
+    let s = 1.0 / (1.0 + (-gating[2]).exp());
+    assert!((y[2] - gating[2] * s).abs() < 1e-6);
+    assert!((y[c + 2] - x[c + 2] * s).abs() < 1e-6);
 }
 
 #[test]

@@ -45,12 +45,17 @@ pub struct PolicyBenchArgs {
     /// Points of the synthetic input cloud.
     #[arg(long, default_value_t = 20_000)]
     pub cloud_points: usize,
-    /// S2 grid size of equivariant mode.
+    /// S2 grid size of `equivariant` in --mode.
     #[arg(long, default_value_t = 16)]
     pub s2_grid: usize,
-    /// Only one mode: parity or equivariant.
+    /// Modes, comma-separated: parity, equivariant (with --s2-grid), equivariant:N (N × N
+    /// grids), gated. Default: parity, equivariant, gated.
     #[arg(long)]
     pub mode: Option<String>,
+    /// Largest angle (rad) between the moved input's best rotation and the motion times the
+    /// unmoved input's best rotation that counts as "the argmax moves with the input".
+    #[arg(long, default_value_t = 1e-2)]
+    pub argmax_tolerance: f64,
     /// Seed of the motions, the scene and the predictions.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
@@ -351,6 +356,27 @@ fn median(v: &mut [f64]) -> f64 {
     }
 }
 
+/// Median, 95th percentile and maximum of each of the three relative errors (translation
+/// logits, open logit, rotation logits).
+fn error_summary(errs: &[[f64; 3]]) -> serde_json::Value {
+    let one = |k: usize| {
+        let mut v: Vec<f64> = errs.iter().map(|e| e[k]).collect();
+        v.sort_by(f64::total_cmp);
+        let q = |p: f64| {
+            v.get(((v.len() as f64 - 1.0) * p).round() as usize)
+                .copied()
+                .unwrap_or(f64::NAN)
+        };
+        serde_json::json!({"median": q(0.5), "p95": q(0.95), "max": q(1.0)})
+    };
+    serde_json::json!({
+        "motions": errs.len(),
+        "translation_logits_rel": one(0),
+        "open_logit_rel": one(1),
+        "rotation_logits_rel": one(2),
+    })
+}
+
 /// A uniformly random rotation (normalised Gaussian quaternion) and a shift within ±0.2 m.
 fn random_motion(rng: &mut rand_chacha::ChaCha8Rng) -> nalgebra::Isometry3<f64> {
     use rand::Rng;
@@ -374,15 +400,24 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
         synthetic_scene, GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode,
     };
     use rand::{Rng, SeedableRng};
-    let modes: Vec<PolicyMode> = match a.mode.as_deref() {
-        None => vec![
-            PolicyMode::Parity,
-            PolicyMode::Equivariant { s2_grid: a.s2_grid },
-        ],
-        Some("parity") => vec![PolicyMode::Parity],
-        Some("equivariant") => vec![PolicyMode::Equivariant { s2_grid: a.s2_grid }],
-        Some(m) => anyhow::bail!("unknown --mode {m}; use parity or equivariant"),
-    };
+    let modes: Vec<PolicyMode> = a
+        .mode
+        .as_deref()
+        .unwrap_or("parity,equivariant,gated")
+        .split(',')
+        .map(|m| match m.trim() {
+            "parity" => Ok(PolicyMode::Parity),
+            "equivariant" => Ok(PolicyMode::Equivariant { s2_grid: a.s2_grid }),
+            "gated" => Ok(PolicyMode::Gated),
+            m => match m.strip_prefix("equivariant:").map(str::parse::<usize>) {
+                Some(Ok(s2_grid)) => Ok(PolicyMode::Equivariant { s2_grid }),
+                _ => anyhow::bail!(
+                    "unknown --mode {m}; use parity, equivariant, equivariant:N or gated"
+                ),
+            },
+        })
+        .collect::<anyhow::Result<_>>()?;
+    let a_tol = a.argmax_tolerance;
     let cloud = synthetic_scene(a.cloud_points, a.seed)?;
     let gripper = GripperPose {
         base_from_tcp: cell_types::Transform::from_xyz_rpy([0.5, 0.02, 0.3], [3.0, 0.1, 0.4]),
@@ -407,10 +442,7 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
         }),
     );
     for mode in modes {
-        let name = match mode {
-            PolicyMode::Parity => "parity".to_string(),
-            PolicyMode::Equivariant { s2_grid } => format!("equivariant_s2_{s2_grid}"),
-        };
+        let name = mode.name();
         let mut cfg = PolicyConfig::physical().with_mode(mode);
         cfg.n_points = a.points;
         cfg.n_outside_focus = a.points / 4;
@@ -462,10 +494,10 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
             .collect();
         let motions: Vec<_> = (0..a.repeats).map(|_| random_motion(&mut rng)).collect();
         let t = policy::predict::CpuTimer::start();
-        let errs = if motions.is_empty() {
+        let report = if motions.is_empty() {
             Vec::new()
         } else {
-            policy.equivariance_errors(
+            policy.equivariance_report(
                 &prep,
                 &instruction,
                 &queries,
@@ -473,19 +505,58 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
                 &motions,
             )?
         };
-        // Thread CPU time of one encode + heads (the machine may be shared).
-        let forward_s = t.elapsed() / (motions.len() + 1) as f64;
-        let summary = |k: usize| {
-            let mut v: Vec<f64> = errs.iter().map(|e| e[k]).collect();
-            let max = v.iter().copied().fold(f64::NAN, f64::max);
-            serde_json::json!({"median": median(&mut v), "max": max})
-        };
+        // Thread CPU time of one encode + heads (the machine may be shared; motions whose
+        // discrete choices changed are encoded twice).
+        let encodes = 1
+            + report.len()
+            + report
+                .iter()
+                .filter(|m| m.errors_same_choices.is_some())
+                .count();
+        let forward_s = t.elapsed() / encodes as f64;
+        let errs: Vec<[f64; 3]> = report.iter().map(|m| m.errors).collect();
+        // Discontinuities: motions where a discrete choice changed, and the errors of the
+        // others; for the changed ones, the errors with the unmoved input's choices forced.
+        let unchanged: Vec<[f64; 3]> = report
+            .iter()
+            .filter(|m| m.changed_blocks.is_empty() && m.changed_query_lists == 0)
+            .map(|m| m.errors)
+            .collect();
+        let forced: Vec<[f64; 3]> = report
+            .iter()
+            .filter_map(|m| m.errors_same_choices)
+            .collect();
+        let mut changed = serde_json::Map::new();
+        for m in &report {
+            for b in &m.changed_blocks {
+                // `down1.max_pool(flips 2, ...)`: counted under `down1.max_pool`.
+                let key = b.split('(').next().unwrap_or(b.as_str()).to_string();
+                let e = changed.entry(key).or_insert(serde_json::json!(0));
+                *e = serde_json::json!(e.as_u64().unwrap_or(0) + 1);
+            }
+        }
+        let angles: Vec<f64> = report.iter().map(|m| m.argmax_angle).collect();
+        let argmax_ok = angles.iter().filter(|a| **a <= a_tol).count();
+        let max_angle = angles.iter().copied().fold(f64::NAN, f64::max);
+        for (i, m) in report.iter().enumerate() {
+            eprintln!(
+                "{name}: motion {i}: errors {:.2e} {:.2e} {:.2e}; argmax angle {:.2e} rad; \
+                 changed {:?}, query lists {}; same choices {:?}",
+                m.errors[0],
+                m.errors[1],
+                m.errors[2],
+                m.argmax_angle,
+                m.changed_blocks,
+                m.changed_query_lists,
+                m.errors_same_choices
+            );
+        }
         eprintln!(
-            "{name}: median total {:.3} s; equivariance (trans, open, rot) {} {} {}",
+            "{name}: median total {:.3} s; equivariance {}; argmax moves with the input in \
+             {argmax_ok} of {} (max angle {max_angle:.2e} rad)",
             stage(&|t| t.total),
-            summary(0),
-            summary(1),
-            summary(2)
+            error_summary(&errs),
+            angles.len(),
         );
         out.insert(
             name,
@@ -494,12 +565,24 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
                 "time_per_keyframe_s": stage(&|t| t.total),
                 "stage_timings_s": timings,
                 "equivariance": {
-                    "motions": motions.len(),
-                    "translation_logits_rel": summary(0),
-                    "open_logit_rel": summary(1),
-                    "rotation_logits_rel": summary(2),
+                    "all": error_summary(&errs),
                     "forward_s": forward_s,
                     "queries": queries.len(),
+                    "argmax": {
+                        "tolerance_rad": a_tol,
+                        "moves_with_input": argmax_ok,
+                        "of": angles.len(),
+                        "max_angle_rad": max_angle,
+                    },
+                    "discontinuities": {
+                        "motions_with_changed_unet_choices":
+                            report.iter().filter(|m| !m.changed_blocks.is_empty()).count(),
+                        "changed_choices": changed,
+                        "motions_with_changed_query_neighbours":
+                            report.iter().filter(|m| m.changed_query_lists > 0).count(),
+                        "unchanged_motions": error_summary(&unchanged),
+                        "changed_motions_with_forced_choices": error_summary(&forced),
+                    },
                 },
             }),
         );

@@ -52,6 +52,8 @@ pub enum ModeArg {
     Parity,
     /// Fine S2 grids, Euclidean up-sampling, gripper jitter in the gripper frame.
     Equivariant,
+    /// Equivariant mode with gated activations instead of S2 grids (exactly equivariant).
+    Gated,
 }
 
 impl ModeArg {
@@ -60,6 +62,7 @@ impl ModeArg {
         match self {
             Self::Parity => PolicyMode::Parity,
             Self::Equivariant => PolicyMode::Equivariant { s2_grid },
+            Self::Gated => PolicyMode::Gated,
         }
     }
 }
