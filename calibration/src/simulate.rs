@@ -875,6 +875,47 @@ mod tests {
         }
     }
 
+    /// Simulates `cfg` (IR images on) and the same poses with projected corners: the image
+    /// captures, their truth, and how many views the projection saw.
+    fn image_and_projected(cfg: &SimConfig, seed: u64) -> (CaptureSet, Truth, usize) {
+        let (set, truth) = simulate_set(cfg, seed).unwrap();
+        let (projected, _) = simulate_set(
+            &SimConfig {
+                ir_noise: None,
+                ..cfg.clone()
+            },
+            seed,
+        )
+        .unwrap();
+        let seen = projected.captures.iter().map(|c| c.views.len()).sum();
+        (set, truth, seen)
+    }
+
+    /// Solves captures detected in images without robot noise: every camera within
+    /// 0.3 mm / 0.02° of the truth, every fit within 0.1 px (the detector's error).
+    fn assert_image_chain_recovers(set: &CaptureSet, truth: &Truth) {
+        let opts = crate::solve::SolveOptions {
+            robot_prior: None,
+            corner_sigma_px: 0.05,
+            min_poses: 10,
+            min_views_per_camera: 5,
+            holdout_folds: 0,
+            ..Default::default()
+        };
+        let sol = crate::solve::solve(set, &opts).unwrap();
+        for (id, dt, dr) in sol.errors_to(truth) {
+            eprintln!("camera {id}: {:.4} mm {:.5} deg", dt * 1e3, dr.to_degrees());
+            assert!(
+                dt < 0.3e-3 && dr.to_degrees() < 0.02,
+                "camera {id}: {dt} m {dr} rad"
+            );
+        }
+        for c in &sol.cameras {
+            eprintln!("camera {}: fit RMS {:.4} px", c.id, c.fit_rms_px);
+            assert!(c.fit_rms_px < 0.1, "{}", c.fit_rms_px);
+        }
+    }
+
     #[test]
     fn the_whole_chain_from_april_grid_images_recovers_the_cameras() {
         // As below with an AprilGrid: render, detect the tags, solve, no robot noise.
@@ -883,16 +924,7 @@ mod tests {
         cfg.noise = SimNoise::none();
         cfg.ir_noise = Some(2.0);
         cfg.max_obliquity_deg = 60.0;
-        let (set, truth) = simulate_set(&cfg, 9).unwrap();
-        let (projected, _) = simulate_set(
-            &SimConfig {
-                ir_noise: None,
-                ..cfg.clone()
-            },
-            9,
-        )
-        .unwrap();
-        let seen: usize = projected.captures.iter().map(|c| c.views.len()).sum();
+        let (set, truth, seen) = image_and_projected(&cfg, 9);
         let mut views = 0;
         let mut corners = 0;
         for c in &set.captures {
@@ -908,26 +940,7 @@ mod tests {
             corners * 3 >= complete * 2,
             "{corners} of {complete} corners"
         );
-        let opts = crate::solve::SolveOptions {
-            robot_prior: None,
-            corner_sigma_px: 0.05,
-            min_poses: 10,
-            min_views_per_camera: 5,
-            holdout_folds: 0,
-            ..Default::default()
-        };
-        let sol = crate::solve::solve(&set, &opts).unwrap();
-        for (id, dt, dr) in sol.errors_to(&truth) {
-            eprintln!("camera {id}: {:.4} mm {:.5} deg", dt * 1e3, dr.to_degrees());
-            assert!(
-                dt < 0.3e-3 && dr.to_degrees() < 0.02,
-                "camera {id}: {dt} m {dr} rad"
-            );
-        }
-        for c in &sol.cameras {
-            eprintln!("camera {}: fit RMS {:.4} px", c.id, c.fit_rms_px);
-            assert!(c.fit_rms_px < 0.1, "{}", c.fit_rms_px);
-        }
+        assert_image_chain_recovers(&set, &truth);
     }
 
     #[test]
@@ -941,16 +954,7 @@ mod tests {
         cfg.noise = SimNoise::none();
         cfg.ir_noise = Some(2.0);
         cfg.max_obliquity_deg = 65.0;
-        let (set, truth) = simulate_set(&cfg, 8).unwrap();
-        let (projected, _) = simulate_set(
-            &SimConfig {
-                ir_noise: None,
-                ..cfg.clone()
-            },
-            8,
-        )
-        .unwrap();
-        let seen: usize = projected.captures.iter().map(|c| c.views.len()).sum();
+        let (set, truth, seen) = image_and_projected(&cfg, 8);
         let mut views = 0;
         for c in &set.captures {
             views += c.views.len();
@@ -959,27 +963,8 @@ mod tests {
             }
         }
         assert!(views * 10 >= seen * 9, "{views} of {seen} views detected");
-        let opts = crate::solve::SolveOptions {
-            robot_prior: None,
-            corner_sigma_px: 0.05,
-            min_poses: 10,
-            min_views_per_camera: 5,
-            holdout_folds: 0,
-            ..Default::default()
-        };
-        let sol = crate::solve::solve(&set, &opts).unwrap();
         eprintln!("IR chain: {views} of {seen} views detected");
-        for (id, dt, dr) in sol.errors_to(&truth) {
-            eprintln!("camera {id}: {:.4} mm {:.5} deg", dt * 1e3, dr.to_degrees());
-            assert!(
-                dt < 0.3e-3 && dr.to_degrees() < 0.02,
-                "camera {id}: {dt} m {dr} rad"
-            );
-        }
-        for c in &sol.cameras {
-            eprintln!("camera {}: fit RMS {:.4} px", c.id, c.fit_rms_px);
-            assert!(c.fit_rms_px < 0.1, "{}", c.fit_rms_px);
-        }
+        assert_image_chain_recovers(&set, &truth);
     }
 
     #[test]
