@@ -118,8 +118,9 @@ pub fn run_checks(cfg: &CellConfig, config_dir: &Path, clock: Arc<dyn Clock>) ->
 pub const INTRINSICS_TOLERANCE_PX: f64 = 2.0;
 
 /// The camera checks on the connected D455s: each configured serial is connected and
-/// streams depth + IR at its mode and rate ("cameras"), and its depth intrinsics agree with
-/// the calibration's camera model ("intrinsics", when the calibration file was read).
+/// streams depth + IR (and colour where configured) at its mode and rate ("cameras"), and
+/// its depth intrinsics agree with the calibration's camera model ("intrinsics", when the
+/// calibration file was read).
 pub fn check_cameras(cfg: &CellConfig, calibration: Option<&CellCalibration>) -> Vec<Check> {
     if let Err(e) = realsense::library() {
         return vec![Check::fail(
@@ -129,9 +130,7 @@ pub fn check_cameras(cfg: &CellConfig, calibration: Option<&CellCalibration>) ->
              EQUACT_LIBREALSENSE at librealsense2.so",
         )];
     }
-    check_camera_streams(cfg, calibration, &mut |id, c| {
-        RealSenseCamera::open(id, &c.serial, c.mode, c.fps)
-    })
+    check_camera_streams(cfg, calibration, &mut crate::real_cell::open_configured)
 }
 
 /// [`check_cameras`] with the cameras opened by `open` (a test plays recordings): camera

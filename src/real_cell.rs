@@ -8,12 +8,12 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use calibration::CellCalibration;
-use cell_types::config::{CellConfig, GripperTransport};
-use cell_types::Clock;
+use cell_types::config::{CameraSection, CellConfig, GripperTransport};
+use cell_types::{CameraFrame, Clock};
 use firmware_iface::camera::DepthCamera;
 use firmware_iface::gripper::can::{CanId, CanMapping};
 use firmware_iface::gripper::{Gripper, RobotiqGripper};
-use firmware_iface::realsense::RealSenseCamera;
+use firmware_iface::realsense::{RealSenseCamera, RealSenseError};
 use firmware_iface::ur::UrArm;
 
 use crate::episode::{CellIo, TaskMonitor};
@@ -158,7 +158,7 @@ pub fn open_cameras(cfg: &CellConfig) -> anyhow::Result<Vec<Box<dyn DepthCamera>
     let mut cameras: Vec<Box<dyn DepthCamera>> = Vec::with_capacity(cfg.cameras.len());
     for (i, c) in cfg.cameras.iter().enumerate() {
         let id = u8::try_from(i).context("more than 255 cameras")?;
-        let mut cam = RealSenseCamera::open(id, &c.serial, c.mode, c.fps)
+        let mut cam = open_configured(id, c)
             .with_context(|| format!("opening the D455 `{}` (serial {})", c.name, c.serial))?;
         for _ in 0..WARMUP_FRAMES {
             cam.capture()
@@ -167,6 +167,41 @@ pub fn open_cameras(cfg: &CellConfig) -> anyhow::Result<Vec<Box<dyn DepthCamera>
         cameras.push(Box::new(cam));
     }
     Ok(cameras)
+}
+
+/// Opens the D455 of one `[[cameras]]` entry as configured: depth and IR at its mode and
+/// rate, plus colour aligned to depth when `colour = true`.
+pub fn open_configured(id: u8, c: &CameraSection) -> Result<RealSenseCamera, RealSenseError> {
+    if c.colour {
+        RealSenseCamera::open_with_colour(id, &c.serial, c.mode, c.fps)
+    } else {
+        RealSenseCamera::open(id, &c.serial, c.mode, c.fps)
+    }
+}
+
+/// One frameset from each configured camera (`equact perceive --config`): camera `i` (the
+/// config's `i`-th entry) is opened by `open`, drops `warmup` framesets while its
+/// auto-exposure settles, gives one and is closed before the next opens.
+pub fn capture_frames(
+    cfg: &CellConfig,
+    warmup: u32,
+    open: &mut dyn FnMut(u8, &CameraSection) -> Result<RealSenseCamera, RealSenseError>,
+) -> anyhow::Result<Vec<CameraFrame>> {
+    let mut frames = Vec::with_capacity(cfg.cameras.len());
+    for (i, c) in cfg.cameras.iter().enumerate() {
+        let id = u8::try_from(i).context("more than 255 cameras")?;
+        let mut cam = open(id, c)
+            .with_context(|| format!("opening the D455 `{}` (serial {})", c.name, c.serial))?;
+        for _ in 0..warmup {
+            cam.next_frame()
+                .with_context(|| format!("camera `{}` warming up", c.name))?;
+        }
+        frames.push(
+            cam.next_frame()
+                .with_context(|| format!("capturing from camera `{}`", c.name))?,
+        );
+    }
+    Ok(frames)
 }
 
 /// A real arm moves only after the operator said so: Enter at a terminal, or `--yes`.

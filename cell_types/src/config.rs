@@ -235,6 +235,10 @@ pub struct CameraSection {
     /// Roughly the point the camera looks at (base frame, m), with `approx_position`.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub approx_look_at: Option<[f64; 3]>,
+    /// Also stream colour (RGB8 at the depth mode's size, aligned to depth by librealsense):
+    /// the fused cloud then carries colour. Off by default (depth and IR only).
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub colour: bool,
 }
 
 /// `[calibration]`: where the camera extrinsics come from.
@@ -244,7 +248,8 @@ pub struct CalibrationSection {
     /// Path of `calibration.toml` (relative to the config file); empty in simulation means
     /// the simulator's true camera poses.
     pub file: String,
-    /// The chessboard on the flange (default: 7 x 10 inner corners, 35 mm squares).
+    /// The target on the flange (default: a chessboard of 7 x 10 inner corners, 35 mm
+    /// squares).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub board: Option<BoardSection>,
 }

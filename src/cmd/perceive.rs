@@ -15,7 +15,7 @@ use calibration::view::{splat, write_ply};
 use calibration::CellCalibration;
 use calibration::{DepthMode, Intrinsics};
 use cell_types::{CameraFrame, Image, Rgb};
-use firmware_iface::realsense::{self, RealSenseCamera};
+use firmware_iface::realsense;
 use hil_sim::depth_camera::{default_rig, render_rig, rig_calibration};
 use hil_sim::scene::{robot_capsules, Scene, HOME_Q};
 use nalgebra::Point3;
@@ -131,20 +131,11 @@ fn real(args: &PerceiveArgs, path: &Path) -> anyhow::Result<Captured> {
         version % 100,
         lib.display()
     );
-    let mut frames = Vec::new();
-    for (i, c) in cfg.cameras.iter().enumerate() {
-        let id = u8::try_from(i).context("more than 256 cameras")?;
-        let mut cam = RealSenseCamera::open(id, &c.serial, c.mode, c.fps)
-            .with_context(|| format!("opening camera `{}`", c.name))?;
-        for _ in 0..args.warmup {
-            cam.next_frame()
-                .with_context(|| format!("camera `{}` warming up", c.name))?;
-        }
-        frames.push(
-            cam.next_frame()
-                .with_context(|| format!("capturing from camera `{}`", c.name))?,
-        );
-    }
+    let frames = equact::real_cell::capture_frames(
+        &cfg,
+        args.warmup,
+        &mut equact::real_cell::open_configured,
+    )?;
     Ok((
         frames,
         cfg.cameras.iter().map(|c| c.name.clone()).collect(),

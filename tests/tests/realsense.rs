@@ -353,3 +353,108 @@ fn preflight_camera_checks() {
     assert!(cams.fix.contains("cameras[0].mode"), "{cams:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// `equact perceive --config`'s capture (`real_cell::capture_frames`): each configured
+/// camera is opened in turn with its own configuration (colour where `colour = true`),
+/// drops its warm-up framesets, gives the next one and closes before the next camera
+/// opens; a recording stands in for every camera. The frames then fuse with a calibration
+/// that looks down on the workspace, and every fused point lies on the recorded surface of
+/// one of the cameras.
+#[test]
+fn perceive_captures_each_configured_camera_in_turn_and_fuses_them() {
+    use calibration::fusion::FusionPipeline;
+    use calibration::{CameraCalibration, CellCalibration, Intrinsics};
+    use cell_types::Transform;
+    use nalgebra::{Point3, UnitQuaternion, Vector3};
+
+    tests::load_venv_librealsense().unwrap();
+    let dir =
+        std::env::temp_dir().join(format!("equact-realsense-perceive-{}", std::process::id()));
+    let path = record(&dir, "perceive.db3", 0.001);
+    let _one = one_playback();
+    let mut cfg = cell_types::CellConfig::simulated().unwrap();
+    cfg.cameras[1].colour = true;
+    let mut opened = Vec::new();
+    const WARMUP: u32 = 2;
+    let frames = equact::real_cell::capture_frames(&cfg, WARMUP, &mut |id, c| {
+        opened.push((id, c.colour));
+        RealSenseCamera::open_recording(id, &path)
+    })
+    .unwrap();
+    // Opened in order, each with its own entry (one recording at a time: each closed first).
+    let want: Vec<(u8, bool)> = (0..cfg.cameras.len()).map(|i| (i as u8, i == 1)).collect();
+    assert_eq!(opened, want);
+    assert_eq!(frames.len(), cfg.cameras.len());
+    let depth_mm = |u: u32, v: u32| 500 + 3 * u + 7 * v + 11 * WARMUP;
+    for (i, f) in frames.iter().enumerate() {
+        assert_eq!(f.camera, i as u8);
+        // The frameset after the warm-up ones: frame index WARMUP of the peer's formula.
+        for (u, v) in [(0, 0), (17, 9), (W - 1, H - 1)] {
+            assert_eq!(u32::from(*f.depth.raw.get(u, v).unwrap()), depth_mm(u, v));
+        }
+    }
+
+    // Three cameras 1 m above the table looking straight down, 22 cm apart along x: their
+    // footprints (about 15 x 11 cm) do not overlap.
+    let k = Intrinsics {
+        width: W,
+        height: H,
+        fx: 421.25,
+        fy: 420.75,
+        ppx: f64::from(W) / 2.0 - 0.5 + 1.25,
+        ppy: f64::from(H) / 2.0 - 0.5 - 0.75,
+        distortion: calibration::Distortion::None,
+    };
+    let down = UnitQuaternion::from_axis_angle(&Vector3::x_axis(), std::f64::consts::PI);
+    let poses: Vec<Transform<_, _>> = (0..cfg.cameras.len())
+        .map(|i| Transform::from_parts(Vector3::new(0.35 + 0.22 * i as f64, 0.0, 1.0), down))
+        .collect();
+    let cal = CellCalibration {
+        cameras: poses
+            .iter()
+            .enumerate()
+            .map(|(i, p)| CameraCalibration {
+                id: i as u8,
+                intrinsics: k,
+                base_from_camera: *p,
+                depth_correction: Default::default(),
+            })
+            .collect(),
+    };
+    let pipe = FusionPipeline::new(cal, equact::episode::fusion_params(&cfg, 1)).unwrap();
+    let (dense, _) = pipe.fuse_dense(&frames, &[]).unwrap();
+    assert!(dense.xyz.len() > 300, "{} fused points", dense.xyz.len());
+    let mut per_camera = vec![0; poses.len()];
+    for p in &dense.xyz {
+        let p = p.cast::<f64>();
+        // The camera above the point: its recorded depth at the point's pixel.
+        let (i, cam) = poses
+            .iter()
+            .enumerate()
+            .min_by(|(_, a), (_, b)| {
+                let da = (a.translation().x - p.x).abs();
+                let db = (b.translation().x - p.x).abs();
+                da.total_cmp(&db)
+            })
+            .unwrap();
+        per_camera[i] += 1;
+        let in_cam: Point3<f64> = cam.isometry().inverse() * p;
+        let px = k.project(&in_cam).unwrap();
+        let (u, v) = (
+            px.x.round().clamp(0.0, f64::from(W - 1)),
+            px.y.round().clamp(0.0, f64::from(H - 1)),
+        );
+        let want = f64::from(depth_mm(u as u32, v as u32)) * 1e-3;
+        // A 5 mm voxel's centroid on a surface whose depth changes by 3-7 mm a pixel.
+        assert!(
+            (in_cam.z - want).abs() < 0.012,
+            "point {p:?}: {} m deep, the recording says {want} m",
+            in_cam.z
+        );
+    }
+    assert!(
+        per_camera.iter().all(|n| *n > 100),
+        "points per camera {per_camera:?}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
