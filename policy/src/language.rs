@@ -1,6 +1,7 @@
-//! The instruction encoder: token embeddings (53 × 512, CLIP-style) projected to the FiLM
-//! width, a learned readout token in front, sin/cos positions, and a pre-norm Transformer;
-//! output token 0 is the condition of every FiLM layer.
+//! The instruction encoder: token embeddings (`[tokens, token_dim]`: CLIP's 53 × 512 as the
+//! reference uses, or all-MiniLM-L6-v2's tokens × 384) projected to the FiLM width, a
+//! learned readout token in front, sin/cos positions, and a pre-norm Transformer; output
+//! token 0 is the condition of every FiLM layer.
 //!
 //! Spec: `equact.md` ("Language") and the `language_encoder` sidecar. No padding mask (all
 //! tokens attend to each other, as the reference), no final norm, exact erf GELU.

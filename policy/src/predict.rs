@@ -129,8 +129,11 @@ impl InstructionEmbedding {
         }
     }
 
-    /// Reads a safetensors file holding one F32 tensor `[53, 512]` or `[1, 53, 512]` (or
-    /// several, one of them named `instruction` or `embedding`).
+    /// Reads a safetensors file holding one F32 tensor `[tokens, width]` or
+    /// `[1, tokens, width]` (or several, one of them named `instruction` or `embedding`):
+    /// CLIP's `[53, 512]` as the reference uses, or MiniLM's per-token states
+    /// `[tokens, 384]` (`equact policy embed --out`). The network checks the width against
+    /// its own when it predicts.
     pub fn from_file(path: &Path) -> Result<Self> {
         let tensors = read_safetensors(path)?;
         let key = if tensors.len() == 1 {
@@ -161,18 +164,17 @@ impl InstructionEmbedding {
                 got: "I64".into(),
             });
         };
-        let dims: Vec<usize> = match t.shape.as_slice() {
-            [1, a, b] | [a, b] => vec![*a, *b],
-            _ => vec![],
+        let (tokens, dim) = match t.shape.as_slice() {
+            [1, a, b] | [a, b] if *a > 0 && *b > 0 => (*a, *b),
+            _ => {
+                return Err(PolicyError::ShapeMismatch {
+                    name,
+                    expected: vec![INSTRUCTION_TOKENS, INSTRUCTION_DIM],
+                    got: t.shape.clone(),
+                })
+            }
         };
-        if dims != [INSTRUCTION_TOKENS, INSTRUCTION_DIM] {
-            return Err(PolicyError::ShapeMismatch {
-                name,
-                expected: vec![INSTRUCTION_TOKENS, INSTRUCTION_DIM],
-                got: t.shape.clone(),
-            });
-        }
-        Self::new(values.clone(), INSTRUCTION_TOKENS, INSTRUCTION_DIM)
+        Self::new(values.clone(), tokens, dim)
     }
 
     /// Writes the embedding as a safetensors file with one tensor `instruction` `[tokens, dim]`.
@@ -547,14 +549,9 @@ impl Policy {
     pub fn from_weights(cfg: PolicyConfig, weights: &Weights) -> Result<Self> {
         let cfg = cfg.clone().with_mode(cfg.mode);
         cfg.check()?;
+        // Any token width loads (CLIP's 512, MiniLM's 384, ...): each prediction checks the
+        // instruction's width against the network's.
         let model = EquFieldUnet::load(&weights.scope(""), cfg.model.clone())?;
-        if model.language().token_dim() != INSTRUCTION_DIM {
-            return Err(PolicyError::ShapeMismatch {
-                name: "instruction_embedding.weight (token width)".into(),
-                expected: vec![INSTRUCTION_DIM],
-                got: vec![model.language().token_dim()],
-            });
-        }
         let calc = WignerCalculator::new(crate::rotation_head::ROT_LMAX)?;
         let grid = so3_healpix_grid(cfg.rotation.grid_level);
         let mut grid_wigners = Vec::with_capacity(grid.len() * SO3_COEFFS);

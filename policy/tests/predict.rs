@@ -280,16 +280,48 @@ fn instruction_files_are_read_and_checked() {
     std::fs::write(&path, b"not a safetensors file").unwrap();
     let e = InstructionEmbedding::from_file(&path).unwrap_err();
     assert!(matches!(e, PolicyError::Safetensors { .. }), "{e}");
-    InstructionEmbedding::new(vec![0.0; 52 * 512], 52, 512)
-        .unwrap()
-        .save(&path)
-        .unwrap();
+    // Any [tokens, width] reads (MiniLM's states are [tokens, 384]); a flat tensor does not.
+    let minilm = InstructionEmbedding::new(vec![0.5; 9 * 384], 9, 384).unwrap();
+    minilm.save(&path).unwrap();
+    assert_eq!(InstructionEmbedding::from_file(&path).unwrap(), minilm);
+    let mut flat = std::collections::HashMap::new();
+    flat.insert(
+        "instruction".to_string(),
+        policy::fixtures::StoredTensor {
+            shape: vec![53 * 512],
+            data: policy::fixtures::TensorData::F32(vec![0.0; 53 * 512]),
+        },
+    );
+    Weights::from_tensors("flat", flat).save(&path).unwrap();
     let e = InstructionEmbedding::from_file(&path).unwrap_err();
     assert!(
-        matches!(&e, PolicyError::ShapeMismatch { got, .. } if got == &vec![52, 512]),
+        matches!(&e, PolicyError::ShapeMismatch { got, .. } if got == &vec![53 * 512]),
         "{e}"
     );
     std::fs::remove_file(&path).unwrap();
+}
+
+#[test]
+fn a_network_with_minilm_wide_tokens_runs_on_minilm_embeddings_only() {
+    // A network whose instruction encoder reads 384-wide tokens (all-MiniLM-L6-v2's), fed
+    // 11 tokens of that width; CLIP's 512-wide tokens are refused with both widths named.
+    let mut cfg = PolicyConfig::tiny();
+    cfg.extra.token_dim = 384;
+    let mut p = Policy::random(cfg, 7).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let values = (0..11 * 384)
+        .map(|_| rng.random_range(-1.0..1.0f32))
+        .collect();
+    let minilm = InstructionEmbedding::new(values, 11, 384).unwrap();
+    let k = p.predict(&scene(1), &gripper(), &minilm).unwrap();
+    assert!(k.base_from_tcp.translation().iter().all(|v| v.is_finite()));
+    let e = p
+        .predict(&scene(1), &gripper(), &InstructionEmbedding::random(1))
+        .unwrap_err();
+    assert!(
+        matches!(&e, PolicyError::ShapeMismatch { expected, got, .. } if expected == &vec![53, 384] && got == &vec![53, 512]),
+        "{e}"
+    );
 }
 
 #[test]

@@ -109,26 +109,25 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
              --instruction-embedding FILE, or use the simulated cell (no --config)"
         );
     }
-    let learned_files =
-        match args.policy {
-            PolicyChoice::Expert => None,
-            PolicyChoice::Learned => {
-                let Some(weights) = args.weights.clone() else {
-                    anyhow::bail!(
-                        "--policy learned needs --weights FILE: no trained EquAct weights are \
+    let learned_files = match args.policy {
+        PolicyChoice::Expert => None,
+        PolicyChoice::Learned => {
+            let Some(weights) = args.weights.clone() else {
+                anyhow::bail!(
+                    "--policy learned needs --weights FILE: no trained EquAct weights are \
                      committed yet (issue 9); run with --policy expert, or pass weights"
-                    );
-                };
-                let Some(embedding) = args.instruction_embedding.clone() else {
-                    anyhow::bail!(
-                    "--policy learned needs --instruction-embedding FILE (53 x 512 safetensors \
-                     of the instruction `{}`)",
+                );
+            };
+            let Some(embedding) = args.instruction_embedding.clone() else {
+                anyhow::bail!(
+                    "--policy learned needs --instruction-embedding FILE (tokens x width safetensors, \
+                     e.g. CLIP 53 x 512 or `equact policy embed --out`, of the instruction `{}`)",
                     args.instruction.as_deref().unwrap_or("of the task variation")
                 );
-                };
-                Some((weights, embedding))
-            }
-        };
+            };
+            Some((weights, embedding))
+        }
+    };
     let kind = TaskKind::parse(&args.task).map_err(anyhow::Error::msg)?;
     if let (Some(text), None) = (&args.instruction, &learned_files) {
         if *text != kind.instruction() {
