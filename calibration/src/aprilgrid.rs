@@ -116,6 +116,8 @@ pub fn detect_april_grid(
     }
     let gray = GrayImage::from_raw(img.width, img.height, img.data.clone())
         .ok_or_else(|| not_found("the image buffer does not match its size".into()))?;
+    // aprilgrid 0.8 does not read the spacing yet (its grid search assumes 0.3, hence
+    // `TAG_SPACING_RANGE`); it is passed for the versions that will.
     let params = DetectorParams {
         tag_spacing_ratio: board.spacing as f32,
         ..DetectorParams::default_params()
@@ -138,24 +140,21 @@ pub fn detect_april_grid(
     }
     let mut corners = Vec::with_capacity(4 * ids.len());
     for id in ids {
-        let quad = tags[&id];
-        // The crate returns each tag's corners starting at the printed tag's lower-left and
-        // going round it the other way to Kalibr's numbering.
-        for (k, (u, v)) in quad_in_board_order(quad).into_iter().enumerate() {
+        let Some(quad) = tags.get(&id) else {
+            continue;
+        };
+        // The crate gives each tag's corners in the board's order: the printed tag's
+        // lower-left, lower-right, upper-right, upper-left (checked against the rendered
+        // truth in the tests below).
+        for (k, (u, v)) in quad.iter().enumerate() {
             corners.push(Corner {
                 id: 4 * id + k as u32,
-                u: f64::from(u),
-                v: f64::from(v),
+                u: f64::from(*u),
+                v: f64::from(*v),
             });
         }
     }
     Ok(corners)
-}
-
-/// The crate's corner order mapped to the board's (lower-left, lower-right, upper-right,
-/// upper-left of the printed tag).
-fn quad_in_board_order(q: [(f32, f32); 4]) -> [(f32, f32); 4] {
-    q
 }
 
 #[cfg(test)]

@@ -24,13 +24,7 @@ pub use cell_types::config::BoardKind;
 /// Kalibr's default gap between AprilGrid tags, as a fraction of the tag size.
 pub const DEFAULT_TAG_SPACING: f64 = 0.3;
 
-/// AprilGrid tag spacings the detector finds boards with: the `aprilgrid` crate's grid
-/// search assumes Kalibr's 0.3 (its spacing parameter is not used), and tolerates 0.25 to
-/// 0.4 in our rendered-board tests (0.2 fails).
-pub const TAG_SPACING_RANGE: std::ops::RangeInclusive<f64> = 0.25..=0.4;
-
-/// Tags in the tag36h11 family (the most an AprilGrid can hold).
-pub const TAG36H11_CODES: usize = 587;
+pub use cell_types::config::{TAG36H11_CODES, TAG_SPACING_RANGE};
 
 fn default_tag_spacing() -> f64 {
     DEFAULT_TAG_SPACING
@@ -104,7 +98,7 @@ impl BoardConfig {
             });
         }
         if self.kind == BoardKind::AprilGrid {
-            if self.rows as usize * self.cols as usize > TAG36H11_CODES {
+            if u64::from(self.rows) * u64::from(self.cols) > u64::from(TAG36H11_CODES) {
                 return Err(CalibrationError::InvalidBoard {
                     why: format!(
                         "{} x {} tags is more than the {TAG36H11_CODES} tags of tag36h11",

@@ -266,6 +266,14 @@ pub enum BoardKind {
     AprilGrid,
 }
 
+/// Tags in the tag36h11 family (the most an AprilGrid can hold).
+pub const TAG36H11_CODES: u32 = 587;
+
+/// AprilGrid tag spacings (gap / tag size) the detector finds boards with: the `aprilgrid`
+/// crate's grid search assumes Kalibr's 0.3 and tolerates 0.25 to 0.4 in the calibration
+/// crate's rendered-board tests (0.2 fails).
+pub const TAG_SPACING_RANGE: std::ops::RangeInclusive<f64> = 0.25..=0.4;
+
 /// `[calibration.board]`: the printed target mounted on the tool flange.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -575,21 +583,26 @@ impl CellConfig {
                     }
                 }
                 BoardKind::AprilGrid => {
-                    // tag36h11 has 587 tags.
-                    if b.rows < 1 || b.cols < 2 || b.rows * b.cols > 587 {
+                    if b.rows < 1
+                        || b.cols < 2
+                        || u64::from(b.rows) * u64::from(b.cols) > u64::from(TAG36H11_CODES)
+                    {
                         return invalid(
                             "calibration.board",
                             &format!("{} x {} tags", b.rows, b.cols),
-                            "an AprilGrid has at least 1 x 2 and at most 587 tag36h11 tags",
+                            &format!(
+                                "an AprilGrid has at least 1 x 2 and at most {TAG36H11_CODES} tag36h11 tags"
+                            ),
                         );
                     }
                     if let Some(g) = b.spacing {
-                        // The AprilGrid detector's grid search works from 0.25 to 0.4.
-                        if !(g.is_finite() && (0.25..=0.4).contains(&g)) {
+                        if !(g.is_finite() && TAG_SPACING_RANGE.contains(&g)) {
                             return invalid(
                                 "calibration.board.spacing",
                                 &g.to_string(),
-                                "the gap between tags, as a fraction of the tag size, must be 0.25 to 0.4 (Kalibr's default 0.3)",
+                                &format!(
+                                    "the gap between tags, as a fraction of the tag size, must be in {TAG_SPACING_RANGE:?} (Kalibr's default 0.3)"
+                                ),
                             );
                         }
                     }
