@@ -163,31 +163,35 @@ pub fn link_bodies(chain: &Chain) -> Vec<usize> {
     body_of
 }
 
-/// A ball around every sphere of rigid body `body`, in the body's anchor frame (infinite when
-/// its spheres sit on different anchors, which a serial chain's fixed-joint groups never do).
-fn body_ball(spheres: &[LinkSphere], anchored: &[(usize, Point3<f64>)], body: usize) -> BodyBall {
-    let members: Vec<usize> = (0..spheres.len())
+/// The spheres of rigid body `body`, by index.
+fn body_members(spheres: &[LinkSphere], body: usize) -> Vec<u16> {
+    (0..spheres.len())
         .filter(|&i| spheres[i].body == body)
-        .collect();
-    let slot = members.first().map_or(0, |&i| anchored[i].0);
-    if members.iter().any(|&i| anchored[i].0 != slot) {
+        .map(|i| i as u16)
+        .collect()
+}
+
+/// A ball around the spheres `idx`, in the anchor frame of the first (infinite when they sit
+/// on different anchors, which a serial chain's fixed-joint groups never do).
+fn ball_around(spheres: &[LinkSphere], anchored: &[(usize, Point3<f64>)], idx: &[u16]) -> BodyBall {
+    let slot = idx.first().map_or(0, |&i| anchored[i as usize].0);
+    if idx.iter().any(|&i| anchored[i as usize].0 != slot) {
         return BodyBall {
             slot,
             center: Point3::origin(),
             radius: f64::INFINITY,
         };
     }
-    let n = members.len().max(1) as f64;
+    let n = idx.len().max(1) as f64;
     let center = Point3::from(
-        members
-            .iter()
-            .map(|&i| anchored[i].1.coords)
+        idx.iter()
+            .map(|&i| anchored[i as usize].1.coords)
             .sum::<Vector3<f64>>()
             / n,
     );
-    let radius = members
+    let radius = idx
         .iter()
-        .map(|&i| (anchored[i].1 - center).norm() + spheres[i].radius)
+        .map(|&i| (anchored[i as usize].1 - center).norm() + spheres[i as usize].radius)
         .fold(0.0, f64::max);
     BodyBall {
         slot,
@@ -206,37 +210,6 @@ fn body_pairs(
     anchored: &[(usize, Point3<f64>)],
     self_pairs: &[(u16, u16)],
 ) -> Vec<BodyPair> {
-    let members = |b: usize| -> Vec<u16> {
-        (0..spheres.len())
-            .filter(|&i| spheres[i].body == b)
-            .map(|i| i as u16)
-            .collect()
-    };
-    let ball_of = |idx: &[u16], slot: usize| -> BodyBall {
-        if idx.iter().any(|&i| anchored[i as usize].0 != slot) {
-            return BodyBall {
-                slot,
-                center: Point3::origin(),
-                radius: f64::INFINITY,
-            };
-        }
-        let n = idx.len().max(1) as f64;
-        let center = Point3::from(
-            idx.iter()
-                .map(|&i| anchored[i as usize].1.coords)
-                .sum::<Vector3<f64>>()
-                / n,
-        );
-        let radius = idx
-            .iter()
-            .map(|&i| (anchored[i as usize].1 - center).norm() + spheres[i as usize].radius)
-            .fold(0.0, f64::max);
-        BodyBall {
-            slot,
-            center,
-            radius,
-        }
-    };
     let mut keys: Vec<(usize, usize)> = self_pairs
         .iter()
         .map(|&(a, b)| (spheres[a as usize].body, spheres[b as usize].body))
@@ -244,10 +217,9 @@ fn body_pairs(
     keys.dedup();
     keys.into_iter()
         .map(|(ba, bb)| {
-            let a_spheres = members(ba);
-            let mut b_spheres = members(bb);
-            let slot = b_spheres.first().map_or(0, |&i| anchored[i as usize].0);
-            let b = ball_of(&b_spheres, slot);
+            let a_spheres = body_members(spheres, ba);
+            let mut b_spheres = body_members(spheres, bb);
+            let b = ball_around(spheres, anchored, &b_spheres);
             // Order along the direction from the centre to the farthest sphere, then chunk.
             let far = b_spheres
                 .iter()
@@ -261,11 +233,10 @@ fn body_pairs(
             });
             let b_clusters = b_spheres
                 .chunks(CLUSTER)
-                .map(|c| (ball_of(c, slot), c.to_vec()))
+                .map(|c| (ball_around(spheres, anchored, c), c.to_vec()))
                 .collect();
-            let a_slot = a_spheres.first().map_or(0, |&i| anchored[i as usize].0);
             BodyPair {
-                a: ball_of(&a_spheres, a_slot),
+                a: ball_around(spheres, anchored, &a_spheres),
                 b,
                 a_spheres,
                 b_clusters,
@@ -336,7 +307,8 @@ impl SphereModel {
                     .copied()
                     .filter(|&i| spheres[i as usize].body == b)
                     .collect();
-                (body_ball(&spheres, &anchored, b), members)
+                let ball = ball_around(&spheres, &anchored, &body_members(&spheres, b));
+                (ball, members)
             })
             .filter(|(_, m)| !m.is_empty())
             .collect();
