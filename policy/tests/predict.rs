@@ -140,13 +140,7 @@ fn moving_the_scene_moves_the_keyframe_in_equivariant_mode() {
     // The network's own equivariance error on this scene (logits), which bounds the rest.
     let p = tiny(mode);
     let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let prep = p.prepare(&scene(2), &gripper(), &mut rng).unwrap();
-    let queries: Vec<[f32; 3]> = prep
-        .xyz
-        .iter()
-        .step_by(4)
-        .map(|p| [p[0] + 0.003, p[1] - 0.002, p[2] + 0.001])
-        .collect();
+    let (prep, queries) = prepared_with_queries(&p, &mut rng);
     let errs = p
         .equivariance_errors(
             &prep,
@@ -176,6 +170,22 @@ fn moving_the_scene_moves_the_keyframe_in_equivariant_mode() {
     assert!(dr < 5e-3, "rotation error {dr} rad");
 }
 
+/// Scene 2 prepared for `p`, and queries a few millimetres off every fourth input point:
+/// the input of the equivariance measurements.
+fn prepared_with_queries(
+    p: &Policy,
+    rng: &mut ChaCha8Rng,
+) -> (policy::predict::PreparedInput, Vec<[f32; 3]>) {
+    let prep = p.prepare(&scene(2), &gripper(), rng).unwrap();
+    let queries = prep
+        .xyz
+        .iter()
+        .step_by(4)
+        .map(|p| [p[0] + 0.003, p[1] - 0.002, p[2] + 0.001])
+        .collect();
+    (prep, queries)
+}
+
 #[test]
 fn gated_mode_is_equivariant_to_rounding_and_its_argmax_moves_with_the_input() {
     // Gated activations, Euclidean up-sampling and turning gripper jitter leave no
@@ -184,13 +194,7 @@ fn gated_mode_is_equivariant_to_rounding_and_its_argmax_moves_with_the_input() {
     // discrete choices (FPS, kNN, max-pool), which only change at near-ties.
     let p = tiny(PolicyMode::Gated);
     let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let prep = p.prepare(&scene(2), &gripper(), &mut rng).unwrap();
-    let queries: Vec<[f32; 3]> = prep
-        .xyz
-        .iter()
-        .step_by(4)
-        .map(|p| [p[0] + 0.003, p[1] - 0.002, p[2] + 0.001])
-        .collect();
+    let (prep, queries) = prepared_with_queries(&p, &mut rng);
     let motions: Vec<Isometry3<f64>> = (0..3)
         .map(|_| {
             let r = nalgebra::Rotation3::from_matrix(&common::random_rotation(&mut rng));
