@@ -158,15 +158,27 @@ pub fn open_cameras(cfg: &CellConfig) -> anyhow::Result<Vec<Box<dyn DepthCamera>
     let mut cameras: Vec<Box<dyn DepthCamera>> = Vec::with_capacity(cfg.cameras.len());
     for (i, c) in cfg.cameras.iter().enumerate() {
         let id = u8::try_from(i).context("more than 255 cameras")?;
-        let mut cam = open_configured(id, c)
-            .with_context(|| format!("opening the D455 `{}` (serial {})", c.name, c.serial))?;
-        for _ in 0..WARMUP_FRAMES {
-            cam.capture()
-                .with_context(|| format!("camera `{}` warming up", c.name))?;
-        }
+        let cam = open_settled(id, c, WARMUP_FRAMES, &mut open_configured)?;
         cameras.push(Box::new(cam));
     }
     Ok(cameras)
+}
+
+/// Opens camera `id` (entry `c`) with `open` and drops `warmup` framesets while its
+/// auto-exposure settles.
+fn open_settled(
+    id: u8,
+    c: &CameraSection,
+    warmup: u32,
+    open: &mut dyn FnMut(u8, &CameraSection) -> Result<RealSenseCamera, RealSenseError>,
+) -> anyhow::Result<RealSenseCamera> {
+    let mut cam = open(id, c)
+        .with_context(|| format!("opening the D455 `{}` (serial {})", c.name, c.serial))?;
+    for _ in 0..warmup {
+        cam.next_frame()
+            .with_context(|| format!("camera `{}` warming up", c.name))?;
+    }
+    Ok(cam)
 }
 
 /// Opens the D455 of one `[[cameras]]` entry as configured: depth and IR at its mode and
@@ -190,12 +202,7 @@ pub fn capture_frames(
     let mut frames = Vec::with_capacity(cfg.cameras.len());
     for (i, c) in cfg.cameras.iter().enumerate() {
         let id = u8::try_from(i).context("more than 255 cameras")?;
-        let mut cam = open(id, c)
-            .with_context(|| format!("opening the D455 `{}` (serial {})", c.name, c.serial))?;
-        for _ in 0..warmup {
-            cam.next_frame()
-                .with_context(|| format!("camera `{}` warming up", c.name))?;
-        }
+        let mut cam = open_settled(id, c, warmup, open)?;
         frames.push(
             cam.next_frame()
                 .with_context(|| format!("capturing from camera `{}`", c.name))?,
