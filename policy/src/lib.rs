@@ -37,6 +37,7 @@
 //! `unicode-normalization` (NFD) for the MiniLM encoder.
 
 pub mod attention;
+pub mod autodiff;
 pub mod error;
 pub mod fixtures;
 pub mod grids;

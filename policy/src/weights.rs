@@ -154,6 +154,26 @@ impl Weights {
         }
     }
 
+    /// The values of a float32 tensor, for in-place updates (the optimiser).
+    pub fn f32_mut(&mut self, key: &str) -> Result<&mut [f32]> {
+        let source = self.source.clone();
+        let t = self
+            .tensors
+            .get_mut(key)
+            .ok_or_else(|| PolicyError::MissingTensor {
+                name: key.to_string(),
+                file: source,
+            })?;
+        match &mut t.data {
+            TensorData::F32(v) => Ok(v),
+            TensorData::I64(_) => Err(PolicyError::WrongDtype {
+                name: key.to_string(),
+                expected: "F32",
+                got: "I64".into(),
+            }),
+        }
+    }
+
     /// The shape of a tensor, checked to have `rank` axes.
     pub fn shape(&self, key: &str, rank: usize) -> Result<Vec<usize>> {
         let t = self.raw(key)?;

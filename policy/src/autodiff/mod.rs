@@ -1,0 +1,257 @@
+//! Reverse-mode automatic differentiation for training the network.
+//!
+//! The inference layers (`crate::layers`, `attention`, ...) are specialised for speed
+//! (transposed and pruned weights, chunked edges, zero destinations) and keep no
+//! intermediate values. Training runs a second, plain forward on a [`Tape`]: every operation
+//! records its output and a closure that maps the output's gradient onto its inputs'
+//! gradients; [`Tape::backward`] runs those closures in reverse. Parameters are read by their
+//! state-dict names from a [`Weights`](crate::weights::Weights) store, so the same store
+//! serves the inference model, the optimiser and the checkpoints. Tests check every taped
+//! layer against its inference twin (same outputs) and against finite differences (same
+//! gradients).
+//!
+//! No library: burn or candle would bring a second tensor stack beside the hand-written
+//! inference kernels, and a dozen operations cover the network. Everything is `f32` on the
+//! calling thread; products go through [`crate::matmul`].
+
+pub mod check;
+pub mod layers;
+mod ops;
+
+pub use ops::Act;
+
+use std::collections::HashMap;
+
+use crate::error::{PolicyError, Result};
+use crate::weights::Scope;
+
+/// A value recorded on a [`Tape`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub struct Var(usize);
+
+/// Maps the gradient of a node's output onto the gradients of its inputs.
+type BackFn = Box<dyn Fn(&Values<'_>, &[f32], &mut Grads)>;
+
+struct Node {
+    value: Vec<f32>,
+    shape: Vec<usize>,
+    needs_grad: bool,
+    back: Option<BackFn>,
+}
+
+/// The recorded forward computation.
+#[derive(Default)]
+pub struct Tape {
+    nodes: Vec<Node>,
+    /// Parameter leaves by full state-dict key, in first-use order.
+    params: Vec<(String, Var)>,
+    param_index: HashMap<String, Var>,
+}
+
+impl std::fmt::Debug for Tape {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Tape")
+            .field("nodes", &self.nodes.len())
+            .field("params", &self.params.len())
+            .finish()
+    }
+}
+
+/// Read access to the recorded values during the backward pass.
+pub struct Values<'a>(&'a [Node]);
+
+impl Values<'_> {
+    /// The forward value of `v`.
+    pub fn get(&self, v: Var) -> &[f32] {
+        &self.0[v.0].value
+    }
+}
+
+/// Gradient accumulators of every node (allocated on first use).
+pub struct Grads {
+    grads: Vec<Option<Vec<f32>>>,
+    lens: Vec<usize>,
+    needs: Vec<bool>,
+}
+
+impl Grads {
+    /// The accumulator of `v`, or `None` when nothing upstream of `v` is trained.
+    pub fn acc(&mut self, v: Var) -> Option<&mut [f32]> {
+        if !self.needs[v.0] {
+            return None;
+        }
+        let len = self.lens[v.0];
+        Some(self.grads[v.0].get_or_insert_with(|| vec![0.0; len]))
+    }
+
+    /// Adds `g` into the accumulator of `v` (if it is trained).
+    pub fn add(&mut self, v: Var, g: &[f32]) {
+        if let Some(a) = self.acc(v) {
+            for (x, y) in a.iter_mut().zip(g) {
+                *x += y;
+            }
+        }
+    }
+
+    /// Whether `v` receives a gradient.
+    pub fn wants(&self, v: Var) -> bool {
+        self.needs[v.0]
+    }
+}
+
+/// The gradients of one backward pass.
+#[derive(Debug)]
+pub struct Gradients {
+    grads: Vec<Option<Vec<f32>>>,
+}
+
+impl Gradients {
+    /// The gradient of `v` (`None`: nothing reached it, i.e. zero).
+    pub fn of(&self, v: Var) -> Option<&[f32]> {
+        self.grads.get(v.0).and_then(|g| g.as_deref())
+    }
+}
+
+impl Tape {
+    /// An empty tape.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Number of recorded nodes.
+    pub fn len(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Whether nothing is recorded.
+    pub fn is_empty(&self) -> bool {
+        self.nodes.is_empty()
+    }
+
+    /// The forward value of `v`.
+    pub fn value(&self, v: Var) -> &[f32] {
+        &self.nodes[v.0].value
+    }
+
+    /// The shape of `v`.
+    pub fn shape(&self, v: Var) -> &[usize] {
+        &self.nodes[v.0].shape
+    }
+
+    /// Records a node; it needs a gradient when any of `parents` does.
+    fn push(
+        &mut self,
+        value: Vec<f32>,
+        shape: Vec<usize>,
+        parents: &[Var],
+        back: Option<BackFn>,
+    ) -> Var {
+        debug_assert_eq!(value.len(), shape.iter().product::<usize>());
+        let needs_grad = parents.iter().any(|p| self.nodes[p.0].needs_grad);
+        self.nodes.push(Node {
+            value,
+            shape,
+            needs_grad,
+            back: if needs_grad { back } else { None },
+        });
+        Var(self.nodes.len() - 1)
+    }
+
+    fn leaf_node(
+        &mut self,
+        what: &str,
+        value: Vec<f32>,
+        shape: &[usize],
+        grad: bool,
+    ) -> Result<Var> {
+        check_shape(what, value.len(), shape)?;
+        self.nodes.push(Node {
+            value,
+            shape: shape.to_vec(),
+            needs_grad: grad,
+            back: None,
+        });
+        Ok(Var(self.nodes.len() - 1))
+    }
+
+    /// A value that receives no gradient (data, fixed buffers).
+    pub fn constant(&mut self, value: Vec<f32>, shape: &[usize]) -> Result<Var> {
+        self.leaf_node("constant", value, shape, false)
+    }
+
+    /// A value that receives a gradient (an input under test, a free variable).
+    pub fn variable(&mut self, value: Vec<f32>, shape: &[usize]) -> Result<Var> {
+        self.leaf_node("variable", value, shape, true)
+    }
+
+    /// The trained parameter `name` of `scope`, read once per tape (later uses share it).
+    pub fn param(&mut self, scope: &Scope<'_>, name: &str, shape: &[usize]) -> Result<Var> {
+        let key = scope.key(name);
+        if let Some(&v) = self.param_index.get(&key) {
+            check_shape(&key, self.value(v).len(), shape)?;
+            if self.shape(v) != shape {
+                return Err(PolicyError::ShapeMismatch {
+                    name: key,
+                    expected: shape.to_vec(),
+                    got: self.shape(v).to_vec(),
+                });
+            }
+            return Ok(v);
+        }
+        let v = self.leaf_node(&key, scope.f32(name, shape)?, shape, true)?;
+        self.param_index.insert(key.clone(), v);
+        self.params.push((key, v));
+        Ok(v)
+    }
+
+    /// The parameters read so far, by full key, in first-use order.
+    pub fn params(&self) -> &[(String, Var)] {
+        &self.params
+    }
+
+    /// Runs the backward pass from `out` with output gradient `seed` (the loss's gradient
+    /// with respect to `out`).
+    pub fn backward(&self, out: Var, seed: &[f32]) -> Result<Gradients> {
+        let node = self.nodes.get(out.0).ok_or(PolicyError::IndexOutOfRange {
+            name: "backward output".into(),
+            value: out.0 as i64,
+            len: self.nodes.len(),
+        })?;
+        check_shape("backward seed", seed.len(), &node.shape)?;
+        if seed.iter().any(|g| !g.is_finite()) {
+            return Err(PolicyError::NonFinite {
+                what: "loss gradient (backward seed)".into(),
+            });
+        }
+        let mut grads = Grads {
+            grads: (0..self.nodes.len()).map(|_| None).collect(),
+            lens: self.nodes.iter().map(|n| n.value.len()).collect(),
+            needs: self.nodes.iter().map(|n| n.needs_grad).collect(),
+        };
+        grads.add(out, seed);
+        let values = Values(&self.nodes);
+        for i in (0..=out.0).rev() {
+            let Some(back) = &self.nodes[i].back else {
+                continue;
+            };
+            // Leaves keep their gradient; an interior node's is consumed here.
+            let Some(g) = grads.grads[i].take() else {
+                continue;
+            };
+            back(&values, &g, &mut grads);
+        }
+        Ok(Gradients { grads: grads.grads })
+    }
+}
+
+/// Checks that `len` values fill `shape`.
+fn check_shape(what: &str, len: usize, shape: &[usize]) -> Result<()> {
+    if shape.iter().product::<usize>() != len {
+        return Err(PolicyError::ShapeMismatch {
+            name: what.to_string(),
+            expected: shape.to_vec(),
+            got: vec![len],
+        });
+    }
+    Ok(())
+}

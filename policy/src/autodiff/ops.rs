@@ -1,0 +1,473 @@
+//! The generic operations of the tape: element-wise maps, dense products, row gathers and
+//! scatters, channel slices, and constant (non-trained) linear maps over coefficient rows.
+
+use std::sync::Arc;
+
+use super::{check_shape, Tape, Var};
+use crate::error::{PolicyError, Result};
+use crate::layers::{gelu, sigmoid, silu, smooth_leaky_relu};
+use crate::matmul::{gemm_acc, Strided};
+
+/// An element-wise activation with its derivative.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Act {
+    /// x·σ(x).
+    Silu,
+    /// σ(x).
+    Sigmoid,
+    /// Exact GELU.
+    Gelu,
+    /// The reference's smooth leaky ReLU with the given slope.
+    SmoothLeakyRelu(f32),
+    /// eˣ.
+    Exp,
+}
+
+impl Act {
+    /// The activation (the inference layers' own functions, so values agree bit for bit).
+    pub fn apply(self, x: f32) -> f32 {
+        match self {
+            Act::Silu => silu(x),
+            Act::Sigmoid => sigmoid(x),
+            Act::Gelu => gelu(x),
+            Act::SmoothLeakyRelu(a) => smooth_leaky_relu(x, a),
+            Act::Exp => x.exp(),
+        }
+    }
+
+    /// Its derivative at `x`.
+    pub fn derivative(self, x: f32) -> f32 {
+        let xd = f64::from(x);
+        let s = 1.0 / (1.0 + (-xd).exp());
+        let d = match self {
+            Act::Silu => s * (1.0 + xd * (1.0 - s)),
+            Act::Sigmoid => s * (1.0 - s),
+            Act::Gelu => {
+                let cdf = 0.5 * (1.0 + crate::layers::erf(xd / std::f64::consts::SQRT_2));
+                let pdf = (-0.5 * xd * xd).exp() / (2.0 * std::f64::consts::PI).sqrt();
+                cdf + xd * pdf
+            }
+            Act::SmoothLeakyRelu(a) => {
+                let a = f64::from(a);
+                0.5 * (1.0 + a) + 0.5 * (1.0 - a) * ((2.0 * s - 1.0) + 2.0 * xd * s * (1.0 - s))
+            }
+            Act::Exp => xd.exp(),
+        };
+        d as f32
+    }
+}
+
+fn same_len(what: &str, a: usize, b: usize) -> Result<()> {
+    if a != b {
+        return Err(PolicyError::ShapeMismatch {
+            name: what.to_string(),
+            expected: vec![a],
+            got: vec![b],
+        });
+    }
+    Ok(())
+}
+
+fn rows(what: &str, len: usize, row: usize) -> Result<usize> {
+    crate::layers::rows_of(what, len, row)
+}
+
+impl Tape {
+    /// `a + b` (same length; the result has `a`'s shape).
+    pub fn add(&mut self, a: Var, b: Var) -> Result<Var> {
+        same_len("add operands", self.value(a).len(), self.value(b).len())?;
+        let v = self
+            .value(a)
+            .iter()
+            .zip(self.value(b))
+            .map(|(x, y)| x + y)
+            .collect();
+        let shape = self.shape(a).to_vec();
+        Ok(self.push(
+            v,
+            shape,
+            &[a, b],
+            Some(Box::new(move |_, g, gr| {
+                gr.add(a, g);
+                gr.add(b, g);
+            })),
+        ))
+    }
+
+    /// `a ⊙ b` (same length; the result has `a`'s shape).
+    pub fn mul(&mut self, a: Var, b: Var) -> Result<Var> {
+        same_len("mul operands", self.value(a).len(), self.value(b).len())?;
+        let v = self
+            .value(a)
+            .iter()
+            .zip(self.value(b))
+            .map(|(x, y)| x * y)
+            .collect();
+        let shape = self.shape(a).to_vec();
+        Ok(self.push(
+            v,
+            shape,
+            &[a, b],
+            Some(Box::new(move |vals, g, gr| {
+                if gr.wants(a) {
+                    let d: Vec<f32> = g.iter().zip(vals.get(b)).map(|(g, y)| g * y).collect();
+                    gr.add(a, &d);
+                }
+                if gr.wants(b) {
+                    let d: Vec<f32> = g.iter().zip(vals.get(a)).map(|(g, x)| g * x).collect();
+                    gr.add(b, &d);
+                }
+            })),
+        ))
+    }
+
+    /// `s · a`.
+    pub fn scale(&mut self, a: Var, s: f32) -> Var {
+        let v = self.value(a).iter().map(|x| x * s).collect();
+        let shape = self.shape(a).to_vec();
+        self.push(
+            v,
+            shape,
+            &[a],
+            Some(Box::new(move |_, g, gr| {
+                if let Some(acc) = gr.acc(a) {
+                    for (x, y) in acc.iter_mut().zip(g) {
+                        *x += s * y;
+                    }
+                }
+            })),
+        )
+    }
+
+    /// The activation `f` applied element-wise.
+    pub fn act(&mut self, a: Var, f: Act) -> Var {
+        let v = self.value(a).iter().map(|&x| f.apply(x)).collect();
+        let shape = self.shape(a).to_vec();
+        self.push(
+            v,
+            shape,
+            &[a],
+            Some(Box::new(move |vals, g, gr| {
+                let x = vals.get(a);
+                if let Some(acc) = gr.acc(a) {
+                    for ((s, gi), xi) in acc.iter_mut().zip(g).zip(x) {
+                        *s += gi * f.derivative(*xi);
+                    }
+                }
+            })),
+        )
+    }
+
+    /// The same values under another shape (same number of values).
+    pub fn reshape(&mut self, a: Var, shape: &[usize]) -> Result<Var> {
+        check_shape("reshape", self.value(a).len(), shape)?;
+        let v = self.value(a).to_vec();
+        Ok(self.push(
+            v,
+            shape.to_vec(),
+            &[a],
+            Some(Box::new(move |_, g, gr| gr.add(a, g))),
+        ))
+    }
+
+    /// The sum of all values, shape `[1]`.
+    pub fn sum(&mut self, a: Var) -> Var {
+        let s = self.value(a).iter().map(|&x| f64::from(x)).sum::<f64>() as f32;
+        self.push(
+            vec![s],
+            vec![1],
+            &[a],
+            Some(Box::new(move |_, g, gr| {
+                if let Some(acc) = gr.acc(a) {
+                    for x in acc.iter_mut() {
+                        *x += g[0];
+                    }
+                }
+            })),
+        )
+    }
+
+    /// A dense layer on every row: `x` `[rows, inp]`, `w` `[out, inp]` (PyTorch layout),
+    /// optional `b` `[out]`; returns `[rows, out]`.
+    pub fn linear(&mut self, x: Var, w: Var, b: Option<Var>) -> Result<Var> {
+        let ws = self.shape(w).to_vec();
+        if ws.len() != 2 {
+            return Err(PolicyError::ShapeMismatch {
+                name: "linear weight".into(),
+                expected: vec![0, 0],
+                got: ws,
+            });
+        }
+        let (out, inp) = (ws[0], ws[1]);
+        let n = rows("linear input", self.value(x).len(), inp)?;
+        let mut y = vec![0.0f32; n * out];
+        if let Some(b) = b {
+            same_len("linear bias", out, self.value(b).len())?;
+            let bv = self.value(b);
+            for r in y.chunks_exact_mut(out.max(1)) {
+                r.copy_from_slice(bv);
+            }
+        }
+        gemm_acc(
+            Strided::row_major(self.value(x), 0, n, inp),
+            Strided::row_major(self.value(w), 0, out, inp).t(),
+            &mut y,
+            0,
+            out,
+        )?;
+        let mut parents = vec![x, w];
+        parents.extend(b);
+        Ok(self.push(
+            y,
+            vec![n, out],
+            &parents,
+            Some(Box::new(move |vals, g, gr| {
+                if let Some(acc) = gr.acc(x) {
+                    // dx = g · W
+                    let _ = gemm_acc(
+                        Strided::row_major(g, 0, n, out),
+                        Strided::row_major(vals.get(w), 0, out, inp),
+                        acc,
+                        0,
+                        inp,
+                    );
+                }
+                if let Some(acc) = gr.acc(w) {
+                    // dW = gᵀ · x
+                    let _ = gemm_acc(
+                        Strided::row_major(g, 0, n, out).t(),
+                        Strided::row_major(vals.get(x), 0, n, inp),
+                        acc,
+                        0,
+                        inp,
+                    );
+                }
+                if let Some(b) = b {
+                    if let Some(acc) = gr.acc(b) {
+                        for r in g.chunks_exact(out.max(1)) {
+                            for (a, v) in acc.iter_mut().zip(r) {
+                                *a += v;
+                            }
+                        }
+                    }
+                }
+            })),
+        ))
+    }
+
+    /// Rows `idx` of `x` seen as rows of `row` values: `[idx.len(), row]`.
+    pub fn gather_rows(&mut self, x: Var, row: usize, idx: &[usize]) -> Result<Var> {
+        let n = rows("gather input", self.value(x).len(), row)?;
+        if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "gathered row".into(),
+                value: bad as i64,
+                len: n,
+            });
+        }
+        let xv = self.value(x);
+        let mut y = Vec::with_capacity(idx.len() * row);
+        for &i in idx {
+            y.extend_from_slice(&xv[i * row..(i + 1) * row]);
+        }
+        let idx: Arc<[usize]> = idx.into();
+        Ok(self.push(
+            y,
+            vec![idx.len(), row],
+            &[x],
+            Some(Box::new(move |_, g, gr| {
+                if let Some(acc) = gr.acc(x) {
+                    for (e, &i) in idx.iter().enumerate() {
+                        for (a, v) in acc[i * row..(i + 1) * row]
+                            .iter_mut()
+                            .zip(&g[e * row..(e + 1) * row])
+                        {
+                            *a += v;
+                        }
+                    }
+                }
+            })),
+        ))
+    }
+
+    /// Sums row e of `x` (rows of `row` values) into output row `idx[e]`: `[n_out, row]`.
+    pub fn scatter_add_rows(
+        &mut self,
+        x: Var,
+        row: usize,
+        idx: &[usize],
+        n_out: usize,
+    ) -> Result<Var> {
+        let n = rows("scatter input", self.value(x).len(), row)?;
+        same_len("scatter indices", n, idx.len())?;
+        if let Some(&bad) = idx.iter().find(|&&i| i >= n_out) {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "scatter destination".into(),
+                value: bad as i64,
+                len: n_out,
+            });
+        }
+        let xv = self.value(x);
+        let mut y = vec![0.0f32; n_out * row];
+        for (e, &i) in idx.iter().enumerate() {
+            for (a, v) in y[i * row..(i + 1) * row]
+                .iter_mut()
+                .zip(&xv[e * row..(e + 1) * row])
+            {
+                *a += v;
+            }
+        }
+        let idx: Arc<[usize]> = idx.into();
+        Ok(self.push(
+            y,
+            vec![n_out, row],
+            &[x],
+            Some(Box::new(move |_, g, gr| {
+                if let Some(acc) = gr.acc(x) {
+                    for (e, &i) in idx.iter().enumerate() {
+                        for (a, v) in acc[e * row..(e + 1) * row]
+                            .iter_mut()
+                            .zip(&g[i * row..(i + 1) * row])
+                        {
+                            *a += v;
+                        }
+                    }
+                }
+            })),
+        ))
+    }
+
+    /// Columns `range` of `x` seen as rows of `cols` values: `[rows, range.len()]`.
+    pub fn slice_cols(
+        &mut self,
+        x: Var,
+        cols: usize,
+        range: std::ops::Range<usize>,
+    ) -> Result<Var> {
+        let n = rows("column slice input", self.value(x).len(), cols)?;
+        if range.start > range.end || range.end > cols {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "column slice end".into(),
+                value: range.end as i64,
+                len: cols,
+            });
+        }
+        let w = range.len();
+        let xv = self.value(x);
+        let mut y = Vec::with_capacity(n * w);
+        for r in xv.chunks_exact(cols) {
+            y.extend_from_slice(&r[range.clone()]);
+        }
+        let start = range.start;
+        Ok(self.push(
+            y,
+            vec![n, w],
+            &[x],
+            Some(Box::new(move |_, g, gr| {
+                if let Some(acc) = gr.acc(x) {
+                    for (r, gr_row) in acc.chunks_exact_mut(cols).zip(g.chunks_exact(w.max(1))) {
+                        for (a, v) in r[start..start + w].iter_mut().zip(gr_row) {
+                            *a += v;
+                        }
+                    }
+                }
+            })),
+        ))
+    }
+
+    /// Row-wise concatenation: row r of `a` (`ca` values) then row r of `b` (`cb` values).
+    pub fn concat_cols(&mut self, a: Var, ca: usize, b: Var, cb: usize) -> Result<Var> {
+        let n = rows("concat left", self.value(a).len(), ca)?;
+        same_len(
+            "concat right rows",
+            n,
+            rows("concat right", self.value(b).len(), cb)?,
+        )?;
+        let (av, bv) = (self.value(a), self.value(b));
+        let mut y = Vec::with_capacity(n * (ca + cb));
+        for r in 0..n {
+            y.extend_from_slice(&av[r * ca..(r + 1) * ca]);
+            y.extend_from_slice(&bv[r * cb..(r + 1) * cb]);
+        }
+        let c = ca + cb;
+        Ok(self.push(
+            y,
+            vec![n, c],
+            &[a, b],
+            Some(Box::new(move |_, g, gr| {
+                if let Some(acc) = gr.acc(a) {
+                    for r in 0..n {
+                        for (x, v) in acc[r * ca..(r + 1) * ca]
+                            .iter_mut()
+                            .zip(&g[r * c..r * c + ca])
+                        {
+                            *x += v;
+                        }
+                    }
+                }
+                if let Some(acc) = gr.acc(b) {
+                    for r in 0..n {
+                        for (x, v) in acc[r * cb..(r + 1) * cb]
+                            .iter_mut()
+                            .zip(&g[r * c + ca..(r + 1) * c])
+                        {
+                            *x += v;
+                        }
+                    }
+                }
+            })),
+        ))
+    }
+
+    /// Constant linear maps over coefficient rows: `x` `[B, k_in, c]` and `mats` either
+    /// `[B, k_out, k_in]` (one matrix per batch item: edge-frame rotations) or `[k_out, k_in]`
+    /// (one shared matrix: S2 grid projections); returns `[B, k_out, c]` with
+    /// `y[b] = M[b] · x[b]`. The matrices are not trained.
+    pub fn const_matmul(
+        &mut self,
+        x: Var,
+        mats: Arc<[f32]>,
+        (k_out, k_in, c): (usize, usize, usize),
+    ) -> Result<Var> {
+        let per = k_out * k_in;
+        let nb = rows("const matmul input", self.value(x).len(), k_in * c)?;
+        let shared = mats.len() == per && nb != 1;
+        if !shared && mats.len() != nb * per {
+            return Err(PolicyError::ShapeMismatch {
+                name: "const matmul matrices".into(),
+                expected: vec![nb, k_out, k_in],
+                got: vec![mats.len()],
+            });
+        }
+        let m_off = move |b: usize| if shared { 0 } else { b * per };
+        let xv = self.value(x);
+        let mut y = vec![0.0f32; nb * k_out * c];
+        for b in 0..nb {
+            gemm_acc(
+                Strided::row_major(&mats, m_off(b), k_out, k_in),
+                Strided::row_major(xv, b * k_in * c, k_in, c),
+                &mut y,
+                b * k_out * c,
+                c,
+            )?;
+        }
+        Ok(self.push(
+            y,
+            vec![nb, k_out, c],
+            &[x],
+            Some(Box::new(move |_, g, gr| {
+                if let Some(acc) = gr.acc(x) {
+                    for b in 0..nb {
+                        let _ = gemm_acc(
+                            Strided::row_major(&mats, m_off(b), k_out, k_in).t(),
+                            Strided::row_major(g, b * k_out * c, k_out, c),
+                            acc,
+                            b * k_in * c,
+                            c,
+                        );
+                    }
+                }
+            })),
+        ))
+    }
+}
