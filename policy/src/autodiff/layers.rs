@@ -495,6 +495,41 @@ mod tests {
     }
 
     #[test]
+    fn s2_activations_match_inference_and_finite_differences() {
+        use crate::grids::S2Grid;
+        let w = small_weights();
+        let c = 3;
+        for grid in [
+            S2Grid::reference(3, 2).unwrap(),
+            S2Grid::gate(3, 2).unwrap(),
+            S2Grid::reference(3, 3).unwrap(),
+        ] {
+            let nr = grid.reduced.len();
+            let (x, gating) = (random(4 * nr * c, 8), random(4 * c, 9));
+            let want = crate::layers::separable_s2_activation(&grid, &gating, &x, c).unwrap();
+            let mut t = Tape::new();
+            let xv = t.variable(x.clone(), &[4, nr, c]).unwrap();
+            let gv = t.variable(gating.clone(), &[4, c]).unwrap();
+            let y = t.separable_s2_activation(&grid, gv, xv, c).unwrap();
+            assert_close(t.value(y), &want, 1e-5, "S2 activation");
+            let inputs = [(x, vec![4, nr, c]), (gating, vec![4, c])];
+            let r = finite_difference_check(&w, "", &inputs, FdOptions::default(), |t, _, v| {
+                t.separable_s2_activation(&grid, v[1], v[0], c)
+            })
+            .unwrap();
+            assert_passes(&r, "S2 activation");
+        }
+        let mut t = Tape::new();
+        let x = t.variable(vec![0.0; 7], &[7]).unwrap();
+        let m = t.act(x, crate::autodiff::Act::Mish);
+        let g = t.backward(m, &[1.0; 7]).unwrap();
+        assert!(
+            (g.of(x).unwrap()[0] - 0.6).abs() < 1e-6,
+            "mish'(0) = tanh(ln 2)"
+        );
+    }
+
+    #[test]
     fn shared_parameters_accumulate_and_bad_shapes_are_errors() {
         let w = small_weights();
         let s = w.scope("type0_linear.");

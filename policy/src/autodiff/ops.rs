@@ -5,6 +5,7 @@ use std::sync::Arc;
 
 use super::{check_shape, Tape, Var};
 use crate::error::{PolicyError, Result};
+use crate::grids::S2Grid;
 use crate::layers::{gelu, sigmoid, silu, smooth_leaky_relu};
 use crate::matmul::{gemm_acc, Strided};
 
@@ -21,6 +22,10 @@ pub enum Act {
     SmoothLeakyRelu(f32),
     /// eˣ.
     Exp,
+    /// x·tanh(softplus(x)).
+    Mish,
+    /// log(1 + eˣ).
+    Softplus,
 }
 
 impl Act {
@@ -32,6 +37,8 @@ impl Act {
             Act::Gelu => gelu(x),
             Act::SmoothLeakyRelu(a) => smooth_leaky_relu(x, a),
             Act::Exp => x.exp(),
+            Act::Mish => crate::layers::mish(x),
+            Act::Softplus => crate::layers::softplus(x),
         }
     }
 
@@ -52,6 +59,12 @@ impl Act {
                 0.5 * (1.0 + a) + 0.5 * (1.0 - a) * ((2.0 * s - 1.0) + 2.0 * xd * s * (1.0 - s))
             }
             Act::Exp => xd.exp(),
+            Act::Mish => {
+                let sp = if xd > 20.0 { xd } else { xd.exp().ln_1p() };
+                let th = sp.tanh();
+                th + xd * (1.0 - th * th) * s
+            }
+            Act::Softplus => s,
         };
         d as f32
     }
@@ -469,5 +482,60 @@ impl Tape {
                 }
             })),
         ))
+    }
+
+    /// Each row of `x` `[n·r, c]` (r rows per node) multiplied element-wise by its node's
+    /// row of `s` `[n, c]`.
+    pub fn mul_per_node(&mut self, x: Var, s: Var, c: usize) -> Result<Var> {
+        let n = rows("per-node factors", self.value(s).len(), c)?;
+        let rows_x = rows("per-node product input", self.value(x).len(), c)?;
+        if n == 0 || rows_x % n != 0 {
+            return Err(PolicyError::ShapeMismatch {
+                name: "per-node product input (rows must split evenly over the nodes)".into(),
+                expected: vec![n, 0, c],
+                got: vec![rows_x, c],
+            });
+        }
+        let r = rows_x / n;
+        let idx: Vec<usize> = (0..n).flat_map(|i| std::iter::repeat_n(i, r)).collect();
+        let tiled = self.gather_rows(s, c, &idx)?;
+        self.mul(x, tiled)
+    }
+
+    /// The separable S2 activation on `x` `[n, grid.reduced.len(), c]` with `gating` `[n,
+    /// c]`, as [`crate::layers::separable_s2_activation`]: l = 0 becomes SiLU(gating); l > 0
+    /// goes through the grid (to grid, SiLU, back), or with a gated grid is multiplied by
+    /// σ(gating).
+    pub fn separable_s2_activation(
+        &mut self,
+        grid: &S2Grid,
+        gating: Var,
+        x: Var,
+        c: usize,
+    ) -> Result<Var> {
+        let nr = grid.reduced.len();
+        let n = rows("S2 activation input", self.value(x).len(), nr * c)?;
+        same_len("S2 activation gating", n * c, self.value(gating).len())?;
+        let scalars = self.act(gating, Act::Silu);
+        let higher = if grid.gated {
+            let rest = self.slice_cols(x, nr * c, c..nr * c)?;
+            let sig = self.act(gating, Act::Sigmoid);
+            self.mul_per_node(rest, sig, c)?
+        } else {
+            let np = grid.num_points();
+            let to: Arc<[f32]> = grid.to_grid.iter().map(|v| *v as f32).collect();
+            let mut from_t = vec![0.0f32; nr * np];
+            for p in 0..np {
+                for i in 0..nr {
+                    from_t[i * np + p] = grid.from_grid[p * nr + i] as f32;
+                }
+            }
+            let on_grid = self.const_matmul(x, to, (np, nr, c))?;
+            let act = self.act(on_grid, Act::Silu);
+            let back = self.const_matmul(act, from_t.into(), (nr, np, c))?;
+            self.slice_cols(back, nr * c, c..nr * c)?
+        };
+        let y = self.concat_cols(scalars, c, higher, (nr - 1) * c)?;
+        self.reshape(y, &[n, nr, c])
     }
 }
