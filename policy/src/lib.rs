@@ -48,6 +48,7 @@ pub mod layers;
 pub mod matmul;
 pub mod minilm;
 pub mod model;
+pub mod optim;
 pub mod points;
 pub mod predict;
 pub mod rotation_head;

@@ -154,6 +154,24 @@ impl Weights {
         }
     }
 
+    /// The shape of a tensor.
+    pub fn shape_of(&self, key: &str) -> Result<Vec<usize>> {
+        Ok(self.raw(key)?.shape.clone())
+    }
+
+    /// An int64 tensor of any shape, with its shape.
+    pub fn i64_any(&self, key: &str) -> Result<(Vec<usize>, Vec<i64>)> {
+        let t = self.raw(key)?;
+        match &t.data {
+            TensorData::I64(v) => Ok((t.shape.clone(), v.clone())),
+            TensorData::F32(_) => Err(PolicyError::WrongDtype {
+                name: key.to_string(),
+                expected: "I64",
+                got: "F32".into(),
+            }),
+        }
+    }
+
     /// The values of a float32 tensor, for in-place updates (the optimiser).
     pub fn f32_mut(&mut self, key: &str) -> Result<&mut [f32]> {
         let source = self.source.clone();
