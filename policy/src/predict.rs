@@ -612,109 +612,7 @@ impl Policy {
         gripper: &GripperPose,
         rng: &mut ChaCha8Rng,
     ) -> Result<PreparedInput> {
-        let cfg = &self.cfg;
-        if cloud.frame != FrameId::Base {
-            return Err(PolicyError::WrongFrame {
-                got: cloud.frame.to_string(),
-            });
-        }
-        if cloud.is_empty() {
-            return Err(PolicyError::EmptyCloud);
-        }
-        let raw: Vec<[f32; 3]> = cloud.points.iter().map(|p| [p.x, p.y, p.z]).collect();
-        check_finite("input point cloud", &raw)?;
-        if let Some(c) = &cloud.rgb {
-            if c.len() != raw.len() {
-                return Err(PolicyError::ShapeMismatch {
-                    name: "point cloud colours".into(),
-                    expected: vec![raw.len()],
-                    got: vec![c.len()],
-                });
-            }
-        }
-        let inv = cfg.base_from_workspace.inverse();
-        let inside =
-            |p: &Point3<f64>, b: &[[f64; 3]; 2]| (0..3).all(|i| p[i] >= b[0][i] && p[i] <= b[1][i]);
-        let mut focus_box = cfg.gripper_bounds;
-        focus_box[0][2] = cfg.table_height;
-        let (mut focused, mut other) = (Vec::new(), Vec::new());
-        for (i, p) in raw.iter().enumerate() {
-            let w = inv * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-            if inside(&w, &cfg.workspace_bounds) {
-                if inside(&w, &focus_box) {
-                    focused.push(i);
-                } else {
-                    other.push(i);
-                }
-            }
-        }
-        let in_workspace = focused.len() + other.len();
-        if in_workspace < cfg.n_points {
-            return Err(PolicyError::TooFewPoints {
-                what: "point cloud inside the workspace box (the network's point count)",
-                needed: cfg.n_points,
-                got: in_workspace,
-            });
-        }
-        // Outside the focus box at most n_outside_focus; the focus box fills the rest (and
-        // the outside tops up when the focus box has too few).
-        let n_in = (cfg.n_points - cfg.n_outside_focus.min(other.len())).min(focused.len());
-        let n_out = cfg.n_points - n_in;
-        let mut picked = Vec::with_capacity(cfg.n_points);
-        for (set, n) in [(&other, n_out), (&focused, n_in)] {
-            if n == 0 {
-                continue;
-            }
-            let pos: Vec<[f32; 3]> = set.iter().map(|&i| raw[i]).collect();
-            for j in farthest_point_sampling(&pos, n)? {
-                picked.push(set[j]);
-            }
-        }
-        // Fisher-Yates permutation.
-        for i in (1..picked.len()).rev() {
-            let j = rng.random_range(0..=i);
-            picked.swap(i, j);
-        }
-        let xyz = picked.iter().map(|&i| raw[i]).collect();
-        let rgb = picked
-            .iter()
-            .map(|&i| match &cloud.rgb {
-                Some(c) => c[i].map(|v| f32::from(v) / 255.0),
-                None => [0.5; 3],
-            })
-            .collect();
-        let state = gripper.state();
-        let turn = match cfg.mode {
-            PolicyMode::Parity => Matrix3::identity(),
-            PolicyMode::Equivariant { .. } | PolicyMode::Gated => *gripper
-                .base_from_tcp
-                .rotation()
-                .to_rotation_matrix()
-                .matrix(),
-        };
-        let jitter = match cfg.mode {
-            PolicyMode::Parity => GRIPPER_JITTER,
-            PolicyMode::Equivariant { .. } | PolicyMode::Gated => EQUIVARIANT_GRIPPER_JITTER,
-        };
-        let mut gripper_eps = Vec::with_capacity(cfg.model.n_gripper_pos);
-        while gripper_eps.len() < cfg.model.n_gripper_pos {
-            let e = Vector3::new(
-                rng.random_range(-jitter..jitter),
-                rng.random_range(-jitter..jitter),
-                rng.random_range(-jitter..jitter),
-            );
-            if e.norm() < jitter {
-                let e = turn * e;
-                gripper_eps.push([e.x as f32, e.y as f32, e.z as f32]);
-            }
-        }
-        Ok(PreparedInput {
-            xyz,
-            rgb,
-            gripper: state,
-            gripper_eps,
-            in_workspace,
-        })
+        prepare_input(&self.cfg, cloud, gripper, rng)
     }
 
     /// Predicts one keyframe with its logits, samples and stage timings.
@@ -1132,6 +1030,118 @@ fn changed_choices(a: &BlockIndices, b: &BlockIndices) -> Option<&'static str> {
         return Some("graph");
     }
     None
+}
+
+/// Crops, samples and permutes the cloud and draws the gripper jitter (consumes `rng`): the
+/// network input of one observation under `cfg` (inference and training share it).
+pub fn prepare_input(
+    cfg: &PolicyConfig,
+    cloud: &PointCloud,
+    gripper: &GripperPose,
+    rng: &mut ChaCha8Rng,
+) -> Result<PreparedInput> {
+    if cloud.frame != FrameId::Base {
+        return Err(PolicyError::WrongFrame {
+            got: cloud.frame.to_string(),
+        });
+    }
+    if cloud.is_empty() {
+        return Err(PolicyError::EmptyCloud);
+    }
+    let raw: Vec<[f32; 3]> = cloud.points.iter().map(|p| [p.x, p.y, p.z]).collect();
+    check_finite("input point cloud", &raw)?;
+    if let Some(c) = &cloud.rgb {
+        if c.len() != raw.len() {
+            return Err(PolicyError::ShapeMismatch {
+                name: "point cloud colours".into(),
+                expected: vec![raw.len()],
+                got: vec![c.len()],
+            });
+        }
+    }
+    let inv = cfg.base_from_workspace.inverse();
+    let inside =
+        |p: &Point3<f64>, b: &[[f64; 3]; 2]| (0..3).all(|i| p[i] >= b[0][i] && p[i] <= b[1][i]);
+    let mut focus_box = cfg.gripper_bounds;
+    focus_box[0][2] = cfg.table_height;
+    let (mut focused, mut other) = (Vec::new(), Vec::new());
+    for (i, p) in raw.iter().enumerate() {
+        let w = inv * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
+        if inside(&w, &cfg.workspace_bounds) {
+            if inside(&w, &focus_box) {
+                focused.push(i);
+            } else {
+                other.push(i);
+            }
+        }
+    }
+    let in_workspace = focused.len() + other.len();
+    if in_workspace < cfg.n_points {
+        return Err(PolicyError::TooFewPoints {
+            what: "point cloud inside the workspace box (the network's point count)",
+            needed: cfg.n_points,
+            got: in_workspace,
+        });
+    }
+    // Outside the focus box at most n_outside_focus; the focus box fills the rest (and
+    // the outside tops up when the focus box has too few).
+    let n_in = (cfg.n_points - cfg.n_outside_focus.min(other.len())).min(focused.len());
+    let n_out = cfg.n_points - n_in;
+    let mut picked = Vec::with_capacity(cfg.n_points);
+    for (set, n) in [(&other, n_out), (&focused, n_in)] {
+        if n == 0 {
+            continue;
+        }
+        let pos: Vec<[f32; 3]> = set.iter().map(|&i| raw[i]).collect();
+        for j in farthest_point_sampling(&pos, n)? {
+            picked.push(set[j]);
+        }
+    }
+    // Fisher-Yates permutation.
+    for i in (1..picked.len()).rev() {
+        let j = rng.random_range(0..=i);
+        picked.swap(i, j);
+    }
+    let xyz = picked.iter().map(|&i| raw[i]).collect();
+    let rgb = picked
+        .iter()
+        .map(|&i| match &cloud.rgb {
+            Some(c) => c[i].map(|v| f32::from(v) / 255.0),
+            None => [0.5; 3],
+        })
+        .collect();
+    let state = gripper.state();
+    let turn = match cfg.mode {
+        PolicyMode::Parity => Matrix3::identity(),
+        PolicyMode::Equivariant { .. } | PolicyMode::Gated => *gripper
+            .base_from_tcp
+            .rotation()
+            .to_rotation_matrix()
+            .matrix(),
+    };
+    let jitter = match cfg.mode {
+        PolicyMode::Parity => GRIPPER_JITTER,
+        PolicyMode::Equivariant { .. } | PolicyMode::Gated => EQUIVARIANT_GRIPPER_JITTER,
+    };
+    let mut gripper_eps = Vec::with_capacity(cfg.model.n_gripper_pos);
+    while gripper_eps.len() < cfg.model.n_gripper_pos {
+        let e = Vector3::new(
+            rng.random_range(-jitter..jitter),
+            rng.random_range(-jitter..jitter),
+            rng.random_range(-jitter..jitter),
+        );
+        if e.norm() < jitter {
+            let e = turn * e;
+            gripper_eps.push([e.x as f32, e.y as f32, e.z as f32]);
+        }
+    }
+    Ok(PreparedInput {
+        xyz,
+        rgb,
+        gripper: state,
+        gripper_eps,
+        in_workspace,
+    })
 }
 
 /// The prepared input, queries and rotation query moved by `motion` (the gripper jitter

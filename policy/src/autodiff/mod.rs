@@ -106,7 +106,8 @@ pub struct Gradients {
 }
 
 impl Gradients {
-    /// The gradient of `v` (`None`: nothing reached it, i.e. zero).
+    /// The gradient of `v` (`None`: nothing reached it, i.e. zero). Only leaves (variables
+    /// and parameters) keep theirs; interior gradients are consumed by the pass.
     pub fn of(&self, v: Var) -> Option<&[f32]> {
         self.grads.get(v.0).and_then(|g| g.as_deref())
     }
@@ -212,25 +213,35 @@ impl Tape {
     /// Runs the backward pass from `out` with output gradient `seed` (the loss's gradient
     /// with respect to `out`).
     pub fn backward(&self, out: Var, seed: &[f32]) -> Result<Gradients> {
-        let node = self.nodes.get(out.0).ok_or(PolicyError::IndexOutOfRange {
-            name: "backward output".into(),
-            value: out.0 as i64,
-            len: self.nodes.len(),
-        })?;
-        check_shape("backward seed", seed.len(), &node.shape)?;
-        if seed.iter().any(|g| !g.is_finite()) {
-            return Err(PolicyError::NonFinite {
-                what: "loss gradient (backward seed)".into(),
-            });
-        }
+        self.backward_many(&[(out, seed)])
+    }
+
+    /// Runs one backward pass from several outputs, each with its loss gradient (a loss
+    /// made of several terms: translation, open and rotation).
+    pub fn backward_many(&self, seeds: &[(Var, &[f32])]) -> Result<Gradients> {
         let mut grads = Grads {
             grads: (0..self.nodes.len()).map(|_| None).collect(),
             lens: self.nodes.iter().map(|n| n.value.len()).collect(),
             needs: self.nodes.iter().map(|n| n.needs_grad).collect(),
         };
-        grads.add(out, seed);
+        let mut last = 0;
+        for &(out, seed) in seeds {
+            let node = self.nodes.get(out.0).ok_or(PolicyError::IndexOutOfRange {
+                name: "backward output".into(),
+                value: out.0 as i64,
+                len: self.nodes.len(),
+            })?;
+            check_shape("backward seed", seed.len(), &node.shape)?;
+            if seed.iter().any(|g| !g.is_finite()) {
+                return Err(PolicyError::NonFinite {
+                    what: "loss gradient (backward seed)".into(),
+                });
+            }
+            grads.add(out, seed);
+            last = last.max(out.0);
+        }
         let values = Values(&self.nodes);
-        for i in (0..=out.0).rev() {
+        for i in (0..=last).rev() {
             let Some(back) = &self.nodes[i].back else {
                 continue;
             };
@@ -241,6 +252,19 @@ impl Tape {
             back(&values, &g, &mut grads);
         }
         Ok(Gradients { grads: grads.grads })
+    }
+
+    /// The gradient of every parameter read, by full key (zeros where none reached it).
+    pub fn param_gradients(&self, grads: &Gradients) -> Vec<(String, Vec<f32>)> {
+        self.params
+            .iter()
+            .map(|(k, v)| {
+                let g = grads
+                    .of(*v)
+                    .map_or_else(|| vec![0.0; self.value(*v).len()], <[f32]>::to_vec);
+                (k.clone(), g)
+            })
+            .collect()
     }
 }
 
