@@ -15,8 +15,11 @@
 //! calling thread; products go through [`crate::matmul`].
 
 pub mod check;
+pub mod language;
 pub mod layers;
 mod ops;
+pub mod points;
+pub mod rotation;
 
 pub use ops::Act;
 
