@@ -1303,6 +1303,8 @@ fn transblock_config(fx: &FixtureFile, ctor: &str) -> Result<crate::transblock::
         .and_then(|v| v.as_u64())
         .unwrap_or(0)
         > 0;
+    // The fixtures come from the reference code, whose FiLM is the hypernetwork.
+    let film = film.then_some(crate::transblock::FilmKind::Hypernetwork);
     Ok(crate::transblock::TransBlockConfig {
         attn,
         ffn_hidden_channels: sidecar_usize(fx, &format!("{ctor}/ffn_hidden_channels"))?,

@@ -127,7 +127,7 @@ impl FieldHeads {
                 attn: attn(ROT_LMAX, ROT_MMAX),
                 ffn_hidden_channels: cfg.ffn_hidden_channels,
                 output_channels: c,
-                film: false,
+                film: None,
             },
             res.grid(ROT_LMAX, ROT_MMAX)?,
             res.grid(ROT_LMAX, ROT_LMAX)?,

@@ -17,6 +17,7 @@ use rand_chacha::ChaCha8Rng;
 use crate::fixtures::{StoredTensor, TensorData};
 use crate::heads::{ROT_LMAX, ROT_MMAX, TRANS_LMAX};
 use crate::model::ModelConfig;
+use crate::transblock::FilmKind;
 use crate::weights::Weights;
 
 /// Sizes the loader infers from the tensors but a generator must be told.
@@ -231,7 +232,9 @@ impl Gen {
     }
 }
 
-/// Seeded random parameters for `cfg` (and the sizes in `extra`), keys without prefix.
+/// Seeded random parameters for `cfg` (and the sizes in `extra`), keys without prefix; the
+/// U-net feed-forward networks' first linear follows `cfg.film_kind` (the per-degree scalar
+/// iFiLM's modulation weights are 0.1·N(0,1)/√film_dim, its biases 0.1·N(0,1)).
 pub fn random_weights(cfg: &ModelConfig, extra: &ExtraSizes, seed: u64) -> Weights {
     let mut g = Gen {
         rng: ChaCha8Rng::seed_from_u64(seed),
@@ -275,12 +278,23 @@ pub fn random_weights(cfg: &ModelConfig, extra: &ExtraSizes, seed: u64) -> Weigh
         );
         g.rms_norm(&format!("{t}norm_2."), lmax, cin);
         let hidden = cfg.ffn_hidden_channels[i];
-        g.linear(
-            &format!("{t}ffn.so3_linear_1.cond_encoder.1."),
-            (lmax + 1) * hidden * cin + hidden,
-            film,
-            true,
-        );
+        match cfg.film_kind {
+            FilmKind::Hypernetwork => g.linear(
+                &format!("{t}ffn.so3_linear_1.cond_encoder.1."),
+                (lmax + 1) * hidden * cin + hidden,
+                film,
+                true,
+            ),
+            FilmKind::PerDegreeScalar => {
+                g.so3_linear(&format!("{t}ffn.so3_linear_1."), lmax, hidden, cin);
+                // Small modulation weights: the layer starts near its plain linear map.
+                let p = format!("{t}ffn.so3_linear_1.film.");
+                let out = (lmax + 2) * hidden;
+                let scale = 0.1 / (film.max(1) as f32).sqrt();
+                g.add(format!("{p}weight"), &[out, film], Init::Scaled(scale));
+                g.add(format!("{p}bias"), &[out], Init::NormBias);
+            }
+        }
         g.linear(&format!("{t}ffn.gating_linear."), hidden, cin, true);
         g.so3_linear(&format!("{t}ffn.so3_linear_2."), lmax, cout, hidden);
         if cout != cin {

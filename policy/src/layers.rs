@@ -1050,6 +1050,89 @@ impl FilmLinear {
     }
 }
 
+/// The paper's per-degree scalar iFiLM: an [`So3Linear`] (`weight`, `bias`) whose output is
+/// modulated per (degree, channel) by the condition: with m = `film`(Mish(condition)),
+/// `[(lmax+2)·cout]` read as rows `m_0 .. m_lmax, γ` of `cout` values,
+/// y_l ← (1 + m_l) ⊙ y_l for every degree l (the l = 0 scale is β, the l > 0 scales are α_l)
+/// and y_0 ← y_0 + γ. A scalar per (degree, channel) commutes with every rotation, so the
+/// layer is exactly equivariant in the features and invariant in the condition; zero `film`
+/// weights make it the plain linear map.
+#[derive(Debug, Clone)]
+pub struct ScalarFilmLinear {
+    linear: So3Linear,
+    film: Linear,
+}
+
+/// Applies m `[(lmax+2)·cout]` (see [`ScalarFilmLinear`]) to `y` `[n, (lmax+1)², cout]`.
+pub(crate) fn scalar_film_modulate(y: &mut [f32], m: &[f32], lmax: usize, cout: usize) {
+    let k = num_coefficients(lmax);
+    let shift = &m[(lmax + 1) * cout..];
+    for yn in y.chunks_exact_mut(k * cout) {
+        for (i, row) in yn.chunks_exact_mut(cout).enumerate() {
+            let scale = &m[degree_of(i) * cout..(degree_of(i) + 1) * cout];
+            for (ch, v) in row.iter_mut().enumerate() {
+                *v *= 1.0 + scale[ch];
+                if i == 0 {
+                    *v += shift[ch];
+                }
+            }
+        }
+    }
+}
+
+impl ScalarFilmLinear {
+    /// Loads `weight`, `bias` (sizes from the weight) and `film.weight`
+    /// `[(lmax+2)·cout, condition_dim]`, `film.bias`.
+    pub fn load(s: &Scope<'_>) -> Result<Self> {
+        let linear = So3Linear::load(s)?;
+        let shape = s.sub("film").shape("weight", 2)?;
+        let out = (linear.lmax + 2) * linear.cout;
+        let film = Linear::load_sized(&s.sub("film"), out, shape[1], true)?;
+        Ok(Self { linear, film })
+    }
+
+    /// The unmodulated linear map.
+    pub fn linear(&self) -> &So3Linear {
+        &self.linear
+    }
+
+    /// Width of the condition vector.
+    pub fn condition_dim(&self) -> usize {
+        self.film.inp
+    }
+
+    /// The modulation m `[(lmax+2)·cout]` for one condition vector.
+    pub fn modulation(&self, condition: &[f32]) -> Result<Vec<f32>> {
+        check_len("FiLM condition", condition.len(), &[self.film.inp])?;
+        let m: Vec<f32> = condition.iter().map(|v| mish(*v)).collect();
+        self.film.forward(&m)
+    }
+
+    /// Applies the layer to `x` `[B·N, (lmax+1)², cin]` (nodes grouped by batch, equal
+    /// counts) with `condition` `[B, condition_dim]`.
+    pub fn forward(&self, x: &[f32], condition: &[f32]) -> Result<Vec<f32>> {
+        let (lmax, cout) = (self.linear.lmax, self.linear.cout);
+        let k = num_coefficients(lmax);
+        let nodes = rows_of("FiLM input", x.len(), k * self.linear.cin)?;
+        let b = rows_of("FiLM condition", condition.len(), self.film.inp)?;
+        if b == 0 || nodes % b != 0 {
+            return Err(PolicyError::ShapeMismatch {
+                name: "FiLM input (nodes must split evenly over the batch)".into(),
+                expected: vec![b, 0],
+                got: vec![nodes],
+            });
+        }
+        let mut y = self.linear.forward(x)?;
+        let per = nodes / b;
+        for (batch, yb) in y.chunks_mut((per * k * cout).max(1)).enumerate() {
+            let d = self.film.inp;
+            let m = self.modulation(&condition[batch * d..(batch + 1) * d])?;
+            scalar_film_modulate(yb, &m, lmax, cout);
+        }
+        Ok(y)
+    }
+}
+
 /// Multiplies every node's coefficients by a block-diagonal Wigner matrix `d`
 /// `[(lmax+1)², (lmax+1)²]`: `y[n, i, c] = Σ_j d[i, j] x[n, j, c]` (rotates the features).
 pub fn rotate_embedding(x: &[f32], c: usize, d: &nalgebra::DMatrix<f64>) -> Result<Vec<f32>> {

@@ -20,7 +20,7 @@ use crate::points::{
     UpsampleDistance,
 };
 use crate::so3::{num_coefficients, WignerCalculator};
-use crate::transblock::{TransBlock, TransBlockConfig};
+use crate::transblock::{FilmKind, TransBlock, TransBlockConfig};
 use crate::weights::Scope;
 
 /// Neighbours of each pooled centre in the max-pool.
@@ -67,6 +67,8 @@ pub struct ModelConfig {
     pub s2_resolution: S2Resolution,
     /// Distance of the up-sampling weights (L1 = parity mode).
     pub upsample_distance: UpsampleDistance,
+    /// The U-net feed-forward networks' iFiLM (the reference's hypernetwork = parity mode).
+    pub film_kind: FilmKind,
 }
 
 impl ModelConfig {
@@ -91,6 +93,7 @@ impl ModelConfig {
             rotation_grid_level: 1,
             s2_resolution: S2Resolution::Reference,
             upsample_distance: UpsampleDistance::L1,
+            film_kind: FilmKind::Hypernetwork,
         }
     }
 
@@ -314,7 +317,7 @@ impl EquFieldUnet {
                     attn,
                     ffn_hidden_channels: cfg.ffn_hidden_channels[i],
                     output_channels: cout,
-                    film: true,
+                    film: Some(cfg.film_kind),
                 },
                 cfg.s2_resolution.grid(cfg.lmax, cfg.mmax)?,
                 cfg.s2_resolution.grid(cfg.lmax, cfg.lmax)?,

@@ -4,14 +4,30 @@
 //! sidecar: h = GA(norm_1_src(x_src), norm_1_dst(x_dst)) + x_dst; y = FFN(norm_2(h)) +
 //! shortcut(h), where the shortcut is an `SO3_LinearV2` when the channel count changes.
 //! FFN: gating = Linear(l = 0 row); u = (FiLM) SO3 linear; separable S2 activation on the
-//! (lmax, lmax) grid; `SO3_LinearV2`.
+//! (lmax, lmax) grid; `SO3_LinearV2`. The first linear is plain, the reference's
+//! hypernetwork iFiLM, or the paper's per-degree scalar iFiLM ([`FilmKind`]).
 
 use crate::attention::{AttentionConfig, EdgeSet, GraphAttention};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
-use crate::layers::{rows_of, separable_s2_activation, FilmLinear, Linear, RmsNormSh, So3Linear};
+use crate::layers::{
+    rows_of, separable_s2_activation, FilmLinear, Linear, RmsNormSh, ScalarFilmLinear, So3Linear,
+};
 use crate::so3::num_coefficients;
 use crate::weights::Scope;
+
+/// How the feed-forward network's first linear map reads the instruction condition.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Default)]
+pub enum FilmKind {
+    /// The reference code's `SO3_FiLM_Linear`: a hypernetwork generates every per-degree
+    /// weight matrix (`so3_linear_1.cond_encoder.1.*`; most of the model's parameters).
+    #[default]
+    Hypernetwork,
+    /// The paper's form: a plain `SO3_LinearV2` (`so3_linear_1.weight/bias`) scaled per
+    /// (degree, channel) and shifted on l = 0 by a small Linear of Mish(condition)
+    /// (`so3_linear_1.film.weight/bias`); see [`ScalarFilmLinear`].
+    PerDegreeScalar,
+}
 
 /// The first linear map of the feed-forward network.
 #[derive(Debug, Clone)]
@@ -20,6 +36,8 @@ pub enum FirstLinear {
     Plain(So3Linear),
     /// `SO3_FiLM_Linear` conditioned on the instruction.
     Film(FilmLinear),
+    /// The paper's per-degree scalar iFiLM conditioned on the instruction.
+    ScalarFilm(ScalarFilmLinear),
 }
 
 /// `FeedForwardNetwork` with the separable S2 activation.
@@ -40,15 +58,15 @@ pub struct FeedForward {
 }
 
 impl FeedForward {
-    /// Loads `gating_linear`, `so3_linear_1` (FiLM when `film`) and `so3_linear_2`, with the
-    /// reference's (lmax, lmax) S2 grid.
+    /// Loads `gating_linear`, `so3_linear_1` (conditioned as `film` says; `None`: plain) and
+    /// `so3_linear_2`, with the reference's (lmax, lmax) S2 grid.
     pub fn load(
         s: &Scope<'_>,
         lmax: usize,
         cin: usize,
         hidden: usize,
         cout: usize,
-        film: bool,
+        film: Option<FilmKind>,
     ) -> Result<Self> {
         Self::load_with_grid(
             s,
@@ -68,7 +86,7 @@ impl FeedForward {
         cin: usize,
         hidden: usize,
         cout: usize,
-        film: bool,
+        film: Option<FilmKind>,
         grid: S2Grid,
     ) -> Result<Self> {
         if grid.lmax != lmax || grid.mmax != lmax {
@@ -79,12 +97,20 @@ impl FeedForward {
             });
         }
         let gating = Linear::load_sized(&s.sub("gating_linear"), hidden, cin, true)?;
-        let first = if film {
-            FirstLinear::Film(FilmLinear::load(&s.sub("so3_linear_1"), lmax, cin, hidden)?)
-        } else {
-            let l = So3Linear::load(&s.sub("so3_linear_1"))?;
-            check_so3(s, "so3_linear_1", &l, lmax, cin, hidden)?;
-            FirstLinear::Plain(l)
+        let first = match film {
+            Some(FilmKind::Hypernetwork) => {
+                FirstLinear::Film(FilmLinear::load(&s.sub("so3_linear_1"), lmax, cin, hidden)?)
+            }
+            Some(FilmKind::PerDegreeScalar) => {
+                let f = ScalarFilmLinear::load(&s.sub("so3_linear_1"))?;
+                check_so3(s, "so3_linear_1", f.linear(), lmax, cin, hidden)?;
+                FirstLinear::ScalarFilm(f)
+            }
+            None => {
+                let l = So3Linear::load(&s.sub("so3_linear_1"))?;
+                check_so3(s, "so3_linear_1", &l, lmax, cin, hidden)?;
+                FirstLinear::Plain(l)
+            }
         };
         let second = So3Linear::load(&s.sub("so3_linear_2"))?;
         check_so3(s, "so3_linear_2", &second, lmax, hidden, cout)?;
@@ -113,16 +139,26 @@ impl FeedForward {
         let u = match (&self.first, condition) {
             (FirstLinear::Plain(l), _) => l.forward(x)?,
             (FirstLinear::Film(f), Some(c)) => f.forward(x, c)?,
-            (FirstLinear::Film(f), None) => {
+            (FirstLinear::ScalarFilm(f), Some(c)) => f.forward(x, c)?,
+            (FirstLinear::Film(_) | FirstLinear::ScalarFilm(_), None) => {
                 return Err(PolicyError::ShapeMismatch {
                     name: "FiLM condition (required by this feed-forward network)".into(),
-                    expected: vec![1, f.condition_dim()],
+                    expected: vec![1, self.condition_dim().unwrap_or(0)],
                     got: vec![0],
                 })
             }
         };
         let u = separable_s2_activation(&self.grid, &gating, &u, self.hidden)?;
         self.second.forward(&u)
+    }
+
+    /// Width of the condition the first linear reads (`None` when it is not conditioned).
+    pub fn condition_dim(&self) -> Option<usize> {
+        match &self.first {
+            FirstLinear::Plain(_) => None,
+            FirstLinear::Film(f) => Some(f.condition_dim()),
+            FirstLinear::ScalarFilm(f) => Some(f.condition_dim()),
+        }
     }
 }
 
@@ -153,8 +189,8 @@ pub struct TransBlockConfig {
     pub ffn_hidden_channels: usize,
     /// Output channels of the block.
     pub output_channels: usize,
-    /// Whether the feed-forward network's first linear is FiLM-conditioned.
-    pub film: bool,
+    /// How the feed-forward network's first linear is FiLM-conditioned (`None`: plain).
+    pub film: Option<FilmKind>,
 }
 
 /// `TransBlock`: normed graph attention with a residual, then a normed feed-forward network

@@ -71,6 +71,32 @@ fn so3_linear_rms_norm_and_film_are_equivariant() {
 }
 
 #[test]
+fn per_degree_scalar_film_is_equivariant() {
+    // The paper's iFiLM on random weights of its own layout (lmax 3, 8 -> 8 channels).
+    use policy::init::{random_weights, ExtraSizes};
+    use policy::layers::ScalarFilmLinear;
+    use policy::model::ModelConfig;
+    use policy::transblock::FilmKind;
+    let mut cfg = ModelConfig::reference();
+    cfg.sphere_channels = vec![8; 5];
+    cfg.attn_hidden_channels = vec![8; 4];
+    cfg.ffn_hidden_channels = vec![8; 4];
+    cfg.field_nn_c = 8;
+    cfg.film_kind = FilmKind::PerDegreeScalar;
+    let mut extra = ExtraSizes::reference();
+    extra.film_dim = 16;
+    extra.token_dim = 8;
+    extra.lang_depth = 1;
+    extra.num_distance_basis = 8;
+    extra.field_num_basis = 8;
+    let w = random_weights(&cfg, &extra, 3);
+    let film = ScalarFilmLinear::load(&w.scope("down_blocks.0.block.transblock.ffn.so3_linear_1."))
+        .unwrap();
+    let cond: Vec<f32> = (0..16).map(|i| ((i as f32) * 0.37).sin()).collect();
+    check_layer("scalar film", 8, 8, |x| film.forward(x, &cond).unwrap());
+}
+
+#[test]
 fn weights_report_missing_and_misshapen_parameters_by_name() {
     let w = Weights::from_file(&fixture("linear_norm_rbf")).unwrap();
     let p = w.scope("param.");
@@ -241,7 +267,7 @@ fn transblock_equivariance_error(fine: bool) -> f64 {
         },
         ffn_hidden_channels: 16,
         output_channels: 24,
-        film: true,
+        film: Some(policy::transblock::FilmKind::Hypernetwork),
     };
     let block = if fine {
         TransBlock::load_with_grids(

@@ -9,6 +9,7 @@ use cell_types::{Base, FrameId, PointCloud, Tcp, Transform};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use policy::init::random_weights;
 use policy::predict::{GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode};
+use policy::transblock::FilmKind;
 use policy::weights::Weights;
 use policy::PolicyError;
 use rand::{Rng, SeedableRng};
@@ -85,6 +86,43 @@ fn prediction_is_deterministic_per_seed() {
     assert!(a.rotation_logit >= a.coarse_rotation_logit);
     assert_eq!(a.levels.len(), 3);
     assert_eq!(a.levels[1].0.len(), 30);
+}
+
+#[test]
+fn a_network_with_the_per_degree_scalar_film_predicts_and_reads_the_instruction() {
+    // The paper's cheap iFiLM: random weights with its keys load, the policy predicts, and
+    // another instruction changes the logits of the same samples.
+    let mut cfg = PolicyConfig::tiny();
+    cfg.model.film_kind = FilmKind::PerDegreeScalar;
+    let w = random_weights(&cfg.model, &cfg.extra, 7);
+    assert!(w.contains("down_blocks.0.block.transblock.ffn.so3_linear_1.film.weight"));
+    assert!(!w.contains("down_blocks.0.block.transblock.ffn.so3_linear_1.cond_encoder.1.weight"));
+    let mut p = Policy::from_weights(cfg, &w).unwrap();
+    p.seed = 11;
+    let cloud = scene(1);
+    let a = p
+        .predict_detailed(&cloud, &gripper(), &InstructionEmbedding::random(3))
+        .unwrap();
+    let b = p
+        .predict_detailed(&cloud, &gripper(), &InstructionEmbedding::random(4))
+        .unwrap();
+    assert!(a.levels[0].1.iter().all(|v| v.is_finite()));
+    assert_eq!(
+        a.levels[0].0, b.levels[0].0,
+        "same seed, same first samples"
+    );
+    let change = a.levels[0]
+        .1
+        .iter()
+        .zip(&b.levels[0].1)
+        .map(|(x, y)| (x - y).abs())
+        .fold(0.0f32, f32::max);
+    assert!(change > 1e-4, "the instruction moves the logits ({change})");
+    // Hypernetwork weights do not load as the scalar kind.
+    let mut hyper = PolicyConfig::tiny();
+    let w_hyper = random_weights(&hyper.model, &hyper.extra, 7);
+    hyper.model.film_kind = FilmKind::PerDegreeScalar;
+    assert!(Policy::from_weights(hyper, &w_hyper).is_err());
 }
 
 fn transform_cloud(c: &PointCloud, m: &Isometry3<f64>) -> PointCloud {

@@ -327,7 +327,13 @@ pub(crate) mod tests {
 
     /// Random weights of a small whole model: every layer's parameters under its real key.
     pub(crate) fn small_weights() -> Weights {
+        small_weights_of(crate::transblock::FilmKind::Hypernetwork)
+    }
+
+    /// As [`small_weights`] with the U-net's feed-forward networks conditioned by `film`.
+    pub(crate) fn small_weights_of(film: crate::transblock::FilmKind) -> Weights {
         let mut cfg = ModelConfig::reference();
+        cfg.film_kind = film;
         cfg.sphere_channels = vec![8, 8, 12, 16, 16];
         cfg.attn_hidden_channels = vec![8; 4];
         cfg.attn_alpha_channels = vec![4; 4];
@@ -347,12 +353,12 @@ pub(crate) mod tests {
         random_weights(&cfg, &extra, 5)
     }
 
-    fn random(n: usize, seed: u64) -> Vec<f32> {
+    pub(crate) fn random(n: usize, seed: u64) -> Vec<f32> {
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         (0..n).map(|_| rng.random_range(-1.5f32..1.5)).collect()
     }
 
-    fn assert_close(a: &[f32], b: &[f32], tol: f32, what: &str) {
+    pub(crate) fn assert_close(a: &[f32], b: &[f32], tol: f32, what: &str) {
         assert_eq!(a.len(), b.len(), "{what}: lengths");
         for (i, (x, y)) in a.iter().zip(b).enumerate() {
             assert!(
@@ -362,7 +368,7 @@ pub(crate) mod tests {
         }
     }
 
-    fn assert_passes(r: &crate::autodiff::check::FdReport, what: &str) {
+    pub(crate) fn assert_passes(r: &crate::autodiff::check::FdReport, what: &str) {
         assert!(
             r.passed(),
             "{what}: worst {:.3} at {} ({:?})",

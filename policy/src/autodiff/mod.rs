@@ -15,6 +15,7 @@
 //! calling thread; products go through [`crate::matmul`].
 
 pub mod check;
+pub mod ffn;
 pub mod language;
 pub mod layers;
 mod ops;
