@@ -315,7 +315,7 @@ pub fn layer_norm(t: &mut Tape, s: &Scope<'_>, x: Var, dim: usize) -> Result<Var
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::autodiff::check::{finite_difference_check, FdOptions};
     use crate::init::{random_weights, ExtraSizes};
