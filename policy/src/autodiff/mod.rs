@@ -14,6 +14,7 @@
 //! inference kernels, and a dozen operations cover the network. Everything is `f32` on the
 //! calling thread; products go through [`crate::matmul`].
 
+pub mod attention;
 pub mod check;
 pub mod ffn;
 pub mod language;

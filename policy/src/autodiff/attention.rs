@@ -1,0 +1,1027 @@
+//! Taped twins of the edge and attention path: the Gaussian radial basis, the radial MLP,
+//! the edge-frame rotations, the SO(2) convolution, the grouped softmax and the whole
+//! `SO2EquivariantGraphAttention`. Each reads its parameters by the inference layer's names
+//! and computes the same values (up to the summation order of the dense products).
+
+use std::sync::Arc;
+
+use super::{layers, Act, Tape, Var};
+use crate::attention::{AttentionConfig, EdgeSet};
+use crate::error::{PolicyError, Result};
+use crate::grids::S2Grid;
+use crate::layers::{degree_of, rows_of, sigmoid, softplus};
+use crate::so2_conv::{CoefficientMapping, EdgeWigners};
+use crate::so3::num_coefficients;
+use crate::weights::Scope;
+
+fn mismatch(name: &str, expected: Vec<usize>, got: Vec<usize>) -> PolicyError {
+    PolicyError::ShapeMismatch {
+        name: name.to_string(),
+        expected,
+        got,
+    }
+}
+
+/// The soft inner cut-off of [`crate::layers::GaussianRbf`] (same f32 operations): 0 for
+/// u <= 0, 1 for u >= 0.2.
+fn envelope(u: f32) -> f32 {
+    if u > 0.5 {
+        return 1.0;
+    }
+    let s = ((1.0 - u) - 0.8) / 0.2;
+    let step = if s <= 0.0 {
+        0.0
+    } else if s >= 1.0 {
+        1.0
+    } else {
+        4.0 * s.powi(3) - 3.0 * s.powi(4)
+    };
+    1.0 - step
+}
+
+/// `GaussianRadialBasisLayerFiniteCutoff` of the edge `lengths` (`mean`, `std_logit`,
+/// `weight_logit` `[1, K]`; offset 0.01 · cutoff): `[E, K]`, dense.
+pub fn gaussian_rbf(t: &mut Tape, s: &Scope<'_>, lengths: &[f32], cutoff: f64) -> Result<Var> {
+    let k = s.shape("mean", 2)?[1];
+    let mean = t.param(s, "mean", &[1, k])?;
+    let std_logit = t.param(s, "std_logit", &[1, k])?;
+    let weight_logit = t.param(s, "weight_logit", &[1, k])?;
+    // The inference layer's constants, rounded the same way.
+    let offset = 0.01 * cutoff;
+    let (off32, span) = (offset as f32, (cutoff - offset) as f32);
+    let normalizer = (k as f64).sqrt() as f32;
+    let std: Vec<f32> = t
+        .value(std_logit)
+        .iter()
+        .map(|v| softplus(*v) + 1e-5)
+        .collect();
+    let weight: Vec<f32> = t
+        .value(weight_logit)
+        .iter()
+        .map(|v| sigmoid(*v) * 4.0)
+        .collect();
+    let mv = t.value(mean);
+    let ne = lengths.len();
+    let mut y = vec![0.0f32; ne * k];
+    let mut ue = Vec::with_capacity(ne);
+    for (&d, row) in lengths.iter().zip(y.chunks_exact_mut(k.max(1))) {
+        let u = (d - off32) / span;
+        let env = envelope(u);
+        ue.push((u, env));
+        for (i, o) in row.iter_mut().enumerate() {
+            let z = (u - mv[i]) / std[i];
+            let z2 = z * z;
+            // Beyond z² = 210 the inference layer (sparse or dense) gives exactly 0.
+            *o = if z2 > 210.0 {
+                0.0
+            } else {
+                weight[i] * (-0.5 * z2).exp() * env * normalizer
+            };
+        }
+    }
+    Ok(t.push(
+        y,
+        vec![ne, k],
+        &[mean, std_logit, weight_logit],
+        Some(Box::new(move |vals, g, gr| {
+            let (mv, sl, wl) = (vals.get(mean), vals.get(std_logit), vals.get(weight_logit));
+            let mut dm = vec![0.0f64; k];
+            let mut ds = vec![0.0f64; k];
+            let mut dw = vec![0.0f64; k];
+            let norm = f64::from(normalizer);
+            // Per basis: std, its derivative σ(std_logit), σ(weight_logit).
+            let sd: Vec<f64> = sl.iter().map(|v| f64::from(softplus(*v) + 1e-5)).collect();
+            let dsd: Vec<f64> = sl.iter().map(|v| f64::from(sigmoid(*v))).collect();
+            let sg: Vec<f64> = wl.iter().map(|v| f64::from(sigmoid(*v))).collect();
+            for (&(u, env), gr_row) in ue.iter().zip(g.chunks_exact(k.max(1))) {
+                for i in 0..k {
+                    let z = (f64::from(u) - f64::from(mv[i])) / sd[i];
+                    if z * z > 210.0 {
+                        continue;
+                    }
+                    let gauss = (-0.5 * z * z).exp();
+                    let c = f64::from(gr_row[i]) * f64::from(env) * norm;
+                    dw[i] += c * gauss * 4.0 * sg[i] * (1.0 - sg[i]);
+                    // dv/dz = −z·v; dz/dmean = −1/std; dz/dstd = −z/std.
+                    let dz = -c * 4.0 * sg[i] * gauss * z;
+                    dm[i] -= dz / sd[i];
+                    ds[i] -= dz * z / sd[i] * dsd[i];
+                }
+            }
+            let f = |v: Vec<f64>| v.into_iter().map(|x| x as f32).collect::<Vec<f32>>();
+            gr.add(mean, &f(dm));
+            gr.add(std_logit, &f(ds));
+            gr.add(weight_logit, &f(dw));
+        })),
+    ))
+}
+
+/// `RadialFunction` (as [`crate::layers::RadialMlp`]): `net.{3i}` Linear, `net.{3i+1}`
+/// LayerNorm and SiLU per hidden layer, then the last Linear, on rows of `x`.
+pub fn radial_mlp(t: &mut Tape, s: &Scope<'_>, x: Var) -> Result<Var> {
+    let net = s.sub("net");
+    let mut h = x;
+    let mut i = 0;
+    loop {
+        let ls = net.sub(&i.to_string());
+        let shape = ls.shape("weight", 2)?;
+        h = layers::linear(t, &ls, h, shape[0], shape[1], true)?;
+        if !net.contains(&format!("{}.weight", i + 1)) {
+            return Ok(h);
+        }
+        h = layers::layer_norm(t, &net.sub(&(i + 1).to_string()), h, shape[0])?;
+        h = t.act(h, Act::Silu);
+        i += 3;
+    }
+}
+
+/// Checks that `w` and `map` agree on the degree and returns (k, n_reduced).
+fn rotation_sizes(w: &EdgeWigners, map: &CoefficientMapping) -> Result<(usize, usize)> {
+    if w.lmax != map.lmax {
+        return Err(PolicyError::UnsupportedDegree {
+            lmax: w.lmax,
+            mmax: map.mmax,
+            max_supported: map.lmax,
+        });
+    }
+    let k = num_coefficients(w.lmax);
+    if w.d.len() != w.edges * k * k {
+        return Err(mismatch(
+            "edge Wigner matrices",
+            vec![w.edges, k, k],
+            vec![w.d.len()],
+        ));
+    }
+    Ok((k, map.len()))
+}
+
+/// Per-edge matrices `[E, n_reduced, (lmax+1)²]` of [`EdgeWigners::rotate`]: the reduced rows
+/// of D, zero outside each row's degree block.
+pub fn rotation_matrices(w: &EdgeWigners, map: &CoefficientMapping) -> Result<Arc<[f32]>> {
+    let (k, nr) = rotation_sizes(w, map)?;
+    let mut m = vec![0.0f32; w.edges * nr * k];
+    for (d, me) in w.d.chunks_exact(k * k).zip(m.chunks_exact_mut(nr * k)) {
+        for (r, &i) in map.reduced.iter().enumerate() {
+            let l = degree_of(i);
+            for j in l * l..(l + 1) * (l + 1) {
+                me[r * k + j] = d[i * k + j];
+            }
+        }
+    }
+    Ok(m.into())
+}
+
+/// Per-edge matrices `[E, (lmax+1)², n_reduced]` of [`EdgeWigners::rotate_back`]: Dᵀ on the
+/// reduced rows with the rescale of degrees above m_max.
+pub fn rotation_back_matrices(w: &EdgeWigners, map: &CoefficientMapping) -> Result<Arc<[f32]>> {
+    let (k, nr) = rotation_sizes(w, map)?;
+    let mut m = vec![0.0f32; w.edges * k * nr];
+    for (d, me) in w.d.chunks_exact(k * k).zip(m.chunks_exact_mut(k * nr)) {
+        for (r, &i) in map.reduced.iter().enumerate() {
+            let l = degree_of(i);
+            for j in l * l..(l + 1) * (l + 1) {
+                me[j * nr + r] = d[i * k + j] * map.rotate_inv_rescale(j);
+            }
+        }
+    }
+    Ok(m.into())
+}
+
+/// Rotates `x` `[E, (lmax+1)², c]` into the edge frames, as [`EdgeWigners::rotate`]:
+/// `[E, n_reduced, c]`.
+pub fn rotate(
+    t: &mut Tape,
+    w: &EdgeWigners,
+    map: &CoefficientMapping,
+    x: Var,
+    c: usize,
+) -> Result<Var> {
+    let (k, nr) = rotation_sizes(w, map)?;
+    let ne = rows_of("features to rotate", t.value(x).len(), k * c)?;
+    // One matrix per edge: never the shared-matrix form of `const_matmul`.
+    if ne != w.edges {
+        return Err(mismatch(
+            "features to rotate",
+            vec![w.edges, k, c],
+            vec![ne, k, c],
+        ));
+    }
+    let mats = rotation_matrices(w, map)?;
+    t.const_matmul(x, mats, (nr, k, c))
+}
+
+/// Rotates `y` `[E, n_reduced, c]` back to the global frame, as
+/// [`EdgeWigners::rotate_back`]: `[E, (lmax+1)², c]`.
+pub fn rotate_back(
+    t: &mut Tape,
+    w: &EdgeWigners,
+    map: &CoefficientMapping,
+    y: Var,
+    c: usize,
+) -> Result<Var> {
+    let (k, nr) = rotation_sizes(w, map)?;
+    let ne = rows_of("features to rotate back", t.value(y).len(), nr * c)?;
+    if ne != w.edges {
+        return Err(mismatch(
+            "features to rotate back",
+            vec![w.edges, nr, c],
+            vec![ne, nr, c],
+        ));
+    }
+    let mats = rotation_back_matrices(w, map)?;
+    t.const_matmul(y, mats, (k, nr, c))
+}
+
+/// Sizes of a taped SO(2) convolution (the inference layer's constructor arguments).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct So2ConvSizes {
+    /// Input channels of the weights.
+    pub cin: usize,
+    /// Channels present in the input (≤ `cin`): the first ones; the others are zero and
+    /// skipped, as [`crate::so2_conv::So2Conv::first_channels`].
+    pub present: usize,
+    /// Output channels.
+    pub cout: usize,
+    /// Extra m = 0 outputs (0 for none).
+    pub extra: usize,
+}
+
+/// The first `keep` of every `cin` channels of `nl` degree blocks in rows of `nl·cin`
+/// values: `[rows, nl·keep]` (identity when all are kept).
+fn keep_channels(
+    t: &mut Tape,
+    v: Var,
+    rows: usize,
+    (nl, cin, keep): (usize, usize, usize),
+) -> Result<Var> {
+    if keep == cin {
+        return Ok(v);
+    }
+    let r = t.reshape(v, &[rows * nl, cin])?;
+    let r = t.slice_cols(r, cin, 0..keep)?;
+    t.reshape(r, &[rows, nl * keep])
+}
+
+/// `SO2_Convolution` on `x_rot` `[E, n_reduced, present]` (reduced l-major order), as
+/// [`crate::so2_conv::So2Conv::forward_features`]: the inputs are scaled by `rad_func` of
+/// `edge_attr` when given (required when the scope has a radial MLP); returns
+/// `[E, n_reduced, cout]` and the extra m = 0 outputs `[E, extra]` (None when 0).
+pub fn so2_conv(
+    t: &mut Tape,
+    s: &Scope<'_>,
+    map: &CoefficientMapping,
+    sizes: So2ConvSizes,
+    x_rot: Var,
+    edge_attr: Option<Var>,
+) -> Result<(Var, Option<Var>)> {
+    let So2ConvSizes {
+        cin,
+        present: keep,
+        cout,
+        extra,
+    } = sizes;
+    if keep == 0 || keep > cin {
+        return Err(mismatch(
+            "SO(2) convolution channels present",
+            vec![cin],
+            vec![keep],
+        ));
+    }
+    let (lmax, nr) = (map.lmax, map.len());
+    let l1 = lmax + 1;
+    let ne = rows_of("SO(2) convolution input", t.value(x_rot).len(), nr * keep)?;
+    let xr = t.reshape(x_rot, &[ne * nr, keep])?;
+    let rad_w: usize = l1 * cin + (1..=map.mmax).map(|m| (l1 - m) * cin).sum::<usize>();
+    let rad = match edge_attr {
+        Some(a) => {
+            let r = radial_mlp(t, &s.sub("rad_func"), a)?;
+            if t.value(r).len() != ne * rad_w {
+                return Err(mismatch(
+                    &s.key("rad_func (output width)"),
+                    vec![ne, rad_w],
+                    t.shape(r).to_vec(),
+                ));
+            }
+            Some(r)
+        }
+        None if s.contains("rad_func.net.0.weight") => {
+            return Err(mismatch(
+                "SO(2) convolution edge features (required by its radial MLP)",
+                vec![ne, 0],
+                vec![0],
+            ));
+        }
+        None => None,
+    };
+    // Rows `positions` of every edge's input, scaled by the radial weights at `roff`.
+    let block = |t: &mut Tape, positions: &[usize], roff: usize| -> Result<Var> {
+        let nl = positions.len();
+        let idx: Vec<usize> = (0..ne)
+            .flat_map(|e| positions.iter().map(move |p| e * nr + p))
+            .collect();
+        let v = t.gather_rows(xr, keep, &idx)?;
+        let v = t.reshape(v, &[ne, nl * keep])?;
+        match rad {
+            Some(r) => {
+                let rs = t.slice_cols(r, rad_w, roff..roff + nl * cin)?;
+                let rs = keep_channels(t, rs, ne, (nl, cin, keep))?;
+                t.mul(v, rs)
+            }
+            None => Ok(v),
+        }
+    };
+    // m = 0: one Linear with bias; its first outputs are the extra scalars.
+    let p0: Vec<usize> = (0..=lmax).map(|l| map.position(l, 0)).collect();
+    let v0 = block(t, &p0, 0)?;
+    let s0 = s.sub("fc_m0");
+    let w0_out = extra + l1 * cout;
+    let w0 = t.param(&s0, "weight", &[w0_out, l1 * cin])?;
+    let w0 = keep_channels(t, w0, w0_out, (l1, cin, keep))?;
+    let b0 = t.param(&s0, "bias", &[w0_out])?;
+    let o0 = t.linear(v0, w0, Some(b0))?;
+    let extra_out = if extra > 0 {
+        Some(t.slice_cols(o0, w0_out, 0..extra)?)
+    } else {
+        None
+    };
+    // The outputs in m-major order (m = 0, +1, −1, +2, −2, ...; l ascending in each).
+    let mut y = t.slice_cols(o0, w0_out, extra..w0_out)?;
+    let mut ycols = l1 * cout;
+    let mut roff = l1 * cin;
+    for m in 1..=map.mmax {
+        let nl = l1 - m;
+        let pa: Vec<usize> = (m..=lmax).map(|l| map.position(l, m as i64)).collect();
+        let pb: Vec<usize> = (m..=lmax).map(|l| map.position(l, -(m as i64))).collect();
+        let va = block(t, &pa, roff)?;
+        let vb = block(t, &pb, roff)?;
+        roff += nl * cin;
+        let fs = s.sub("so2_m_conv").sub(&(m - 1).to_string()).sub("fc");
+        let half = nl * cout;
+        let w = t.param(&fs, "weight", &[2 * half, nl * cin])?;
+        let w = keep_channels(t, w, 2 * half, (nl, cin, keep))?;
+        let oa = t.linear(va, w, None)?;
+        let ob = t.linear(vb, w, None)?;
+        // out(+m) = R a − I b, out(−m) = R b + I a.
+        let ra = t.slice_cols(oa, 2 * half, 0..half)?;
+        let ia = t.slice_cols(oa, 2 * half, half..2 * half)?;
+        let rb = t.slice_cols(ob, 2 * half, 0..half)?;
+        let ib = t.slice_cols(ob, 2 * half, half..2 * half)?;
+        let nib = t.scale(ib, -1.0);
+        let plus = t.add(ra, nib)?;
+        let minus = t.add(rb, ia)?;
+        y = t.concat_cols(y, ycols, plus, half)?;
+        ycols += half;
+        y = t.concat_cols(y, ycols, minus, half)?;
+        ycols += half;
+    }
+    // Back to the reduced l-major order.
+    let mut from = vec![0usize; nr];
+    for (j, &p) in map.m_major().iter().enumerate() {
+        from[p] = j;
+    }
+    let yr = t.reshape(y, &[ne * nr, cout])?;
+    let idx: Vec<usize> = (0..ne)
+        .flat_map(|e| from.iter().map(move |j| e * nr + j))
+        .collect();
+    let y = t.gather_rows(yr, cout, &idx)?;
+    let y = t.reshape(y, &[ne, nr, cout])?;
+    Ok((y, extra_out))
+}
+
+/// Softmax of `logit` `[E, heads]` over the edges sharing a destination, as
+/// [`crate::attention::grouped_softmax`] (PyG: max subtracted, 1e-16 in the denominator).
+pub fn grouped_softmax(
+    t: &mut Tape,
+    logit: Var,
+    dst: &[usize],
+    nd: usize,
+    heads: usize,
+) -> Result<Var> {
+    let ne = rows_of("softmax logits", t.value(logit).len(), heads)?;
+    if dst.len() != ne {
+        return Err(mismatch("softmax destinations", vec![ne], vec![dst.len()]));
+    }
+    if let Some(&bad) = dst.iter().find(|&&d| d >= nd) {
+        return Err(PolicyError::IndexOutOfRange {
+            name: "softmax destination".into(),
+            value: bad as i64,
+            len: nd,
+        });
+    }
+    let y = crate::attention::grouped_softmax(t.value(logit), dst, nd, heads);
+    let yk = y.clone();
+    let dst: Arc<[usize]> = dst.into();
+    Ok(t.push(
+        y,
+        vec![ne, heads],
+        &[logit],
+        Some(Box::new(move |_, g, gr| {
+            // dz_e = y_e (g_e − Σ_f g_f y_f) over e's group (the max is a constant shift).
+            let mut dots = vec![0.0f64; nd * heads];
+            for (e, &d) in dst.iter().enumerate() {
+                for h in 0..heads {
+                    let i = e * heads + h;
+                    dots[d * heads + h] += f64::from(g[i]) * f64::from(yk[i]);
+                }
+            }
+            if let Some(acc) = gr.acc(logit) {
+                for (e, &d) in dst.iter().enumerate() {
+                    for h in 0..heads {
+                        let i = e * heads + h;
+                        let y = f64::from(yk[i]);
+                        acc[i] += (y * (f64::from(g[i]) - dots[d * heads + h])) as f32;
+                    }
+                }
+            }
+        })),
+    ))
+}
+
+/// `SO2EquivariantGraphAttention` from `x_src` `[Ns, (lmax+1)², C]` to `nd` destinations
+/// with features `x_dst` (None: all zero, as the field heads' queries) over `edges`, with
+/// the taped radial basis `edge_attr` `[E, basis]` and the S2 activation on `grid`, as
+/// [`crate::attention::GraphAttention::forward`]: `[nd, (lmax+1)², output_channels]`.
+#[allow(clippy::too_many_arguments)]
+pub fn graph_attention(
+    t: &mut Tape,
+    s: &Scope<'_>,
+    cfg: AttentionConfig,
+    grid: &S2Grid,
+    x_src: Var,
+    x_dst: Option<Var>,
+    nd: usize,
+    edges: &EdgeSet,
+    edge_attr: Var,
+) -> Result<Var> {
+    let map = CoefficientMapping::new(cfg.lmax, cfg.mmax)?;
+    if edges.wigners.lmax != cfg.lmax {
+        return Err(PolicyError::UnsupportedDegree {
+            lmax: edges.wigners.lmax,
+            mmax: cfg.mmax,
+            max_supported: cfg.lmax,
+        });
+    }
+    if grid.lmax != cfg.lmax || grid.reduced != map.reduced {
+        return Err(PolicyError::UnsupportedDegree {
+            lmax: grid.lmax,
+            mmax: grid.mmax,
+            max_supported: cfg.lmax,
+        });
+    }
+    let k = num_coefficients(cfg.lmax);
+    let c = cfg.sphere_channels;
+    let heads = cfg.num_heads;
+    let (ach, vc, hidden) = (cfg.alpha_channels, cfg.value_channels, cfg.hidden_channels);
+    let proj_shape = s.sub("proj").shape("weight", 3)?;
+    if proj_shape != [cfg.lmax + 1, cfg.output_channels, heads * vc] {
+        return Err(mismatch(
+            &s.key("proj.weight"),
+            vec![cfg.lmax + 1, cfg.output_channels, heads * vc],
+            proj_shape,
+        ));
+    }
+    rows_of("attention source features", t.value(x_src).len(), k * c)?;
+    let ne = edges.len();
+    if edges.dst.len() != ne || edges.wigners.edges != ne {
+        return Err(mismatch(
+            "attention edges (destinations, Wigner matrices)",
+            vec![ne, ne],
+            vec![edges.dst.len(), edges.wigners.edges],
+        ));
+    }
+    let dst = &edges.dst;
+
+    // Messages concat(x_src[src], x_dst[dst]) per coefficient row (only the source half
+    // when the destinations are zero: the zero half contributes nothing).
+    let xs = t.gather_rows(x_src, k * c, &edges.src)?;
+    let (msg, present) = match x_dst {
+        Some(xd) => {
+            let n = rows_of("attention destination features", t.value(xd).len(), k * c)?;
+            if n != nd {
+                return Err(mismatch(
+                    "attention destination features",
+                    vec![nd, k, c],
+                    vec![n, k, c],
+                ));
+            }
+            let xd = t.gather_rows(xd, k * c, dst)?;
+            let a = t.reshape(xs, &[ne * k, c])?;
+            let b = t.reshape(xd, &[ne * k, c])?;
+            (t.concat_cols(a, c, b, c)?, 2 * c)
+        }
+        None => (xs, c),
+    };
+    let x_rot = rotate(t, &edges.wigners, &map, msg, present)?;
+    let n_alpha = heads * ach;
+    let n_extra = n_alpha + hidden;
+    let (h, extra) = so2_conv(
+        t,
+        &s.sub("so2_conv_1"),
+        &map,
+        So2ConvSizes {
+            cin: 2 * c,
+            present,
+            cout: hidden,
+            extra: n_extra,
+        },
+        x_rot,
+        Some(edge_attr),
+    )?;
+    let extra = extra.ok_or_else(|| mismatch("attention extra scalars", vec![n_extra], vec![0]))?;
+    let alpha_in = t.slice_cols(extra, n_extra, 0..n_alpha)?;
+    let gating = t.slice_cols(extra, n_extra, n_alpha..n_extra)?;
+    let h = t.separable_s2_activation(grid, gating, h, hidden)?;
+    let (v, _) = so2_conv(
+        t,
+        &s.sub("so2_conv_2"),
+        &map,
+        So2ConvSizes {
+            cin: hidden,
+            present: hidden,
+            cout: heads * vc,
+            extra: 0,
+        },
+        h,
+        None,
+    )?;
+
+    // Logits: LayerNorm, smooth leaky ReLU, dot with each head's alpha_dot.
+    let a = t.reshape(alpha_in, &[ne * heads, ach])?;
+    let a = layers::layer_norm(t, &s.sub("alpha_norm"), a, ach)?;
+    let a = t.act(a, Act::SmoothLeakyRelu(0.2));
+    let dot = t.param(s, "alpha_dot", &[heads, ach])?;
+    let head_of: Vec<usize> = (0..ne).flat_map(|_| 0..heads).collect();
+    let dot_rows = t.gather_rows(dot, ach, &head_of)?;
+    let prod = t.mul(a, dot_rows)?;
+    let ones = t.constant(vec![1.0; ach], &[1, ach])?;
+    let logit = t.linear(prod, ones, None)?;
+    let alpha = grouped_softmax(t, logit, dst, nd, heads)?;
+
+    // Weight each head's values, rotate back, sum at the destinations, project.
+    let nr = map.len();
+    let spread: Vec<usize> = (0..ne)
+        .flat_map(|e| {
+            (0..nr).flat_map(move |_| {
+                (0..heads).flat_map(move |hd| std::iter::repeat_n(e * heads + hd, vc))
+            })
+        })
+        .collect();
+    let weights = t.gather_rows(alpha, 1, &spread)?;
+    let v = t.mul(v, weights)?;
+    let back = rotate_back(t, &edges.wigners, &map, v, heads * vc)?;
+    let agg = t.scatter_add_rows(back, k * heads * vc, dst, nd)?;
+    let agg = t.reshape(agg, &[nd, k, heads * vc])?;
+    layers::so3_linear(t, &s.sub("proj"), agg)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::attention::GraphAttention;
+    use crate::autodiff::check::{finite_difference_check, FdOptions, FdReport};
+    use crate::autodiff::layers::tests::small_weights;
+    use crate::layers::{GaussianRbf, RadialMlp};
+    use crate::model::knn_graph;
+    use crate::so2_conv::So2Conv;
+    use crate::so3::WignerCalculator;
+    use crate::weights::Weights;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+
+    const BLOCK: &str = "down_blocks.1.block.";
+    /// `max_radius[1]` of the reference model, times 0.99 as `EquFieldUnet` loads it.
+    const CUTOFF: f64 = 0.4 * 0.99;
+
+    fn random(n: usize, seed: u64) -> Vec<f32> {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        (0..n).map(|_| rng.random_range(-1.5f32..1.5)).collect()
+    }
+
+    fn assert_close(a: &[f32], b: &[f32], tol: f32, what: &str) {
+        assert_eq!(a.len(), b.len(), "{what}: lengths");
+        let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        for (i, (x, y)) in a.iter().zip(b).enumerate() {
+            assert!(
+                (x - y).abs() <= tol * (1.0 + y.abs().max(scale)),
+                "{what}[{i}]: {x} vs {y}"
+            );
+        }
+    }
+
+    fn assert_passes(r: &FdReport, what: &str) {
+        assert!(
+            r.passed(),
+            "{what}: worst {:.3} at {} ({:?})",
+            r.worst_ratio,
+            r.worst,
+            r.tensors
+        );
+    }
+
+    fn attention_config() -> AttentionConfig {
+        // down_blocks.1 of `small_weights`: 8 channels, 4 heads of 4 logits and 2 values.
+        AttentionConfig {
+            lmax: 3,
+            mmax: 2,
+            sphere_channels: 8,
+            hidden_channels: 8,
+            num_heads: 4,
+            alpha_channels: 4,
+            value_channels: 2,
+            output_channels: 8,
+        }
+    }
+
+    /// `n` random points in a 0.5 box and their k = 4 nearest-neighbour graph.
+    fn graph(n: usize, seed: u64) -> (Vec<[f32; 3]>, Vec<usize>, Vec<usize>) {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let pos: Vec<[f32; 3]> = (0..n)
+            .map(|_| std::array::from_fn(|_| rng.random_range(-0.25f32..0.25)))
+            .collect();
+        let (src, dst) = knn_graph(&pos, 4).unwrap();
+        (pos, src, dst)
+    }
+
+    /// Edges of the 6-node graph with the block's radial basis, and the weights.
+    fn edges(w: &Weights, lmax: usize) -> EdgeSet {
+        let (pos, src, dst) = graph(6, 11);
+        let rbf = GaussianRbf::load(&w.scope(BLOCK).sub("distance_expansion"), CUTOFF).unwrap();
+        let calc = WignerCalculator::new(lmax).unwrap();
+        EdgeSet::new(&calc, lmax, &pos, &pos, src, dst, &rbf).unwrap()
+    }
+
+    #[test]
+    fn gaussian_rbf_matches_inference_and_finite_differences() {
+        let mut w = small_weights();
+        let e = edges(&w, 3);
+        // Field-head bases narrow enough (std ≈ 0.004 of the span) that inference keeps them
+        // in compressed rows and skips the bases out of reach.
+        for v in w.f32_mut("field_distance_expansion.std_logit").unwrap() {
+            *v = -5.5;
+        }
+        let field_cutoff = f64::from(crate::heads::QUERY_RADIUS) * 0.99;
+        for (prefix, cutoff, sparse) in [
+            (format!("{BLOCK}distance_expansion."), CUTOFF, false),
+            ("field_distance_expansion.".to_string(), field_cutoff, true),
+        ] {
+            let s = w.scope(&prefix);
+            let rbf = GaussianRbf::load(&s, cutoff).unwrap();
+            let mut lengths = e.dist.clone();
+            lengths.extend([0.0, 0.001, 0.3 * cutoff as f32, 0.9 * cutoff as f32, 2.5]);
+            let mut t = Tape::new();
+            let y = gaussian_rbf(&mut t, &s, &lengths, cutoff).unwrap();
+            assert_close(t.value(y), &rbf.forward(&lengths), 0.0, "rbf (dense)");
+            let features = rbf.features(&lengths);
+            assert_eq!(
+                matches!(features, crate::layers::EdgeFeatures::Sparse { .. }),
+                sparse
+            );
+            assert_close(t.value(y), &features.to_dense(), 0.0, "rbf (features)");
+            assert!(t.value(y).iter().any(|v| *v > 0.0));
+        }
+        let r = finite_difference_check(
+            &w,
+            &format!("{BLOCK}distance_expansion."),
+            &[],
+            FdOptions {
+                eps: 1e-3,
+                per_tensor: 10,
+                ..FdOptions::default()
+            },
+            |t, s, _| gaussian_rbf(t, s, &e.dist, CUTOFF),
+        )
+        .unwrap();
+        assert_passes(&r, "gaussian_rbf");
+        assert_eq!(r.tensors.len(), 3, "mean, std_logit and weight_logit");
+    }
+
+    #[test]
+    fn radial_mlp_matches_inference_and_finite_differences() {
+        let w = small_weights();
+        let p = format!("{BLOCK}transblock.ga.so2_conv_1.rad_func.");
+        let s = w.scope(&p);
+        let mlp = RadialMlp::load(&s).unwrap();
+        let x = random(5 * mlp.inp(), 1);
+        let want = mlp.forward(&x).unwrap();
+        let mut t = Tape::new();
+        let xv = t.variable(x.clone(), &[5, mlp.inp()]).unwrap();
+        let y = radial_mlp(&mut t, &s, xv).unwrap();
+        assert_close(t.value(y), &want, 1e-5, "radial_mlp");
+        let r = finite_difference_check(
+            &w,
+            &p,
+            &[(x, vec![5, mlp.inp()])],
+            FdOptions::default(),
+            |t, s, v| radial_mlp(t, s, v[0]),
+        )
+        .unwrap();
+        assert_passes(&r, "radial_mlp");
+        assert_eq!(
+            r.tensors.len(),
+            1 + 10,
+            "input, 3 linears and 2 layer norms"
+        );
+    }
+
+    #[test]
+    fn edge_rotations_match_inference_and_finite_differences() {
+        let w = small_weights();
+        for (lmax, mmax) in [(3, 2), (3, 3), (4, 3), (1, 1)] {
+            let e = edges(&w, lmax);
+            let map = CoefficientMapping::new(lmax, mmax).unwrap();
+            let (k, nr, c, ne) = (num_coefficients(lmax), map.len(), 3, e.len());
+            let x = random(ne * k * c, 2);
+            let y = random(ne * nr * c, 3);
+            let mut t = Tape::new();
+            let xv = t.variable(x.clone(), &[ne, k, c]).unwrap();
+            let yv = t.variable(y.clone(), &[ne, nr, c]).unwrap();
+            let rx = rotate(&mut t, &e.wigners, &map, xv, c).unwrap();
+            let by = rotate_back(&mut t, &e.wigners, &map, yv, c).unwrap();
+            let want_r = e.wigners.rotate(&map, &x, c).unwrap();
+            let want_b = e.wigners.rotate_back(&map, &y, c).unwrap();
+            assert_close(t.value(rx), &want_r, 1e-6, "rotate");
+            assert_close(t.value(by), &want_b, 1e-6, "rotate_back");
+            let inputs = [(x, vec![ne, k, c]), (y, vec![ne, nr, c])];
+            let r = finite_difference_check(&w, "", &inputs, FdOptions::default(), |t, _, v| {
+                let a = rotate(t, &e.wigners, &map, v[0], c)?;
+                let b = rotate_back(t, &e.wigners, &map, v[1], c)?;
+                let a = t.reshape(a, &[ne, nr * c])?;
+                let b = t.reshape(b, &[ne, k * c])?;
+                t.concat_cols(a, nr * c, b, k * c)
+            })
+            .unwrap();
+            assert_passes(&r, "edge rotations");
+        }
+        // Features of a different edge count are an error, not a shared matrix.
+        let e = edges(&w, 3);
+        let map = CoefficientMapping::new(3, 2).unwrap();
+        let one = e.wigners.slice(0..1);
+        let mut t = Tape::new();
+        let x = t.constant(vec![0.0; 2 * 16 * 3], &[2, 16, 3]).unwrap();
+        assert!(rotate(&mut t, &one, &map, x, 3).is_err());
+        let map4 = CoefficientMapping::new(4, 2).unwrap();
+        assert!(rotate(&mut t, &e.wigners, &map4, x, 3).is_err());
+    }
+
+    #[test]
+    fn so2_conv_matches_inference_and_finite_differences() {
+        let w = small_weights();
+        let cfg = attention_config();
+        let map = CoefficientMapping::new(cfg.lmax, cfg.mmax).unwrap();
+        let nr = map.len();
+        let e = edges(&w, cfg.lmax);
+        let ne = e.len();
+        let attr = e.attr.to_dense();
+        let nb = e.attr.cols();
+        let c = cfg.sphere_channels;
+        let n_extra = cfg.num_heads * cfg.alpha_channels + cfg.hidden_channels;
+        let p = format!("{BLOCK}transblock.ga.so2_conv_1.");
+        let full = So2Conv::load(
+            &w.scope(&p),
+            &map,
+            2 * c,
+            cfg.hidden_channels,
+            n_extra,
+            true,
+        )
+        .unwrap();
+        for present in [2 * c, c] {
+            let conv = if present == 2 * c {
+                full.clone()
+            } else {
+                full.first_channels(present).unwrap()
+            };
+            let x = random(ne * nr * present, 4);
+            let (want_y, want_extra) = conv.forward(&x, Some(&attr)).unwrap();
+            let sizes = So2ConvSizes {
+                cin: 2 * c,
+                present,
+                cout: cfg.hidden_channels,
+                extra: n_extra,
+            };
+            let build = |t: &mut Tape, s: &Scope<'_>, v: &[Var]| -> Result<Var> {
+                let (y, ex) = so2_conv(t, s, &map, sizes, v[0], Some(v[1]))?;
+                let y = t.reshape(y, &[ne, nr * cfg.hidden_channels])?;
+                let ex = ex.ok_or_else(|| mismatch("extra", vec![n_extra], vec![0]))?;
+                t.concat_cols(y, nr * cfg.hidden_channels, ex, n_extra)
+            };
+            let mut t = Tape::new();
+            let xv = t.variable(x.clone(), &[ne, nr, present]).unwrap();
+            let av = t.variable(attr.clone(), &[ne, nb]).unwrap();
+            let (y, ex) = so2_conv(&mut t, &w.scope(&p), &map, sizes, xv, Some(av)).unwrap();
+            assert_close(t.value(y), &want_y, 1e-5, "so2_conv features");
+            assert_close(t.value(ex.unwrap()), &want_extra, 1e-5, "so2_conv extra");
+            let inputs = [(x, vec![ne, nr, present]), (attr.clone(), vec![ne, nb])];
+            let r = finite_difference_check(&w, &p, &inputs, FdOptions::default(), build).unwrap();
+            assert_passes(&r, "so2_conv");
+        }
+        // Without a radial MLP and extra outputs (the second convolution).
+        let p2 = format!("{BLOCK}transblock.ga.so2_conv_2.");
+        let hv = cfg.num_heads * cfg.value_channels;
+        let conv2 = So2Conv::load(&w.scope(&p2), &map, cfg.hidden_channels, hv, 0, false).unwrap();
+        let x = random(ne * nr * cfg.hidden_channels, 5);
+        let (want, _) = conv2.forward(&x, None).unwrap();
+        let sizes = So2ConvSizes {
+            cin: cfg.hidden_channels,
+            present: cfg.hidden_channels,
+            cout: hv,
+            extra: 0,
+        };
+        let mut t = Tape::new();
+        let xv = t
+            .variable(x.clone(), &[ne, nr, cfg.hidden_channels])
+            .unwrap();
+        let (y, ex) = so2_conv(&mut t, &w.scope(&p2), &map, sizes, xv, None).unwrap();
+        assert!(ex.is_none());
+        assert_close(t.value(y), &want, 1e-5, "so2_conv_2");
+        let inputs = [(x, vec![ne, nr, cfg.hidden_channels])];
+        let r = finite_difference_check(&w, &p2, &inputs, FdOptions::default(), |t, s, v| {
+            Ok(so2_conv(t, s, &map, sizes, v[0], None)?.0)
+        })
+        .unwrap();
+        assert_passes(&r, "so2_conv_2");
+        // The first convolution needs its edge features.
+        let mut t = Tape::new();
+        let x = t
+            .constant(vec![0.0; ne * nr * 2 * c], &[ne, nr, 2 * c])
+            .unwrap();
+        let sizes = So2ConvSizes {
+            cin: 2 * c,
+            present: 2 * c,
+            cout: cfg.hidden_channels,
+            extra: n_extra,
+        };
+        assert!(so2_conv(&mut t, &w.scope(&p), &map, sizes, x, None).is_err());
+    }
+
+    #[test]
+    fn grouped_softmax_matches_inference_and_finite_differences() {
+        let w = small_weights();
+        let dst = vec![0, 0, 1, 2, 2, 2, 0, 1];
+        let (nd, heads) = (4, 3);
+        let logit = random(dst.len() * heads, 6);
+        let want = crate::attention::grouped_softmax(&logit, &dst, nd, heads);
+        let mut t = Tape::new();
+        let lv = t.variable(logit.clone(), &[dst.len(), heads]).unwrap();
+        let y = grouped_softmax(&mut t, lv, &dst, nd, heads).unwrap();
+        assert_close(t.value(y), &want, 0.0, "grouped_softmax");
+        let inputs = [(logit, vec![dst.len(), heads])];
+        let opts = FdOptions {
+            per_tensor: 24,
+            ..FdOptions::default()
+        };
+        let r = finite_difference_check(&w, "", &inputs, opts, |t, _, v| {
+            grouped_softmax(t, v[0], &dst, nd, heads)
+        })
+        .unwrap();
+        assert_passes(&r, "grouped_softmax");
+        assert!(grouped_softmax(&mut t, lv, &dst, 2, heads).is_err());
+        assert!(grouped_softmax(&mut t, lv, &dst[1..], nd, heads).is_err());
+    }
+
+    /// The taped attention (radial basis from the block's `distance_expansion`) against
+    /// inference and finite differences, with real or zero destinations, on `grid`.
+    fn check_attention(grid: S2Grid, zero_destinations: bool) {
+        let w = small_weights();
+        let cfg = attention_config();
+        let e = edges(&w, cfg.lmax);
+        let (n, k, c) = (6, num_coefficients(cfg.lmax), cfg.sphere_channels);
+        let x_src = random(n * k * c, 7);
+        let x_dst = if zero_destinations {
+            vec![0.0; n * k * c]
+        } else {
+            random(n * k * c, 8)
+        };
+        let ga = format!("{BLOCK}transblock.ga.");
+        let mut inf = GraphAttention::load_with_grid(&w.scope(&ga), cfg, grid.clone()).unwrap();
+        let want = if zero_destinations {
+            inf.prepare_zero_destinations().unwrap();
+            let direct = inf.forward_zero_destinations(&x_src, n, &e).unwrap();
+            let via_zeros = inf.forward(&x_src, &x_dst, &e).unwrap();
+            assert_close(&direct, &via_zeros, 1e-5, "inference zero destinations");
+            direct
+        } else {
+            inf.forward(&x_src, &x_dst, &e).unwrap()
+        };
+        let build = |t: &mut Tape, s: &Scope<'_>, v: &[Var]| -> Result<Var> {
+            let attr = gaussian_rbf(t, &s.sub("distance_expansion"), &e.dist, CUTOFF)?;
+            let xd = (!zero_destinations).then(|| v[1]);
+            let s = s.sub("transblock").sub("ga");
+            graph_attention(t, &s, cfg, &grid, v[0], xd, n, &e, attr)
+        };
+        let mut inputs = vec![(x_src, vec![n, k, c])];
+        if !zero_destinations {
+            inputs.push((x_dst, vec![n, k, c]));
+        }
+        let mut t = Tape::new();
+        let vars: Vec<Var> = inputs
+            .iter()
+            .map(|(x, s)| t.variable(x.clone(), s).unwrap())
+            .collect();
+        let y = build(&mut t, &w.scope(BLOCK), &vars).unwrap();
+        assert_eq!(t.shape(y), [n, k, cfg.output_channels]);
+        assert_close(t.value(y), &want, 1e-5, "graph_attention");
+        // The composed layer is curved enough (narrow bases, a LayerNorm over 4 logits) that
+        // the default step's truncation error reaches a few percent; 3e-3 shrinks it ~10×.
+        let opts = FdOptions {
+            eps: 3e-3,
+            ..FdOptions::default()
+        };
+        let r = finite_difference_check(&w, BLOCK, &inputs, opts, build).unwrap();
+        assert_passes(&r, "graph_attention");
+        // Inputs, 3 radial basis, 10 radial MLP, 4 + 4 convolution, 2 LayerNorm, alpha_dot
+        // and 2 projection tensors: every parameter of the layer receives a gradient.
+        assert_eq!(r.tensors.len(), inputs.len() + 26, "{:?}", r.tensors);
+    }
+
+    #[test]
+    fn graph_attention_matches_inference_and_finite_differences() {
+        check_attention(S2Grid::reference(3, 2).unwrap(), false);
+    }
+
+    #[test]
+    fn graph_attention_zero_destinations_matches_inference_and_finite_differences() {
+        check_attention(S2Grid::reference(3, 2).unwrap(), true);
+    }
+
+    #[test]
+    fn graph_attention_gated_grid_matches_inference_and_finite_differences() {
+        check_attention(S2Grid::gate(3, 2).unwrap(), false);
+    }
+
+    #[test]
+    fn graph_attention_rejects_mismatched_inputs() {
+        let w = small_weights();
+        let cfg = attention_config();
+        let e = edges(&w, cfg.lmax);
+        let s = w.scope(BLOCK).sub("transblock").sub("ga");
+        let mut t = Tape::new();
+        let x = t.constant(vec![0.0; 6 * 16 * 8], &[6, 16, 8]).unwrap();
+        let attr = t.constant(e.attr.to_dense(), &[e.len(), 16]).unwrap();
+        let grid = S2Grid::reference(3, 2).unwrap();
+        let run =
+            |t: &mut Tape, cfg: AttentionConfig, grid: &S2Grid, nd: usize, xd: Option<Var>| {
+                graph_attention(t, &s, cfg, grid, x, xd, nd, &e, attr)
+            };
+        assert!(run(&mut t, cfg, &grid, 6, Some(x)).is_ok());
+        assert!(run(&mut t, cfg, &grid, 5, Some(x)).is_err(), "nd vs x_dst");
+        assert!(
+            run(&mut t, cfg, &grid, 3, None).is_err(),
+            "destination out of range"
+        );
+        let other = S2Grid::reference(3, 3).unwrap();
+        assert!(run(&mut t, cfg, &other, 6, None).is_err(), "grid degrees");
+        let wide = AttentionConfig {
+            value_channels: 3,
+            ..cfg
+        };
+        assert!(run(&mut t, wide, &grid, 6, None).is_err(), "proj width");
+    }
+
+    #[test]
+    fn field_head_attention_matches_inference_and_finite_differences() {
+        // `trans_field_layer.0`: degree 1, zero query features, the field radial basis, every
+        // query attending to every node.
+        use crate::heads::{QUERY_RADIUS, TRANS_LMAX};
+        let w = small_weights();
+        let cfg = AttentionConfig {
+            lmax: TRANS_LMAX,
+            mmax: TRANS_LMAX,
+            ..attention_config()
+        };
+        let cutoff = f64::from(QUERY_RADIUS) * 0.99;
+        let (pos, _, _) = graph(6, 12);
+        let queries = [[0.05f32, -0.1, 0.02], [-0.2, 0.1, 0.15], [0.1, 0.2, -0.1]];
+        let src: Vec<usize> = (0..queries.len()).flat_map(|_| 0..pos.len()).collect();
+        let dst: Vec<usize> = (0..queries.len())
+            .flat_map(|q| std::iter::repeat_n(q, pos.len()))
+            .collect();
+        let rbf = GaussianRbf::load(&w.scope("field_distance_expansion."), cutoff).unwrap();
+        let calc = WignerCalculator::new(TRANS_LMAX).unwrap();
+        let e = EdgeSet::new(&calc, TRANS_LMAX, &pos, &queries, src, dst, &rbf).unwrap();
+        let (n, nq, k, c) = (pos.len(), queries.len(), num_coefficients(TRANS_LMAX), 8);
+        let grid = S2Grid::reference(TRANS_LMAX, TRANS_LMAX).unwrap();
+        let mut inf =
+            GraphAttention::load_with_grid(&w.scope("trans_field_layer.0."), cfg, grid.clone())
+                .unwrap();
+        inf.prepare_zero_destinations().unwrap();
+        let x_src = random(n * k * c, 13);
+        let want = inf.forward_zero_destinations(&x_src, nq, &e).unwrap();
+        let build = |t: &mut Tape, s: &Scope<'_>, v: &[Var]| -> Result<Var> {
+            let attr = gaussian_rbf(t, &s.sub("field_distance_expansion"), &e.dist, cutoff)?;
+            let s = s.sub("trans_field_layer").sub("0");
+            graph_attention(t, &s, cfg, &grid, v[0], None, nq, &e, attr)
+        };
+        let inputs = [(x_src, vec![n, k, c])];
+        let mut t = Tape::new();
+        let xv = t.variable(inputs[0].0.clone(), &[n, k, c]).unwrap();
+        let y = build(&mut t, &w.scope(""), &[xv]).unwrap();
+        assert_close(t.value(y), &want, 1e-5, "field head attention");
+        let opts = FdOptions {
+            eps: 3e-3,
+            ..FdOptions::default()
+        };
+        let r = finite_difference_check(&w, "", &inputs, opts, build).unwrap();
+        assert_passes(&r, "field head attention");
+    }
+}
