@@ -16,3 +16,4 @@ pub mod real_cell;
 pub mod recording;
 pub mod sim_cell;
 pub mod task;
+pub mod train;

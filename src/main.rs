@@ -45,6 +45,8 @@ enum Command {
     Demos(cmd::demos::DemosArgs),
     /// Closed-loop evaluation in the simulated cell: success rate per task variation.
     Eval(cmd::eval::EvalArgs),
+    /// Train the network on a demonstration dataset (checkpoints resume).
+    Train(cmd::train::TrainArgs),
 }
 
 fn main() -> std::process::ExitCode {
@@ -84,5 +86,6 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Plot(args) => cmd::plot::run(args),
         Command::Demos(args) => cmd::demos::run(args),
         Command::Eval(args) => cmd::eval::run(args),
+        Command::Train(args) => cmd::train::run(args),
     }
 }

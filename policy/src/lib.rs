@@ -54,6 +54,7 @@ pub mod predict;
 pub mod rotation_head;
 pub mod so2_conv;
 pub mod so3;
+pub mod trainer;
 pub mod training;
 pub mod transblock;
 pub mod weights;

