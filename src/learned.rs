@@ -57,6 +57,23 @@ impl LearnedPolicy {
         cfg: &CellConfig,
         seed: u64,
     ) -> anyhow::Result<Self> {
+        let instruction = InstructionEmbedding::from_file(instruction).with_context(|| {
+            format!(
+                "reading the instruction embedding {} (safetensors, one F32 tensor: tokens x width)",
+                instruction.display()
+            )
+        })?;
+        Self::load_with(network, weights, instruction, cfg, seed)
+    }
+
+    /// Loads the weights file, with an instruction embedding already in memory.
+    pub fn load_with(
+        network: PolicyConfig,
+        weights: &Path,
+        instruction: InstructionEmbedding,
+        cfg: &CellConfig,
+        seed: u64,
+    ) -> anyhow::Result<Self> {
         let policy_cfg = for_cell(network, cfg);
         let mut policy = Policy::load(policy_cfg, weights).with_context(|| {
             format!(
@@ -65,12 +82,6 @@ impl LearnedPolicy {
             )
         })?;
         policy.seed = seed;
-        let instruction = InstructionEmbedding::from_file(instruction).with_context(|| {
-            format!(
-                "reading the instruction embedding {} (safetensors, one F32 tensor 53 x 512)",
-                instruction.display()
-            )
-        })?;
         Self::new(policy, instruction, cfg)
     }
 

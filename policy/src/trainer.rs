@@ -54,6 +54,8 @@ pub struct TrainConfig {
     pub batch: usize,
     /// Seed of every random draw (step k uses `seed + k`).
     pub seed: u64,
+    /// Worker threads over the samples of a batch (the result does not depend on it).
+    pub threads: usize,
 }
 
 /// One demonstration step: what the network saw, what it should answer.
@@ -275,12 +277,52 @@ impl Trainer {
         batch: &[&TrainSample],
         draw_seed: u64,
     ) -> Result<(Losses, ParamGradients)> {
-        let mut rng = ChaCha8Rng::seed_from_u64(draw_seed);
+        // Each sample draws from its own stream, so the result does not depend on how the
+        // batch is split over threads.
+        let one = |i: usize, sample: &TrainSample| {
+            let mut rng = ChaCha8Rng::seed_from_u64(draw_seed);
+            rng.set_stream(i as u64);
+            sample_gradients(&self.weights, &self.cfg, &self.grid, sample, &mut rng)
+        };
+        let threads = self.cfg.threads.clamp(1, batch.len().max(1));
+        let results: Vec<Result<(Losses, ParamGradients)>> = if threads == 1 {
+            batch.iter().enumerate().map(|(i, s)| one(i, s)).collect()
+        } else {
+            // Explicit worker threads for the samples of one batch (training only; nothing
+            // outlives the call).
+            let per = batch.len().div_ceil(threads);
+            std::thread::scope(|scope| {
+                let handles: Vec<_> = batch
+                    .chunks(per)
+                    .enumerate()
+                    .map(|(c, chunk)| {
+                        let one = &one;
+                        scope.spawn(move || {
+                            chunk
+                                .iter()
+                                .enumerate()
+                                .map(|(j, s)| one(c * per + j, s))
+                                .collect::<Vec<_>>()
+                        })
+                    })
+                    .collect();
+                handles
+                    .into_iter()
+                    .flat_map(|h| {
+                        h.join().unwrap_or_else(|_| {
+                            vec![Err(PolicyError::NonFinite {
+                                what: "a training worker thread panicked".into(),
+                            })]
+                        })
+                    })
+                    .collect()
+            })
+        };
         let mut mean = Losses::default();
         let mut total: ParamGradients = Vec::new();
         let w = 1.0 / batch.len().max(1) as f64;
-        for sample in batch {
-            let (l, g) = sample_gradients(&self.weights, &self.cfg, &self.grid, sample, &mut rng)?;
+        for r in results {
+            let (l, g) = r?;
             mean.add(&l, w);
             if total.is_empty() {
                 total = g;
@@ -408,6 +450,7 @@ mod tests {
             augment: false,
             batch: 1,
             seed: 3,
+            threads: 1,
         }
     }
 
@@ -575,6 +618,14 @@ mod tests {
         }
         let after = trainer.gradients(&batch, 0).unwrap().0.total();
         assert!(after < 0.8 * before, "loss {before:.4} -> {after:.4}");
+
+        // Two threads over a batch of two give the same mean as one thread.
+        let s2 = sample(4, pose(0.5, -0.1, 0.12, -0.2), true);
+        let pair = [&s, &s2];
+        let one = trainer.gradients(&pair, 7).unwrap();
+        let mut two_threads = trainer.clone();
+        two_threads.cfg.threads = 2;
+        assert_eq!(two_threads.gradients(&pair, 7).unwrap(), one);
 
         let dir = std::env::temp_dir().join(format!("equact_trainer_{}", std::process::id()));
         trainer.step(&batch).unwrap();

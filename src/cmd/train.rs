@@ -59,7 +59,7 @@ pub struct TrainArgs {
     #[arg(long, default_value_t = 1e-4)]
     pub lr: f32,
     /// Translation queries per sampling level.
-    #[arg(long, default_value_t = 60)]
+    #[arg(long, default_value_t = 30)]
     pub queries: usize,
     /// HEALPix level of the rotation-loss grid (72·8^level rotations).
     #[arg(long, default_value_t = 2)]
@@ -70,6 +70,10 @@ pub struct TrainArgs {
     /// Seed of the initial weights and of every draw.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// Worker threads over the samples of a batch (training only; results do not depend
+    /// on it).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
     /// Steps between checkpoints.
     #[arg(long, default_value_t = 50)]
     pub checkpoint_every: u64,
@@ -132,6 +136,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         augment: !args.no_augment,
         batch: args.batch,
         seed: args.seed,
+        threads: args.threads,
     };
     let settings = RunSettings {
         network: format!("{:?}", args.network),
