@@ -34,6 +34,27 @@ pub struct EdgeSet {
     pub attr: EdgeFeatures,
 }
 
+/// The edge vectors `pos_src[src[e]] − pos_dst[dst[e]]`.
+pub fn edge_vectors(
+    pos_src: &[[f32; 3]],
+    pos_dst: &[[f32; 3]],
+    src: &[usize],
+    dst: &[usize],
+) -> Result<Vec<[f32; 3]>> {
+    let mut vec = Vec::with_capacity(src.len());
+    for (&s, &d) in src.iter().zip(dst) {
+        let (Some(ps), Some(pd)) = (pos_src.get(s), pos_dst.get(d)) else {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "edge_src/edge_dst".into(),
+                value: s.max(d) as i64,
+                len: pos_src.len().min(pos_dst.len()),
+            });
+        };
+        vec.push([ps[0] - pd[0], ps[1] - pd[1], ps[2] - pd[2]]);
+    }
+    Ok(vec)
+}
+
 /// Euclidean length of each edge vector.
 fn edge_lengths(vec: &[[f32; 3]]) -> Vec<f32> {
     vec.iter()
@@ -60,17 +81,7 @@ impl EdgeSet {
                 got: vec![dst.len()],
             });
         }
-        let mut vec = Vec::with_capacity(src.len());
-        for (&s, &d) in src.iter().zip(&dst) {
-            let (Some(ps), Some(pd)) = (pos_src.get(s), pos_dst.get(d)) else {
-                return Err(PolicyError::IndexOutOfRange {
-                    name: "edge_src/edge_dst".into(),
-                    value: s.max(d) as i64,
-                    len: pos_src.len().min(pos_dst.len()),
-                });
-            };
-            vec.push([ps[0] - pd[0], ps[1] - pd[1], ps[2] - pd[2]]);
-        }
+        let vec = edge_vectors(pos_src, pos_dst, &src, &dst)?;
         let dist = edge_lengths(&vec);
         let attr = rbf.features(&dist);
         Self::assemble(calc, lmax, src, dst, vec, dist, attr)

@@ -10,7 +10,7 @@ use super::layers::{linear, rms_norm_sh, so3_linear};
 use super::points::{coefficient_max_pool, upsample};
 use super::rotation::{open_logit, rotation_logits};
 use super::{Tape, Var};
-use crate::attention::{AttentionConfig, EdgeSet};
+use crate::attention::{edge_vectors, AttentionConfig, EdgeSet};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
 use crate::heads::{FieldHeads, QUERY_RADIUS, ROT_LMAX, ROT_MMAX, TRANS_LMAX};
@@ -30,17 +30,7 @@ pub fn edges_between(
     src: Vec<usize>,
     dst: Vec<usize>,
 ) -> Result<EdgeSet> {
-    let mut vec = Vec::with_capacity(src.len());
-    for (&s, &d) in src.iter().zip(&dst) {
-        let (Some(ps), Some(pd)) = (pos_src.get(s), pos_dst.get(d)) else {
-            return Err(PolicyError::IndexOutOfRange {
-                name: "edge_src/edge_dst".into(),
-                value: s.max(d) as i64,
-                len: pos_src.len().min(pos_dst.len()),
-            });
-        };
-        vec.push([ps[0] - pd[0], ps[1] - pd[1], ps[2] - pd[2]]);
-    }
+    let vec = edge_vectors(pos_src, pos_dst, &src, &dst)?;
     let e = src.len();
     EdgeSet::from_parts(calc, lmax, src, dst, vec, vec![0.0; e])
 }
