@@ -16,7 +16,8 @@ use rand_chacha::ChaCha8Rng;
 
 use crate::fixtures::{StoredTensor, TensorData};
 use crate::heads::{ROT_LMAX, ROT_MMAX, TRANS_LMAX};
-use crate::model::ModelConfig;
+use crate::model::{HeadKind, ModelConfig};
+use crate::plain_heads::{PlainHeadsConfig, PLAIN_ROT_OUTPUTS, PLAIN_ROT_SCOPE, PLAIN_TRANS_SCOPE};
 use crate::transblock::FilmKind;
 use crate::weights::Weights;
 
@@ -190,6 +191,26 @@ impl Gen {
         }
     }
 
+    /// A plain transformer head layer ([`crate::plain_heads`]) with `n_out` readout
+    /// outputs; `readout` initialises the readout matrix.
+    fn plain_layer(&mut self, p: &str, sz: PlainHeadsConfig, n_out: usize, readout: Init) {
+        let (c, inner, f) = (sz.channels, sz.inner(), sz.ffn_hidden);
+        self.add(format!("{p}query"), &[c], Init::Scaled(1.0));
+        self.linear(&format!("{p}query_pos."), c, 3, false);
+        self.layer_norm(&format!("{p}norm_q."), c);
+        self.layer_norm(&format!("{p}norm_kv."), c + 3);
+        self.linear(&format!("{p}to_q."), inner, c, false);
+        self.linear(&format!("{p}to_k."), inner, c + 3, false);
+        self.linear(&format!("{p}to_v."), inner, c + 3, false);
+        self.linear(&format!("{p}to_out."), c, inner, true);
+        self.layer_norm(&format!("{p}norm_ff."), c);
+        self.linear(&format!("{p}ff1."), f, c, true);
+        self.linear(&format!("{p}ff2."), c, f, true);
+        self.layer_norm(&format!("{p}norm_out."), c);
+        self.add(format!("{p}readout.weight"), &[n_out, c], readout);
+        self.add(format!("{p}readout.bias"), &[n_out], Init::Bias);
+    }
+
     /// `SO2EquivariantGraphAttention` (output width = input width).
     #[allow(clippy::too_many_arguments)]
     fn attention(
@@ -317,7 +338,38 @@ pub fn random_weights(cfg: &ModelConfig, extra: &ExtraSizes, seed: u64) -> Weigh
     }
     let c = cfg.field_nn_c;
     g.rms_norm("norm_1.", lmax, c);
-    // Field heads.
+    match cfg.heads {
+        HeadKind::Equivariant => equivariant_heads(&mut g, cfg, extra),
+        HeadKind::Plain => {
+            // Widths as `PlainHeadsConfig::of` takes them (a short list falls back to 1 and
+            // fails at load with a typed error).
+            let at1 = |v: &[usize]| v.get(1).copied().unwrap_or(1);
+            let sizes = PlainHeadsConfig {
+                channels: c,
+                num_heads: cfg.num_heads,
+                head_dim: at1(&cfg.attn_alpha_channels),
+                ffn_hidden: at1(&cfg.ffn_hidden_channels),
+                node_lmax: lmax,
+            };
+            g.plain_layer(&format!("{PLAIN_TRANS_SCOPE}."), sizes, 1, Init::Matrix);
+            // A small SO(3) signal at the start, like `s2_conv.w`'s 0.1 scale.
+            let small = Init::Scaled(0.1 / (c.max(1) as f32).sqrt());
+            g.plain_layer(
+                &format!("{PLAIN_ROT_SCOPE}."),
+                sizes,
+                PLAIN_ROT_OUTPUTS,
+                small,
+            );
+        }
+    }
+    Weights::from_tensors(&format!("random weights (seed {seed})"), g.out)
+}
+
+/// The equivariant field heads' parameters (`field_distance_expansion`,
+/// `trans_field_layer.0`, `rot_field_layer.0`, `s2_conv.w`).
+fn equivariant_heads(g: &mut Gen, cfg: &ModelConfig, extra: &ExtraSizes) {
+    let c = cfg.field_nn_c;
+    let ec = |i: usize| extra.edge_channels.get(i).copied().unwrap_or(16);
     g.rbf("field_distance_expansion.", extra.field_num_basis);
     let rad = (extra.field_num_basis, ec(1));
     g.attention(
@@ -355,5 +407,4 @@ pub fn random_weights(cfg: &ModelConfig, extra: &ExtraSizes, seed: u64) -> Weigh
         &[c.saturating_sub(1), 1, 48],
         Init::Scaled(0.1),
     );
-    Weights::from_tensors(&format!("random weights (seed {seed})"), g.out)
 }

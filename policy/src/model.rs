@@ -7,14 +7,18 @@
 //! output, up blocks interpolate (3-NN inverse-distance) onto the skip coordinates and add the
 //! skip features after their TransBlock; the last up block outputs `field_nn_c` channels and
 //! `norm_1` closes the U-net. Every discrete choice (FPS, kNN lists, graph edges) can be
-//! injected, so a parity run can follow recorded choices among near-coincident points.
+//! injected, so a parity run can follow recorded choices among near-coincident points. The
+//! heads are the reference's equivariant ones or, with [`HeadKind::Plain`], the paper's
+//! plain-transformer ablation ([`crate::plain_heads`]).
 
 use crate::attention::{AttentionConfig, EdgeSet};
 use crate::error::{PolicyError, Result};
+use crate::grids::GridRotation;
 use crate::grids::S2Resolution;
 use crate::heads::{FieldHeads, FieldHeadsConfig, RotationQuery};
 use crate::language::InstructionEncoder;
 use crate::layers::{rows_of, GaussianRbf, Linear, RmsNormSh};
+use crate::plain_heads::{PlainHeads, PlainHeadsConfig};
 use crate::points::{
     check_finite, coefficient_max_pool, farthest_point_sampling, knn, upsample, upsample_weights,
     UpsampleDistance,
@@ -27,6 +31,16 @@ use crate::weights::Scope;
 pub const POOL_NEIGHBOURS: usize = 16;
 /// Neighbours of each fine point in the up-sampling.
 pub const UPSAMPLE_NEIGHBOURS: usize = 3;
+
+/// Which field heads read the U-net features.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub enum HeadKind {
+    /// The reference's equivariant graph-attention heads ([`FieldHeads`]).
+    #[default]
+    Equivariant,
+    /// The paper's ablation: a plain transformer layer per head ([`PlainHeads`]).
+    Plain,
+}
 
 /// The reference's `EquFieldUnet` constructor arguments this implementation uses.
 #[derive(Debug, Clone, PartialEq)]
@@ -69,6 +83,8 @@ pub struct ModelConfig {
     pub upsample_distance: UpsampleDistance,
     /// The U-net feed-forward networks' iFiLM (the reference's hypernetwork = parity mode).
     pub film_kind: FilmKind,
+    /// The field heads (equivariant = the reference; plain = the paper's ablation).
+    pub heads: HeadKind,
 }
 
 impl ModelConfig {
@@ -94,6 +110,7 @@ impl ModelConfig {
             s2_resolution: S2Resolution::Reference,
             upsample_distance: UpsampleDistance::L1,
             film_kind: FilmKind::Hypernetwork,
+            heads: HeadKind::Equivariant,
         }
     }
 
@@ -280,8 +297,62 @@ pub struct EquFieldUnet {
     middle: UnetBlock,
     up: Vec<UnetBlock>,
     norm_1: RmsNormSh,
-    heads: FieldHeads,
+    heads: Heads,
     calc: WignerCalculator,
+}
+
+/// The field heads of a model: the equivariant ones or the plain ablation, with one API
+/// (the rotation grid, translation logits, the rotation query, logits on other rotations).
+#[derive(Debug, Clone)]
+pub enum Heads {
+    /// The equivariant heads (boxed, as the plain ones: both are kilobytes of layer structs).
+    Equivariant(Box<FieldHeads>),
+    /// The plain (non-equivariant) transformer heads.
+    Plain(Box<PlainHeads>),
+}
+
+impl Heads {
+    /// The rotation grid the logits refer to.
+    pub fn grid(&self) -> &[GridRotation] {
+        match self {
+            Heads::Equivariant(h) => h.grid(),
+            Heads::Plain(h) => h.grid(),
+        }
+    }
+
+    /// Translation logits at `queries` from node features `node_emb` at `node_pos`.
+    pub fn trans_logits(
+        &self,
+        node_emb: &[f32],
+        node_pos: &[[f32; 3]],
+        queries: &[[f32; 3]],
+    ) -> Result<Vec<f32>> {
+        match self {
+            Heads::Equivariant(h) => h.trans_logits(node_emb, node_pos, queries),
+            Heads::Plain(h) => h.trans_logits(node_emb, node_pos, queries),
+        }
+    }
+
+    /// The rotation query at one point: open logit and rotation logits.
+    pub fn rot_query(
+        &self,
+        node_emb: &[f32],
+        node_pos: &[[f32; 3]],
+        query: [f32; 3],
+    ) -> Result<RotationQuery> {
+        match self {
+            Heads::Equivariant(h) => h.rot_query(node_emb, node_pos, query),
+            Heads::Plain(h) => h.rot_query(node_emb, node_pos, query),
+        }
+    }
+
+    /// Rotation logits of given SO(3) coefficients on an arbitrary set of rotations.
+    pub fn logits_on(&self, so3_coeffs: &[f64], rotations: &[GridRotation]) -> Result<Vec<f64>> {
+        match self {
+            Heads::Equivariant(h) => h.logits_on(so3_coeffs, rotations),
+            Heads::Plain(h) => h.logits_on(so3_coeffs, rotations),
+        }
+    }
 }
 
 /// Translation, open and rotation outputs of the heads.
@@ -363,20 +434,27 @@ impl EquFieldUnet {
             )?);
         }
         let norm_1 = RmsNormSh::load(&s.sub("norm_1"), cfg.lmax, cfg.field_nn_c)?;
-        let heads = FieldHeads::load_with(
-            s,
-            FieldHeadsConfig {
-                field_channels: cfg.field_nn_c,
-                attn_hidden_channels: cfg.attn_hidden_channels[1],
-                num_heads: cfg.num_heads,
-                alpha_channels: cfg.attn_alpha_channels[1],
-                value_channels: cfg.attn_value_channels[1],
-                ffn_hidden_channels: cfg.ffn_hidden_channels[1],
-                node_lmax: cfg.lmax,
-            },
-            cfg.rotation_grid_level,
-            cfg.s2_resolution,
-        )?;
+        let heads = match cfg.heads {
+            HeadKind::Equivariant => Heads::Equivariant(Box::new(FieldHeads::load_with(
+                s,
+                FieldHeadsConfig {
+                    field_channels: cfg.field_nn_c,
+                    attn_hidden_channels: cfg.attn_hidden_channels[1],
+                    num_heads: cfg.num_heads,
+                    alpha_channels: cfg.attn_alpha_channels[1],
+                    value_channels: cfg.attn_value_channels[1],
+                    ffn_hidden_channels: cfg.ffn_hidden_channels[1],
+                    node_lmax: cfg.lmax,
+                },
+                cfg.rotation_grid_level,
+                cfg.s2_resolution,
+            )?)),
+            HeadKind::Plain => Heads::Plain(Box::new(PlainHeads::load(
+                s,
+                PlainHeadsConfig::of(&cfg)?,
+                cfg.rotation_grid_level,
+            )?)),
+        };
         Ok(Self {
             calc: WignerCalculator::new(cfg.lmax)?,
             cfg,
@@ -391,7 +469,7 @@ impl EquFieldUnet {
     }
 
     /// The field heads (rotation grid, logits on other rotations).
-    pub fn heads(&self) -> &FieldHeads {
+    pub fn heads(&self) -> &Heads {
         &self.heads
     }
 

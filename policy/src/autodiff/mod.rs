@@ -21,6 +21,7 @@ pub mod language;
 pub mod layers;
 pub mod model;
 mod ops;
+pub mod plain_heads;
 pub mod points;
 pub mod rotation;
 

@@ -321,7 +321,7 @@ fn head_attention(cfg: &ModelConfig, lmax: usize, mmax: usize) -> AttentionConfi
 }
 
 /// Translation logits at `queries` on the tape (`[Q]`), as
-/// [`crate::heads::FieldHeads::trans_logits`].
+/// [`crate::heads::FieldHeads::trans_logits`] (or the plain heads' when `cfg.heads` says so).
 pub fn trans_logits(
     t: &mut Tape,
     s: &Scope<'_>,
@@ -329,6 +329,9 @@ pub fn trans_logits(
     enc: &TapedEncoding,
     queries: &[[f32; 3]],
 ) -> Result<Var> {
+    if cfg.heads == crate::model::HeadKind::Plain {
+        return super::plain_heads::trans_logits(t, s, cfg, enc, queries);
+    }
     let c = cfg.field_nn_c;
     let n = enc.coord.len();
     let k_node = num_coefficients(cfg.lmax);
@@ -367,7 +370,7 @@ pub fn trans_logits(
 
 /// The rotation query on the tape: (open logit `[1]`, rotation logits `[R]` on the
 /// rotations whose flattened Wigner matrices are `flat_wigners`), as
-/// [`crate::heads::FieldHeads::rot_query`].
+/// [`crate::heads::FieldHeads::rot_query`] (or the plain heads' when `cfg.heads` says so).
 pub fn rot_query(
     t: &mut Tape,
     s: &Scope<'_>,
@@ -376,6 +379,9 @@ pub fn rot_query(
     query: [f32; 3],
     flat_wigners: &[Vec<f64>],
 ) -> Result<(Var, Var)> {
+    if cfg.heads == crate::model::HeadKind::Plain {
+        return super::plain_heads::rot_query(t, s, cfg, enc, query, flat_wigners);
+    }
     let c = cfg.field_nn_c;
     let n = enc.coord.len();
     let k_node = num_coefficients(cfg.lmax);
