@@ -10,6 +10,7 @@ use equact::eval::{evaluate, EpisodePolicy, EvalPlan, ExpertEval, LearnedEval, E
 use equact::learned::LearnedPolicy;
 use equact::train::Instructions;
 
+use super::policy::HeadsArg;
 use super::run::{NetworkSize, PolicyChoice};
 
 /// Arguments of `equact eval`.
@@ -39,6 +40,9 @@ pub struct EvalArgs {
     /// --minilm` trains with).
     #[arg(long)]
     pub minilm: Option<PathBuf>,
+    /// Field heads the weights were trained with (`equact train --heads`).
+    #[arg(long, value_enum, default_value_t = HeadsArg::Equivariant)]
+    pub heads: HeadsArg,
     /// Network size the weights were trained with.
     #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
     pub network: NetworkSize,
@@ -90,8 +94,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 .first()
                 .map(|(_, e)| e.clone())
                 .context("no task variation to evaluate")?;
-            let policy =
-                LearnedPolicy::load_with(args.network.config(), model, first, &cfg, args.seed)?;
+            let policy = {
+                let mut network = args.network.config();
+                network.model.heads = args.heads.kind();
+                LearnedPolicy::load_with(network, model, first, &cfg, args.seed)?
+            };
             Box::new(LearnedEval { policy, embeddings })
         }
     };

@@ -67,6 +67,25 @@ impl ModeArg {
     }
 }
 
+/// Which field heads the network has.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HeadsArg {
+    /// The reference's equivariant heads (graph attention, TransBlock, S2 → SO(3) lift).
+    Equivariant,
+    /// The paper's ablation: plain (non-equivariant) transformer layers in both heads.
+    Plain,
+}
+
+impl HeadsArg {
+    /// The model's head kind.
+    pub fn kind(self) -> policy::model::HeadKind {
+        match self {
+            Self::Equivariant => policy::model::HeadKind::Equivariant,
+            Self::Plain => policy::model::HeadKind::Plain,
+        }
+    }
+}
+
 /// Arguments of `equact policy predict`.
 #[derive(Args, Debug)]
 pub struct PredictArgs {

@@ -21,7 +21,7 @@ use rand::seq::SliceRandom;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
-use super::policy::ModeArg;
+use super::policy::{HeadsArg, ModeArg};
 use super::run::NetworkSize;
 
 /// Arguments of `equact train`.
@@ -42,6 +42,10 @@ pub struct TrainArgs {
     /// Network mode (gated: exactly equivariant and the cheapest).
     #[arg(long, value_enum, default_value_t = ModeArg::Gated)]
     pub mode: ModeArg,
+    /// Field heads: the equivariant ones, or the paper's ablation with plain transformer
+    /// layers.
+    #[arg(long, value_enum, default_value_t = HeadsArg::Equivariant)]
+    pub heads: HeadsArg,
     /// S2 grid size in equivariant mode.
     #[arg(long, default_value_t = 16)]
     pub s2_grid: usize,
@@ -91,6 +95,8 @@ pub struct TrainArgs {
 struct RunSettings {
     network: String,
     mode: String,
+    #[serde(default = "equivariant_heads")]
+    heads: String,
     token_dim: usize,
     batch: usize,
     queries: usize,
@@ -98,6 +104,10 @@ struct RunSettings {
     augment: bool,
     seed: u64,
     lr: f32,
+}
+
+fn equivariant_heads() -> String {
+    "Equivariant".into()
 }
 
 /// Runs `equact train`.
@@ -124,6 +134,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let mut policy_cfg = equact::learned::for_cell(args.network.config(), &cell)
         .with_mode(args.mode.mode(args.s2_grid));
     policy_cfg.extra.token_dim = token_dim;
+    policy_cfg.model.heads = args.heads.kind();
     let cfg = TrainConfig {
         policy: policy_cfg,
         optim: AdamWConfig {
@@ -141,6 +152,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let settings = RunSettings {
         network: format!("{:?}", args.network),
         mode: cfg.policy.mode.name(),
+        heads: format!("{:?}", args.heads),
         token_dim,
         batch: cfg.batch,
         queries: cfg.queries_per_level,
