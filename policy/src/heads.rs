@@ -57,6 +57,22 @@ pub struct FieldHeadsConfig {
     pub node_lmax: usize,
 }
 
+impl FieldHeadsConfig {
+    /// The sizes of a head's graph attention at (lmax, mmax), field channels in and out.
+    pub fn attention(&self, lmax: usize, mmax: usize) -> AttentionConfig {
+        AttentionConfig {
+            lmax,
+            mmax,
+            sphere_channels: self.field_channels,
+            hidden_channels: self.attn_hidden_channels,
+            num_heads: self.num_heads,
+            alpha_channels: self.alpha_channels,
+            value_channels: self.value_channels,
+            output_channels: self.field_channels,
+        }
+    }
+}
+
 /// Everything the rotation query produces for one query point.
 #[derive(Debug, Clone)]
 pub struct RotationQuery {
@@ -105,16 +121,7 @@ impl FieldHeads {
             &s.sub("field_distance_expansion"),
             f64::from(QUERY_RADIUS) * 0.99,
         )?;
-        let attn = |lmax, mmax| AttentionConfig {
-            lmax,
-            mmax,
-            sphere_channels: c,
-            hidden_channels: cfg.attn_hidden_channels,
-            num_heads: cfg.num_heads,
-            alpha_channels: cfg.alpha_channels,
-            value_channels: cfg.value_channels,
-            output_channels: c,
-        };
+        let attn = |lmax, mmax| cfg.attention(lmax, mmax);
         let mut trans = GraphAttention::load_with_grid(
             &s.sub("trans_field_layer").sub("0"),
             attn(TRANS_LMAX, TRANS_LMAX),

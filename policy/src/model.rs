@@ -114,6 +114,33 @@ impl ModelConfig {
         }
     }
 
+    /// The attention sizes of a U-net block at scale `i` with `cin` channels in and out.
+    pub fn block_attention(&self, i: usize, cin: usize) -> AttentionConfig {
+        AttentionConfig {
+            lmax: self.lmax,
+            mmax: self.mmax,
+            sphere_channels: cin,
+            hidden_channels: self.attn_hidden_channels[i],
+            num_heads: self.num_heads,
+            alpha_channels: self.attn_alpha_channels[i],
+            value_channels: self.attn_value_channels[i],
+            output_channels: cin,
+        }
+    }
+
+    /// The sizes the equivariant field heads read (scale 1's attention and feed-forward).
+    pub fn heads_config(&self) -> FieldHeadsConfig {
+        FieldHeadsConfig {
+            field_channels: self.field_nn_c,
+            attn_hidden_channels: self.attn_hidden_channels[1],
+            num_heads: self.num_heads,
+            alpha_channels: self.attn_alpha_channels[1],
+            value_channels: self.attn_value_channels[1],
+            ffn_hidden_channels: self.ffn_hidden_channels[1],
+            node_lmax: self.lmax,
+        }
+    }
+
     /// Reads the `EquFieldUnet` constructor record of a fixture sidecar (parity mode).
     pub fn from_constructor(v: &serde_json::Value) -> Result<Self> {
         let bad = |k: &str| PolicyError::Sidecar {
@@ -277,6 +304,98 @@ impl GripperState {
     }
 }
 
+/// The point inputs of the network, shared by inference and training: positions with the
+/// gripper points written in, and the type-0 input features.
+#[derive(Debug, Clone)]
+pub(crate) struct PointInputs {
+    /// Positions; the last `n_gripper_pos` are the gripper position plus its jitter.
+    pub pts: Vec<[f32; 3]>,
+    /// Type-0 input features `[n, 3]`: colour − 0.5, and (open − 0.5)·10 − 0.5 on the
+    /// gripper points.
+    pub feat: Vec<f32>,
+    /// Coefficients per node, (lmax+1)².
+    pub k: usize,
+    /// Channels of the first level.
+    pub c0: usize,
+    /// Index of the first gripper point.
+    pub first_gripper: usize,
+}
+
+impl PointInputs {
+    /// Checks the observation against `cfg` and builds the inputs.
+    pub(crate) fn new(
+        cfg: &ModelConfig,
+        xyz: &[[f32; 3]],
+        rgb: &[[f32; 3]],
+        gripper: &GripperState,
+        gripper_eps: &[[f32; 3]],
+    ) -> Result<Self> {
+        let n = xyz.len();
+        let ng = cfg.n_gripper_pos;
+        if n <= ng {
+            return Err(PolicyError::TooFewPoints {
+                what: "encode (cloud points plus the gripper points)",
+                needed: ng + 1,
+                got: n,
+            });
+        }
+        check_finite("point cloud", xyz)?;
+        if rgb.len() != n || gripper_eps.len() != ng {
+            return Err(PolicyError::ShapeMismatch {
+                name: "rgb / gripper_eps".into(),
+                expected: vec![n, ng],
+                got: vec![rgb.len(), gripper_eps.len()],
+            });
+        }
+        let mut pts = xyz.to_vec();
+        let mut feat: Vec<f32> = Vec::with_capacity(n * 3);
+        for (i, c) in rgb.iter().enumerate() {
+            let c = if i >= n - ng {
+                [(gripper.open - 0.5) * 10.0; 3]
+            } else {
+                *c
+            };
+            feat.extend(c.iter().map(|v| v - 0.5));
+        }
+        for (p, e) in pts[n - ng..].iter_mut().zip(gripper_eps) {
+            *p = [
+                gripper.position[0] + e[0],
+                gripper.position[1] + e[1],
+                gripper.position[2] + e[2],
+            ];
+        }
+        check_finite("point cloud with gripper points", &pts)?;
+        let k = num_coefficients(cfg.lmax);
+        let c0 = cfg.sphere_channels[0];
+        if c0 < 3 || k < 4 {
+            return Err(PolicyError::ShapeMismatch {
+                name: "sphere_channels[0] (the gripper axes need 3 type-1 channels)".into(),
+                expected: vec![3],
+                got: vec![c0],
+            });
+        }
+        Ok(Self {
+            pts,
+            feat,
+            k,
+            c0,
+            first_gripper: n - ng,
+        })
+    }
+
+    /// The gripper's axes on the gripper points: (node, coefficient row, channel, value) with
+    /// 10·R on the l = 1 rows of channels 0..2; every other l ≥ 1 input is zero.
+    pub(crate) fn gripper_axes(
+        &self,
+        gripper: &GripperState,
+    ) -> impl Iterator<Item = (usize, usize, usize, f32)> {
+        let g = gripper.matrix();
+        (self.first_gripper..self.pts.len()).flat_map(move |node| {
+            (0..3).flat_map(move |a| (0..3).map(move |ch| (node, 1 + a, ch, 10.0 * g[a][ch])))
+        })
+    }
+}
+
 #[derive(Debug, Clone)]
 struct UnetBlock {
     name: String,
@@ -372,16 +491,7 @@ impl EquFieldUnet {
         let lang = InstructionEncoder::load(s, cfg.lang_heads, cfg.lang_dim_head)?;
         let type0 = Linear::load_sized(&s.sub("type0_linear"), cfg.sphere_channels[0], 3, true)?;
         let block = |scope: Scope<'_>, name: String, i: usize, cin: usize, cout: usize, scale| {
-            let attn = AttentionConfig {
-                lmax: cfg.lmax,
-                mmax: cfg.mmax,
-                sphere_channels: cin,
-                hidden_channels: cfg.attn_hidden_channels[i],
-                num_heads: cfg.num_heads,
-                alpha_channels: cfg.attn_alpha_channels[i],
-                value_channels: cfg.attn_value_channels[i],
-                output_channels: cin,
-            };
+            let attn = cfg.block_attention(i, cin);
             let tb = TransBlock::load_with_grids(
                 &scope.sub("transblock"),
                 TransBlockConfig {
@@ -437,15 +547,7 @@ impl EquFieldUnet {
         let heads = match cfg.heads {
             HeadKind::Equivariant => Heads::Equivariant(Box::new(FieldHeads::load_with(
                 s,
-                FieldHeadsConfig {
-                    field_channels: cfg.field_nn_c,
-                    attn_hidden_channels: cfg.attn_hidden_channels[1],
-                    num_heads: cfg.num_heads,
-                    alpha_channels: cfg.attn_alpha_channels[1],
-                    value_channels: cfg.attn_value_channels[1],
-                    ffn_hidden_channels: cfg.ffn_hidden_channels[1],
-                    node_lmax: cfg.lmax,
-                },
+                cfg.heads_config(),
                 cfg.rotation_grid_level,
                 cfg.s2_resolution,
             )?)),
@@ -501,65 +603,18 @@ impl EquFieldUnet {
         overrides: &[(String, BlockIndices)],
     ) -> Result<Encoded> {
         let cfg = &self.cfg;
-        let n = xyz.len();
-        let ng = cfg.n_gripper_pos;
-        if n <= ng {
-            return Err(PolicyError::TooFewPoints {
-                what: "encode (cloud points plus the gripper points)",
-                needed: ng + 1,
-                got: n,
-            });
-        }
-        check_finite("point cloud", xyz)?;
-        if rgb.len() != n || gripper_eps.len() != ng {
-            return Err(PolicyError::ShapeMismatch {
-                name: "rgb / gripper_eps".into(),
-                expected: vec![n, ng],
-                got: vec![rgb.len(), gripper_eps.len()],
-            });
-        }
+        let inputs = PointInputs::new(cfg, xyz, rgb, gripper, gripper_eps)?;
         let t_lang = crate::predict::CpuTimer::start();
         let condition = self.lang.condition(instruction, 1)?;
         let language_seconds = t_lang.elapsed();
-        let mut pts = xyz.to_vec();
-        let mut feat: Vec<f32> = Vec::with_capacity(n * 3);
-        for (i, c) in rgb.iter().enumerate() {
-            let c = if i >= n - ng {
-                [(gripper.open - 0.5) * 10.0; 3]
-            } else {
-                *c
-            };
-            feat.extend(c.iter().map(|v| v - 0.5));
-        }
-        for (p, e) in pts[n - ng..].iter_mut().zip(gripper_eps) {
-            *p = [
-                gripper.position[0] + e[0],
-                gripper.position[1] + e[1],
-                gripper.position[2] + e[2],
-            ];
-        }
-        check_finite("point cloud with gripper points", &pts)?;
-        let k = num_coefficients(cfg.lmax);
-        let c0 = cfg.sphere_channels[0];
-        if c0 < 3 || k < 4 {
-            return Err(PolicyError::ShapeMismatch {
-                name: "sphere_channels[0] (the gripper axes need 3 type-1 channels)".into(),
-                expected: vec![3],
-                got: vec![c0],
-            });
-        }
-        let t0 = self.type0.forward(&feat)?;
+        let (n, k, c0) = (inputs.pts.len(), inputs.k, inputs.c0);
+        let t0 = self.type0.forward(&inputs.feat)?;
         let mut x = vec![0.0f32; n * k * c0];
         for node in 0..n {
             x[node * k * c0..node * k * c0 + c0].copy_from_slice(&t0[node * c0..(node + 1) * c0]);
         }
-        let g = gripper.matrix();
-        for node in n - ng..n {
-            for (a, row) in g.iter().enumerate() {
-                for (ch, v) in row.iter().enumerate() {
-                    x[(node * k + 1 + a) * c0 + ch] = 10.0 * v;
-                }
-            }
+        for (node, row, ch, v) in inputs.gripper_axes(gripper) {
+            x[(node * k + row) * c0 + ch] = v;
         }
         let find = |name: &str| {
             overrides
@@ -569,7 +624,8 @@ impl EquFieldUnet {
                 .unwrap_or_default()
         };
         let mut blocks = Vec::new();
-        let mut coord = pts.clone();
+        let mut coord = inputs.pts.clone();
+        let pts = inputs.pts;
         let mut skips: Vec<(Vec<[f32; 3]>, Vec<f32>)> = Vec::new();
         for b in &self.down {
             let (c2, x2) =

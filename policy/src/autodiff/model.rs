@@ -10,12 +10,14 @@ use super::layers::{linear, rms_norm_sh, so3_linear};
 use super::points::{coefficient_max_pool, upsample};
 use super::rotation::{open_logit, rotation_logits};
 use super::{Tape, Var};
-use crate::attention::{edge_vectors, AttentionConfig, EdgeSet};
+use crate::attention::{edge_vectors, EdgeSet};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
 use crate::heads::{FieldHeads, QUERY_RADIUS, ROT_LMAX, ROT_MMAX, TRANS_LMAX};
-use crate::model::{knn_graph, GripperState, ModelConfig, POOL_NEIGHBOURS, UPSAMPLE_NEIGHBOURS};
-use crate::points::{check_finite, farthest_point_sampling, knn, upsample_weights};
+use crate::model::{
+    knn_graph, GripperState, ModelConfig, PointInputs, POOL_NEIGHBOURS, UPSAMPLE_NEIGHBOURS,
+};
+use crate::points::{farthest_point_sampling, knn, upsample_weights};
 use crate::so3::{num_coefficients, WignerCalculator};
 use crate::transblock::TransBlockConfig;
 use crate::weights::Scope;
@@ -125,68 +127,21 @@ pub fn encode(
     input: NetworkInput<'_>,
 ) -> Result<TapedEncoding> {
     cfg.validate()?;
-    let n = input.xyz.len();
-    let ng = cfg.n_gripper_pos;
-    if n <= ng {
-        return Err(PolicyError::TooFewPoints {
-            what: "encode (cloud points plus the gripper points)",
-            needed: ng + 1,
-            got: n,
-        });
-    }
-    check_finite("point cloud", input.xyz)?;
-    if input.rgb.len() != n || input.gripper_eps.len() != ng {
-        return Err(PolicyError::ShapeMismatch {
-            name: "rgb / gripper_eps".into(),
-            expected: vec![n, ng],
-            got: vec![input.rgb.len(), input.gripper_eps.len()],
-        });
-    }
+    let inputs = PointInputs::new(cfg, input.xyz, input.rgb, input.gripper, input.gripper_eps)?;
     let condition =
         instruction_condition(t, s, input.instruction, cfg.lang_heads, cfg.lang_dim_head)?;
-    let gripper = input.gripper;
-    let mut pts = input.xyz.to_vec();
-    let mut feat: Vec<f32> = Vec::with_capacity(n * 3);
-    for (i, c) in input.rgb.iter().enumerate() {
-        let c = if i >= n - ng {
-            [(gripper.open - 0.5) * 10.0; 3]
-        } else {
-            *c
-        };
-        feat.extend(c.iter().map(|v| v - 0.5));
-    }
-    for (p, e) in pts[n - ng..].iter_mut().zip(input.gripper_eps) {
-        *p = [
-            gripper.position[0] + e[0],
-            gripper.position[1] + e[1],
-            gripper.position[2] + e[2],
-        ];
-    }
-    check_finite("point cloud with gripper points", &pts)?;
-    let k = num_coefficients(cfg.lmax);
-    let c0 = cfg.sphere_channels[0];
-    if c0 < 3 || k < 4 {
-        return Err(PolicyError::ShapeMismatch {
-            name: "sphere_channels[0] (the gripper axes need 3 type-1 channels)".into(),
-            expected: vec![3],
-            got: vec![c0],
-        });
-    }
-    let feat = t.constant(feat, &[n, 3])?;
+    let (n, k, c0) = (inputs.pts.len(), inputs.k, inputs.c0);
+    let feat = t.constant(inputs.feat.clone(), &[n, 3])?;
     let t0 = linear(t, &s.sub("type0_linear"), feat, c0, 3, true)?;
-    // Rows l >= 1: zero, except the gripper axes (10·R) on l = 1 of the gripper points.
+    // Rows l >= 1: zero, except the gripper axes.
     let mut higher = vec![0.0f32; n * (k - 1) * c0];
-    let g = gripper.matrix();
-    for node in n - ng..n {
-        for (a, row) in g.iter().enumerate() {
-            for (ch, v) in row.iter().enumerate() {
-                higher[(node * (k - 1) + a) * c0 + ch] = 10.0 * v;
-            }
-        }
+    for (node, row, ch, v) in inputs.gripper_axes(input.gripper) {
+        higher[(node * (k - 1) + row - 1) * c0 + ch] = v;
     }
     let higher = t.constant(higher, &[n, (k - 1) * c0])?;
     let x = t.concat_cols(t0, c0, higher, (k - 1) * c0)?;
     let mut x = t.reshape(x, &[n, k, c0])?;
+    let pts = inputs.pts;
 
     let calc = WignerCalculator::new(cfg.lmax)?;
     let attn_grid = cfg.s2_resolution.grid(cfg.lmax, cfg.mmax)?;
@@ -200,16 +155,7 @@ pub fn encode(
                  coord: &[[f32; 3]],
                  x: Var|
      -> Result<Var> {
-        let attn = AttentionConfig {
-            lmax: cfg.lmax,
-            mmax: cfg.mmax,
-            sphere_channels: cin,
-            hidden_channels: cfg.attn_hidden_channels[i],
-            num_heads: cfg.num_heads,
-            alpha_channels: cfg.attn_alpha_channels[i],
-            value_channels: cfg.attn_value_channels[i],
-            output_channels: cin,
-        };
+        let attn = cfg.block_attention(i, cin);
         let (src, dst) = knn_graph(coord, cfg.max_neighbors[i])?;
         let edges = edges_between(&calc, cfg.lmax, coord, coord, src, dst)?;
         let attr = gaussian_rbf(
@@ -304,22 +250,6 @@ pub fn encode(
     })
 }
 
-/// Sizes of the heads' attention from the model configuration (as
-/// [`crate::model::EquFieldUnet::load`] builds [`FieldHeads`]).
-fn head_attention(cfg: &ModelConfig, lmax: usize, mmax: usize) -> AttentionConfig {
-    let c = cfg.field_nn_c;
-    AttentionConfig {
-        lmax,
-        mmax,
-        sphere_channels: c,
-        hidden_channels: cfg.attn_hidden_channels[1],
-        num_heads: cfg.num_heads,
-        alpha_channels: cfg.attn_alpha_channels[1],
-        value_channels: cfg.attn_value_channels[1],
-        output_channels: c,
-    }
-}
-
 /// Translation logits at `queries` on the tape (`[Q]`), as
 /// [`crate::heads::FieldHeads::trans_logits`] (or the plain heads' when `cfg.heads` says so).
 pub fn trans_logits(
@@ -355,7 +285,7 @@ pub fn trans_logits(
     let y = graph_attention(
         t,
         &s.sub("trans_field_layer").sub("0"),
-        head_attention(cfg, TRANS_LMAX, TRANS_LMAX),
+        cfg.heads_config().attention(TRANS_LMAX, TRANS_LMAX),
         &grid,
         x,
         None,
@@ -414,7 +344,7 @@ pub fn rot_query(
         t,
         &s.sub("rot_field_layer").sub("0"),
         TransBlockConfig {
-            attn: head_attention(cfg, ROT_LMAX, ROT_MMAX),
+            attn: cfg.heads_config().attention(ROT_LMAX, ROT_MMAX),
             ffn_hidden_channels: cfg.ffn_hidden_channels[1],
             output_channels: c,
             film: None,
