@@ -578,8 +578,9 @@ pub fn graph_attention(
 mod tests {
     use super::*;
     use crate::attention::GraphAttention;
-    use crate::autodiff::check::{finite_difference_check, FdOptions, FdReport};
+    use crate::autodiff::check::{finite_difference_check, FdOptions};
     use crate::autodiff::layers::tests::small_weights;
+    use crate::autodiff::layers::tests::{assert_passes, random};
     use crate::layers::{GaussianRbf, RadialMlp};
     use crate::model::knn_graph;
     use crate::so2_conv::So2Conv;
@@ -592,11 +593,6 @@ mod tests {
     /// `max_radius[1]` of the reference model, times 0.99 as `EquFieldUnet` loads it.
     const CUTOFF: f64 = 0.4 * 0.99;
 
-    fn random(n: usize, seed: u64) -> Vec<f32> {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        (0..n).map(|_| rng.random_range(-1.5f32..1.5)).collect()
-    }
-
     fn assert_close(a: &[f32], b: &[f32], tol: f32, what: &str) {
         assert_eq!(a.len(), b.len(), "{what}: lengths");
         let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
@@ -606,16 +602,6 @@ mod tests {
                 "{what}[{i}]: {x} vs {y}"
             );
         }
-    }
-
-    fn assert_passes(r: &FdReport, what: &str) {
-        assert!(
-            r.passed(),
-            "{what}: worst {:.3} at {} ({:?})",
-            r.worst_ratio,
-            r.worst,
-            r.tensors
-        );
     }
 
     fn attention_config() -> AttentionConfig {

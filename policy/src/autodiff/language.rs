@@ -195,15 +195,9 @@ impl Tape {
 mod tests {
     use super::*;
     use crate::autodiff::check::{finite_difference_check, FdOptions};
+    use crate::autodiff::layers::tests::random;
     use crate::autodiff::layers::tests::small_weights;
     use crate::language::InstructionEncoder;
-    use rand::{Rng, SeedableRng};
-    use rand_chacha::ChaCha8Rng;
-
-    fn random(n: usize, seed: u64) -> Vec<f32> {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        (0..n).map(|_| rng.random_range(-1.5f32..1.5)).collect()
-    }
 
     // small_weights: film_dim 16, token_dim 12, one layer, 2 heads of 4.
     const HEADS: usize = 2;

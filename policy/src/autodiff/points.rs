@@ -111,15 +111,9 @@ pub fn upsample(
 mod tests {
     use super::*;
     use crate::autodiff::check::{finite_difference_check, FdOptions};
+    use crate::autodiff::layers::tests::random;
     use crate::autodiff::layers::tests::small_weights;
     use crate::points::{knn, upsample_weights, UpsampleDistance};
-    use rand::{Rng, SeedableRng};
-    use rand_chacha::ChaCha8Rng;
-
-    fn random(n: usize, seed: u64) -> Vec<f32> {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        (0..n).map(|_| rng.random_range(-1.5f32..1.5)).collect()
-    }
 
     fn points(n: usize, seed: u64) -> Vec<[f32; 3]> {
         random(3 * n, seed)

@@ -151,17 +151,11 @@ impl Tape {
 mod tests {
     use super::*;
     use crate::autodiff::check::{finite_difference_check, FdOptions};
+    use crate::autodiff::layers::tests::random;
     use crate::autodiff::layers::tests::small_weights;
     use crate::grids::so3_healpix_grid;
     use crate::rotation_head::RotationHead;
     use crate::so3::WignerCalculator;
-    use rand::{Rng, SeedableRng};
-    use rand_chacha::ChaCha8Rng;
-
-    fn random(n: usize, seed: u64) -> Vec<f32> {
-        let mut rng = ChaCha8Rng::seed_from_u64(seed);
-        (0..n).map(|_| rng.random_range(-1.5f32..1.5)).collect()
-    }
 
     /// field_nn_c of `small_weights`.
     const C: usize = 8;
