@@ -43,18 +43,23 @@ impl Instructions<'_> {
                     )
                 })
             }
-            Self::MiniLm(dir) => {
-                let model = policy::minilm::MiniLm::load(dir).with_context(|| {
-                    format!("loading the MiniLM sentence model from {}", dir.display())
-                })?;
-                let (tokens, states) = model.token_states(&kind.instruction())?;
-                Ok(InstructionEmbedding::new(
-                    states,
-                    tokens,
-                    policy::minilm::HIDDEN,
-                )?)
-            }
+            Self::MiniLm(_) => self.embed_text(&kind.instruction()),
         }
+    }
+
+    /// The embedding of free text (MiniLM only: a folder of files has no entry for it).
+    pub fn embed_text(&self, text: &str) -> anyhow::Result<InstructionEmbedding> {
+        let Self::MiniLm(dir) = self else {
+            anyhow::bail!("free-text instructions need the MiniLM model (--minilm DIR)");
+        };
+        let model = policy::minilm::MiniLm::load(dir)
+            .with_context(|| format!("loading the MiniLM sentence model from {}", dir.display()))?;
+        let (tokens, states) = model.token_states(text)?;
+        Ok(InstructionEmbedding::new(
+            states,
+            tokens,
+            policy::minilm::HIDDEN,
+        )?)
     }
 }
 

@@ -25,8 +25,7 @@ use policy::predict::PolicyConfig;
 /// Which policy drives the episode.
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum PolicyChoice {
-    /// The EquAct network, with the weights of `--weights` (none are committed yet: the
-    /// training of issue 9 produces them).
+    /// The EquAct network, with the weights of `--weights` (`equact train` makes them).
     Learned,
     /// The scripted expert, from the simulator's true object poses.
     Expert,
@@ -58,12 +57,20 @@ pub struct RunArgs {
     /// Network weights for `--policy learned` (safetensors, as `equact policy predict` reads).
     #[arg(long)]
     pub weights: Option<PathBuf>,
-    /// Instruction embedding for `--policy learned` (safetensors, one F32 tensor 53 x 512).
-    #[arg(long)]
+    /// Instruction embedding for `--policy learned` (safetensors, one F32 tensor: tokens x
+    /// width, e.g. CLIP's 53 x 512).
+    #[arg(long, conflicts_with = "minilm")]
     pub instruction_embedding: Option<PathBuf>,
+    /// For `--policy learned`: embed the instruction (`--instruction`, or the variation's)
+    /// with the MiniLM sentence model in this folder, as `equact train --minilm` does.
+    #[arg(long)]
+    pub minilm: Option<PathBuf>,
     /// Network size the weights were trained with.
     #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
     pub network: NetworkSize,
+    /// Field heads the weights were trained with (`equact train --heads`).
+    #[arg(long, value_enum, default_value_t = super::policy::HeadsArg::Equivariant)]
+    pub heads: super::policy::HeadsArg,
     /// On a real cell, start moving without asking (for scripted runs; interactive runs
     /// ask for Enter first).
     #[arg(long)]
@@ -117,16 +124,21 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         PolicyChoice::Learned => {
             let Some(weights) = args.weights.clone() else {
                 anyhow::bail!(
-                    "--policy learned needs --weights FILE: no trained EquAct weights are \
-                     committed yet (issue 9); run with --policy expert, or pass weights"
+                    "--policy learned needs --weights FILE (the model.safetensors of an \
+                     `equact train` run); or run with --policy expert"
                 );
             };
-            let Some(embedding) = args.instruction_embedding.clone() else {
-                anyhow::bail!(
-                    "--policy learned needs --instruction-embedding FILE (tokens x width safetensors, \
-                     e.g. CLIP 53 x 512 or `equact policy embed --out`, of the instruction `{}`)",
-                    args.instruction.as_deref().unwrap_or("of the task variation")
-                );
+            let embedding = match (&args.instruction_embedding, &args.minilm) {
+                (Some(e), _) => e.clone(),
+                (None, Some(m)) => m.clone(),
+                (None, None) => anyhow::bail!(
+                    "--policy learned needs --instruction-embedding FILE (tokens x width \
+                     safetensors, e.g. CLIP 53 x 512 or `equact policy embed --out`) or --minilm \
+                     DIR to embed the instruction `{}`",
+                    args.instruction
+                        .as_deref()
+                        .unwrap_or("of the task variation")
+                ),
             };
             Some((weights, embedding))
         }
@@ -169,10 +181,24 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                 args.network,
                 weights.display()
             );
-            Some(LearnedPolicy::load(
-                args.network.config(),
+            let mut network = args.network.config();
+            network.model.heads = args.heads.kind();
+            let instruction = match &args.minilm {
+                Some(dir) => {
+                    let text = args
+                        .instruction
+                        .clone()
+                        .unwrap_or_else(|| kind.instruction());
+                    equact::train::Instructions::MiniLm(dir).embed_text(&text)?
+                }
+                None => policy::predict::InstructionEmbedding::from_file(embedding).with_context(
+                    || format!("reading the instruction embedding {}", embedding.display()),
+                )?,
+            };
+            Some(LearnedPolicy::load_with(
+                network,
                 weights,
-                embedding,
+                instruction,
                 &cfg,
                 args.seed,
             )?)
@@ -253,7 +279,12 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         meta.insert("policy".into(), args.policy.label().into());
         if let Some((w, e)) = &learned_files {
             meta.insert("weights".into(), w.display().to_string());
-            meta.insert("instruction_embedding".into(), e.display().to_string());
+            let key = if args.minilm.is_some() {
+                "minilm"
+            } else {
+                "instruction_embedding"
+            };
+            meta.insert(key.into(), e.display().to_string());
         }
         meta.insert("equact_version".into(), env!("CARGO_PKG_VERSION").into());
         meta.insert("config".into(), cfg.to_toml_string()?);
