@@ -576,6 +576,23 @@ impl RmsNormSh {
     }
 }
 
+/// The radial basis's soft inner cut-off: 0 for u <= 0, 1 for u >= 0.2 (1 − step(s),
+/// s = (1 − u − 0.8)/0.2), in the reference's f32 operation order.
+pub(crate) fn rbf_envelope(u: f32) -> f32 {
+    if u > 0.5 {
+        return 1.0;
+    }
+    let s = ((1.0 - u) - 0.8) / 0.2;
+    let step = if s <= 0.0 {
+        0.0
+    } else if s >= 1.0 {
+        1.0
+    } else {
+        4.0 * s.powi(3) - 3.0 * s.powi(4)
+    };
+    1.0 - step
+}
+
 /// The reference's Gaussian radial basis with a soft inner cut-off
 /// (`GaussianRadialBasisLayerFiniteCutoff`). Evaluated in f32 in the reference's operation
 /// order: the narrow field-head Gaussians (1024 of them) amplify rounding differences.
@@ -637,20 +654,7 @@ impl GaussianRbf {
     /// The basis values of one distance, written to `out[..num_basis]`.
     pub fn eval_into(&self, d: f32, out: &mut [f32]) {
         let u = (d - self.offset) / self.span;
-        // Smooth switch: 0 for u <= 0, 1 for u >= 0.2 (1 - step(s), s = (1 - u - 0.8)/0.2).
-        let env = if u > 0.5 {
-            1.0
-        } else {
-            let s = ((1.0 - u) - 0.8) / 0.2;
-            let step = if s <= 0.0 {
-                0.0
-            } else if s >= 1.0 {
-                1.0
-            } else {
-                4.0 * s.powi(3) - 3.0 * s.powi(4)
-            };
-            1.0 - step
-        };
+        let env = rbf_envelope(u);
         // Only the bases whose mean lies within `reach` of u can exceed exp(−105), which is
         // below the smallest f32; all others are exactly 0 (the narrow field-head bases are
         // sparse, so this skips most of them).

@@ -22,23 +22,6 @@ fn mismatch(name: &str, expected: Vec<usize>, got: Vec<usize>) -> PolicyError {
     }
 }
 
-/// The soft inner cut-off of [`crate::layers::GaussianRbf`] (same f32 operations): 0 for
-/// u <= 0, 1 for u >= 0.2.
-fn envelope(u: f32) -> f32 {
-    if u > 0.5 {
-        return 1.0;
-    }
-    let s = ((1.0 - u) - 0.8) / 0.2;
-    let step = if s <= 0.0 {
-        0.0
-    } else if s >= 1.0 {
-        1.0
-    } else {
-        4.0 * s.powi(3) - 3.0 * s.powi(4)
-    };
-    1.0 - step
-}
-
 /// `GaussianRadialBasisLayerFiniteCutoff` of the edge `lengths` (`mean`, `std_logit`,
 /// `weight_logit` `[1, K]`; offset 0.01 · cutoff): `[E, K]`, dense.
 pub fn gaussian_rbf(t: &mut Tape, s: &Scope<'_>, lengths: &[f32], cutoff: f64) -> Result<Var> {
@@ -66,7 +49,7 @@ pub fn gaussian_rbf(t: &mut Tape, s: &Scope<'_>, lengths: &[f32], cutoff: f64) -
     let mut ue = Vec::with_capacity(ne);
     for (&d, row) in lengths.iter().zip(y.chunks_exact_mut(k.max(1))) {
         let u = (d - off32) / span;
-        let env = envelope(u);
+        let env = crate::layers::rbf_envelope(u);
         ue.push((u, env));
         for (i, o) in row.iter_mut().enumerate() {
             let z = (u - mv[i]) / std[i];
