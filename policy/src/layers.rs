@@ -503,6 +503,27 @@ pub fn rows_of(what: &str, len: usize, row: usize) -> Result<usize> {
     Ok(len / row)
 }
 
+/// The degree-balance weight of coefficient `i` of `rms_norm_sh`: 1/((2l+1)(lmax+1)).
+pub fn balance_weight(i: usize, lmax: usize) -> f64 {
+    1.0 / (((2 * degree_of(i) + 1) * (lmax + 1)) as f64)
+}
+
+/// The first half of `rms_norm_sh` on one node's `[(lmax+1)², c]` values: centres the l = 0
+/// row over channels in place (kept in f32, as the reference) and returns the scale
+/// (degree-balanced mean square + 1e-5)^(−1/2).
+pub fn rms_centre_and_scale(node: &mut [f32], lmax: usize, c: usize) -> f64 {
+    let mean = node[..c].iter().map(|v| f64::from(*v)).sum::<f64>() / c as f64;
+    for v in &mut node[..c] {
+        *v = (f64::from(*v) - mean) as f32;
+    }
+    let mut norm = 0.0f64;
+    for (i, row) in node.chunks_exact(c).enumerate() {
+        norm += balance_weight(i, lmax) * row.iter().map(|v| f64::from(*v).powi(2)).sum::<f64>();
+    }
+    norm /= c as f64;
+    (norm + 1e-5).powf(-0.5)
+}
+
 /// `rms_norm_sh`: centre l = 0 over channels, divide by the degree-balanced RMS, scale per
 /// (degree, channel), add a bias on l = 0.
 #[derive(Debug, Clone)]
@@ -534,8 +555,7 @@ impl RmsNormSh {
 
     /// The degree-balance weight of coefficient `i`: 1/((2l+1)(lmax+1)).
     pub fn balance_weight(&self, i: usize) -> f64 {
-        let l = degree_of(i);
-        1.0 / (((2 * l + 1) * (self.lmax + 1)) as f64)
+        balance_weight(i, self.lmax)
     }
 
     /// Normalises `x` `[n, (lmax+1)², c]`.
@@ -545,21 +565,7 @@ impl RmsNormSh {
         let n = rows_of("RMS norm input", x.len(), k * c)?;
         let mut y = x.to_vec();
         for node in y.chunks_exact_mut(k * c) {
-            let mean = node[..c].iter().map(|v| f64::from(*v)).sum::<f64>() / c as f64;
-            for v in &mut node[..c] {
-                *v = (f64::from(*v) - mean) as f32;
-            }
-            let mut norm = 0.0f64;
-            for i in 0..k {
-                let bw = self.balance_weight(i);
-                norm += bw
-                    * node[i * c..(i + 1) * c]
-                        .iter()
-                        .map(|v| f64::from(*v).powi(2))
-                        .sum::<f64>();
-            }
-            norm /= c as f64;
-            let scale = (norm + 1e-5).powf(-0.5);
+            let scale = rms_centre_and_scale(node, self.lmax, c);
             for i in 0..k {
                 let l = degree_of(i);
                 for ch in 0..c {

@@ -4,7 +4,7 @@
 
 use super::{Tape, Var};
 use crate::error::{PolicyError, Result};
-use crate::layers::{degree_of, rows_of};
+use crate::layers::{balance_weight, degree_of, rms_centre_and_scale, rows_of};
 use crate::matmul::{gemm_acc, Strided};
 use crate::so3::num_coefficients;
 use crate::weights::Scope;
@@ -138,9 +138,7 @@ pub fn rms_norm_sh(t: &mut Tape, s: &Scope<'_>, x: Var, lmax: usize, c: usize) -
     let b = t.param(s, "affine_bias", &[c])?;
     let k = num_coefficients(lmax);
     let n = rows_of("RMS norm input", t.value(x).len(), k * c)?;
-    let bw: Vec<f64> = (0..k)
-        .map(|i| 1.0 / (((2 * degree_of(i) + 1) * (lmax + 1)) as f64))
-        .collect();
+    let bw: Vec<f64> = (0..k).map(|i| balance_weight(i, lmax)).collect();
     // Per node: the centred input (f32, as the inference layer keeps it) and the scale.
     let mut centred = t.value(x).to_vec();
     let mut scales = Vec::with_capacity(n);
@@ -150,20 +148,7 @@ pub fn rms_norm_sh(t: &mut Tape, s: &Scope<'_>, x: Var, lmax: usize, c: usize) -
         .chunks_exact_mut(k * c)
         .zip(y.chunks_exact_mut(k * c))
     {
-        let mean = node[..c].iter().map(|v| f64::from(*v)).sum::<f64>() / c as f64;
-        for v in &mut node[..c] {
-            *v = (f64::from(*v) - mean) as f32;
-        }
-        let mut norm = 0.0f64;
-        for (i, bwi) in bw.iter().enumerate() {
-            norm += bwi
-                * node[i * c..(i + 1) * c]
-                    .iter()
-                    .map(|v| f64::from(*v).powi(2))
-                    .sum::<f64>();
-        }
-        norm /= c as f64;
-        let scale = (norm + 1e-5).powf(-0.5);
+        let scale = rms_centre_and_scale(node, lmax, c);
         scales.push(scale);
         for i in 0..k {
             let l = degree_of(i);
