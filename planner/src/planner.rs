@@ -76,6 +76,19 @@ impl Default for ClosingVolume {
 }
 
 impl ClosingVolume {
+    /// The whole 2F-85 at the start of a motion (body cylinder, fingers, pads) plus 1 cm: the
+    /// space the gripper occupies already. Cloud points in it are the object it holds or
+    /// touches (or sensor noise on its surface), not obstacles for moving it away.
+    pub fn gripper_envelope() -> Self {
+        // TCP frame: body radius 45 mm from 150 to 55 mm behind the TCP, fingers out to
+        // x = ±58.5 mm, fingertips 15 mm past the TCP.
+        let (back, front) = (-0.15 - 0.01, 0.015 + 0.01);
+        Self {
+            half_extents: [0.0585 + 0.01, 0.045 + 0.01, (front - back) / 2.0],
+            z_offset: (front + back) / 2.0,
+        }
+    }
+
     /// A ball containing the volume at TCP pose `base_from_tcp` (centre, radius); `None`
     /// when the volume is empty (a negative half extent).
     pub fn bounding_ball(
@@ -124,6 +137,9 @@ pub struct PlannerConfig {
     pub goal_weights: Joints,
     /// The gripper's closing volume for grasp/place keyframes.
     pub closing_volume: ClosingVolume,
+    /// The space the gripper occupies at the start of a motion: cloud points in it are what
+    /// it holds or touches and are excluded for that motion (an empty volume turns this off).
+    pub start_volume: ClosingVolume,
     /// Clearance (m) the exact re-check demands between the link shapes and the world; 0: the
     /// shapes must not touch (the sphere cover is conservative only for 0).
     pub exact_margin: f64,
@@ -146,6 +162,7 @@ impl Default for PlannerConfig {
             validate_resolution: 0.01,
             goal_weights: [3.0, 3.0, 2.0, 1.0, 1.0, 1.0],
             closing_volume: ClosingVolume::default(),
+            start_volume: ClosingVolume::gripper_envelope(),
             exact_margin: 0.0,
             sphere_recheck: true,
             clock: StageClock::Wall,
@@ -239,17 +256,25 @@ impl Planner {
         let t0 = Stopwatch::start(self.config.clock);
         self.model.check_limits(start)?;
         // Keyframe semantics: "ignore collisions" drops the cloud; otherwise points in the
-        // closing volume at the goal belong to the object and are excluded for this motion.
+        // closing volume at the goal belong to the object and are excluded for this motion,
+        // and so are points inside the gripper where it stands now (what it holds or
+        // touches: a grasp a few millimetres off leaves the object's surface in the palm).
         let cv = self.config.closing_volume;
+        let sv = self.config.start_volume;
         let pose = keyframe.base_from_tcp;
+        let start_pose = self.model.fk_tcp(start);
+        let at_goal = cv.holds_cloud_points(&pose, world);
+        let at_start = sv.holds_cloud_points(&start_pose, world);
         let owned;
         let world = if keyframe.ignore_collisions {
             owned = world.without_cloud();
             &owned
-        } else if !cv.holds_cloud_points(&pose, world) {
+        } else if !at_goal && !at_start {
             world
         } else {
-            match world.without_points(|p| cv.contains(&pose, p))? {
+            match world.without_points(|p| {
+                (at_goal && cv.contains(&pose, p)) || (at_start && sv.contains(&start_pose, p))
+            })? {
                 Some(w) => {
                     owned = w;
                     &owned
@@ -660,6 +685,59 @@ mod tests {
             ..PlannerConfig::default()
         };
         assert!(Planner::new(RobotModel::ur5().unwrap(), PlannerLimits::default(), bad).is_err());
+    }
+
+    #[test]
+    fn points_inside_the_gripper_at_the_start_do_not_block_moving_away() {
+        let p = planner();
+        let q = [-1.5, -1.2, 1.4, -1.6, -1.57, 0.0];
+        let tcp = p.model.fk_tcp(&q);
+        // A held object whose top reaches into the palm: a column of points along the
+        // approach axis from the fingertips to 8 cm behind the TCP.
+        let pts: Vec<_> = (0..20)
+            .map(|i| {
+                let local = Point3::new(0.0, 0.0, 0.01 - 0.0045 * i as f64);
+                tcp.transform_point(&local).cast::<f32>()
+            })
+            .collect();
+        let cloud = PointCloud::new(FrameId::Base, pts, None).unwrap();
+        let world = World::from_cloud(&cloud, &CloudParams::default()).unwrap();
+        let mut checker = Checker::new(&p.model, &world, 0.01);
+        assert!(
+            checker.contact(&q).is_some(),
+            "the start touches the object"
+        );
+        let kf = Keyframe::new(p.model.fk_tcp(&HOME), true, false).unwrap();
+        let m = p.plan_to_keyframe(&q, &kf, &world).unwrap();
+        assert_eq!(m.trajectory.goal(), Some(&m.goal));
+        // With the envelope turned off the same start is refused, naming the contact.
+        let off = Planner::new(
+            RobotModel::ur5().unwrap(),
+            PlannerLimits::default(),
+            PlannerConfig {
+                start_volume: ClosingVolume {
+                    half_extents: [-1.0; 3],
+                    z_offset: 0.0,
+                },
+                ..PlannerConfig::default()
+            },
+        )
+        .unwrap();
+        let err = off.plan_to_keyframe(&q, &kf, &world).unwrap_err();
+        assert!(
+            matches!(err, PlanError::StartInCollision { ref contact } if contact.other.contains("cloud")),
+            "{err}"
+        );
+        // The envelope covers the gripper's links but not the wrist: a point at the wrist
+        // still blocks.
+        let wrist = tcp
+            .transform_point(&Point3::new(0.0, 0.0, -0.25))
+            .cast::<f32>();
+        let cloud = PointCloud::new(FrameId::Base, vec![wrist], None).unwrap();
+        let world = World::from_cloud(&cloud, &CloudParams::default()).unwrap();
+        assert!(Checker::new(&p.model, &world, 0.01).contact(&q).is_some());
+        let err = p.plan_to_keyframe(&q, &kf, &world).unwrap_err();
+        assert!(matches!(err, PlanError::StartInCollision { .. }), "{err}");
     }
 
     #[test]
