@@ -238,8 +238,14 @@ pub fn evaluate(
             let success = report.outcome == crate::episode::Outcome::Success;
             row.successes += u64::from(success);
             *row.outcomes.entry(report.outcome.label()).or_default() += 1;
+            // Why an episode failed is the first thing a user asks: say it on the line.
+            let why = if success {
+                String::new()
+            } else {
+                format!(": {}", report.detail)
+            };
             progress(&format!(
-                "[{done}/{total}] {} seed {seed}: {} after {} keyframes ({}/{} so far)",
+                "[{done}/{total}] {} seed {seed}: {} after {} keyframes ({}/{} so far){why}",
                 kind.name(),
                 report.outcome.label(),
                 report.steps,
