@@ -49,6 +49,12 @@ pub struct Observation<'a> {
 pub trait KeyframeSource {
     /// The next keyframe, or `None` when the source considers the task done.
     fn next_keyframe(&mut self, obs: &Observation<'_>) -> anyhow::Result<Option<Keyframe>>;
+    /// Another keyframe for the same observation, next in the source's own ranking, after
+    /// the planner refused the last one (unreachable or in collision); `None` when the source
+    /// has no more. A scripted source has none.
+    fn alternative(&mut self) -> anyhow::Result<Option<Keyframe>> {
+        Ok(None)
+    }
     /// A name for logs and recordings.
     fn name(&self) -> &str;
 }
@@ -534,12 +540,42 @@ fn episode_steps(
         };
         let world = World::from_cloud(&planning_cloud, &CloudParams::default())?
             .with_obstacle(table.clone());
-        let motion = match planner.plan_to_keyframe(&q, &keyframe, &world) {
+        // A keyframe the planner refuses is replaced by the source's next-ranked one, if it
+        // has any: the arm runs the best prediction it can reach.
+        let mut keyframe = keyframe;
+        let mut planned = planner.plan_to_keyframe(&q, &keyframe, &world);
+        let mut alternatives = 0;
+        while planned.is_err() {
+            let Some(next) = policy.alternative()? else {
+                break;
+            };
+            alternatives += 1;
+            rec.write(
+                "/keyframes",
+                t,
+                &recording::keyframe_scene(
+                    t,
+                    step,
+                    next.base_from_tcp.isometry(),
+                    next.gripper_open,
+                    next.ignore_collisions,
+                ),
+            )?;
+            if let Ok(m) = planner.plan_to_keyframe(&q, &next, &world) {
+                keyframe = next;
+                planned = Ok(m);
+            }
+        }
+        let motion = match planned {
             Ok(m) => m,
             Err(e) => {
+                let also = match alternatives {
+                    0 => String::new(),
+                    n => format!(" (nor could the policy's {n} next-ranked keyframes)"),
+                };
                 return Ok((
                     Outcome::PlanFailed,
-                    format!("keyframe {step} could not be planned: {e}"),
+                    format!("keyframe {step} could not be planned: {e}{also}"),
                 ));
             }
         };
@@ -631,7 +667,14 @@ fn episode_steps(
                     fused.sampled.len()
                 ),
             ),
-            ("predict", predict_s, policy.name().to_string()),
+            (
+                "predict",
+                predict_s,
+                match alternatives {
+                    0 => policy.name().to_string(),
+                    n => format!("{}, its keyframe ranked {} planned", policy.name(), n + 1),
+                },
+            ),
             (
                 "plan",
                 plan_s,
@@ -664,11 +707,15 @@ fn episode_steps(
         }
         rec.checkpoint()?;
         println!(
-            "  step {step:>2}: keyframe at [{:.3}, {:.3}, {:.3}] {} | capture {:.2} s, fuse {:.3} s, plan {:.1} ms, execute {:.2} s, gripper {:.2} s",
+            "  step {step:>2}: keyframe at [{:.3}, {:.3}, {:.3}] {}{} | capture {:.2} s, fuse {:.3} s, plan {:.1} ms, execute {:.2} s, gripper {:.2} s",
             keyframe.base_from_tcp.translation().x,
             keyframe.base_from_tcp.translation().y,
             keyframe.base_from_tcp.translation().z,
             if keyframe.gripper_open { "open  " } else { "closed" },
+            match alternatives {
+                0 => String::new(),
+                n => format!(" (ranked {})", n + 1),
+            },
             capture_s,
             fuse_s,
             plan_s * 1e3,

@@ -2,6 +2,11 @@
 //! sampled cloud, the arm's TCP pose and the gripper state; it answers with the network's
 //! keyframe (`equact run --policy learned`).
 //!
+//! Two rules turn the network's answer into what the cell executes (both are documented
+//! where they are defined): a short move of a held object is planned through the cloud
+//! ([`HELD_MOVE_THROUGH_CLOUD_M`]), and a keyframe the planner refuses is replaced by the
+//! next-ranked translation candidates ([`LearnedPolicy::set_alternatives`]).
+//!
 //! The network never says "done": the episode ends when the task's success test passes, on
 //! a fault, or after [`crate::episode::MAX_KEYFRAMES`], as in the keyframe-policy
 //! literature's evaluation.
@@ -11,13 +16,55 @@ use std::path::Path;
 use anyhow::Context;
 use cell_types::config::CellConfig;
 use cell_types::{Base, Keyframe, Tcp, Transform};
-use policy::predict::{GripperPose, InstructionEmbedding, Policy, PolicyConfig};
+use policy::predict::{
+    GripperPose, InstructionEmbedding, Policy, PolicyConfig, SceneEncoding, TranslationCandidate,
+};
 
 use crate::episode::{robot_model, KeyframeSource, Observation};
 
 /// Fingertip opening above which the gripper counts as open for the network's input (m):
 /// the 2F-85 opens to 0.085; anything holding an object or closed is well below.
 const OPEN_WIDTH_M: f64 = 0.08;
+
+/// Next-ranked keyframes offered by default when the planner refuses a prediction.
+pub const DEFAULT_ALTERNATIVES: usize = 8;
+
+/// Longest move (m, TCP) that is planned without the observed cloud while the gripper holds
+/// an object. EquAct predicts no "ignore collisions" flag, but the moves that need it are
+/// the short extraction and insertion moves of a held object (the demonstrations' pulls of
+/// 7–8 cm and the roll's 5 cm descent over the spindle), where the carried object's own
+/// points lie where the gripper goes; the table and fixed obstacles still count.
+pub const HELD_MOVE_THROUGH_CLOUD_M: f64 = 0.09;
+
+/// The last prediction's encoded scene and its remaining translation candidates.
+struct LastPrediction {
+    scene: SceneEncoding,
+    /// Best first; the first (the predicted keyframe's) is already used.
+    candidates: Vec<TranslationCandidate>,
+    next: usize,
+    /// The observation's TCP position and whether the gripper held an object.
+    tcp: nalgebra::Vector3<f64>,
+    holding: bool,
+}
+
+impl LastPrediction {
+    /// The keyframe with its collision flag for this observation.
+    fn with_collision_flag(&self, keyframe: Keyframe) -> Keyframe {
+        with_collision_flag(keyframe, &self.tcp, self.holding)
+    }
+}
+
+/// Marks a short move of a held object as planned without the cloud
+/// ([`HELD_MOVE_THROUGH_CLOUD_M`]); any other keyframe is planned against it.
+pub fn with_collision_flag(
+    mut keyframe: Keyframe,
+    tcp: &nalgebra::Vector3<f64>,
+    holding: bool,
+) -> Keyframe {
+    let moved = (keyframe.base_from_tcp.translation() - tcp).norm();
+    keyframe.ignore_collisions = holding && moved <= HELD_MOVE_THROUGH_CLOUD_M;
+    keyframe
+}
 
 /// The learned policy: the network, the instruction's embedding, and the arm's forward
 /// kinematics (the network reads the current TCP pose).
@@ -28,6 +75,9 @@ pub struct LearnedPolicy {
     /// The episode's seed; prediction k runs with `episode_seed + k`.
     episode_seed: u64,
     predictions: u64,
+    /// How many next-ranked keyframes to offer per observation.
+    alternatives: usize,
+    last: Option<LastPrediction>,
 }
 
 impl LearnedPolicy {
@@ -45,6 +95,8 @@ impl LearnedPolicy {
             instruction,
             model,
             predictions: 0,
+            alternatives: DEFAULT_ALTERNATIVES,
+            last: None,
         })
     }
 
@@ -90,10 +142,18 @@ impl LearnedPolicy {
         self.instruction = instruction;
     }
 
+    /// How many next-ranked keyframes to offer when the planner refuses a prediction (the
+    /// finest sampling level's next-best translations, each with the rotation and open heads'
+    /// answer there); 0 executes the network's argmax or nothing, as the paper evaluates.
+    pub fn set_alternatives(&mut self, n: usize) {
+        self.alternatives = n;
+    }
+
     /// Seeds the next episode's predictions (each prediction adds its index).
     pub fn set_seed(&mut self, seed: u64) {
         self.episode_seed = seed;
         self.predictions = 0;
+        self.last = None;
     }
 }
 
@@ -118,14 +178,75 @@ impl KeyframeSource for LearnedPolicy {
         // is reproducible from its seed.
         self.policy.seed = self.episode_seed.wrapping_add(self.predictions);
         self.predictions += 1;
-        let keyframe = self
+        let prediction = self
             .policy
-            .predict(obs.cloud, &gripper, &self.instruction)
+            .predict_detailed(obs.cloud, &gripper, &self.instruction)
             .context("the EquAct network could not predict a keyframe")?;
+        let last = LastPrediction {
+            scene: prediction.scene,
+            candidates: prediction.candidates,
+            next: 1,
+            tcp: base_from_tcp.translation(),
+            holding: obs.gripper.holds_object(),
+        };
+        let keyframe = last.with_collision_flag(prediction.keyframe);
+        self.last = Some(last);
         Ok(Some(keyframe))
+    }
+
+    fn alternative(&mut self) -> anyhow::Result<Option<Keyframe>> {
+        let Some(last) = self.last.as_mut() else {
+            return Ok(None);
+        };
+        if last.next > self.alternatives {
+            return Ok(None);
+        }
+        let Some(candidate) = last.candidates.get(last.next) else {
+            return Ok(None);
+        };
+        last.next += 1;
+        let at = self
+            .policy
+            .keyframe_at(&last.scene, &candidate.position)
+            .context("the EquAct network could not rank another keyframe")?;
+        Ok(Some(last.with_collision_flag(at.keyframe)))
     }
 
     fn name(&self) -> &str {
         "learned"
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use nalgebra::Vector3;
+
+    fn at(x: f64) -> Keyframe {
+        Keyframe::new(
+            Transform::from_xyz_rpy([x, 0.0, 0.2], [std::f64::consts::PI, 0.0, 0.0]),
+            false,
+            false,
+        )
+        .unwrap()
+    }
+
+    #[test]
+    fn only_short_moves_of_a_held_object_go_through_the_cloud() {
+        let tcp = Vector3::new(0.5, 0.0, 0.2);
+        assert!(with_collision_flag(at(0.55), &tcp, true).ignore_collisions);
+        assert!(
+            with_collision_flag(at(0.5 + HELD_MOVE_THROUGH_CLOUD_M), &tcp, true).ignore_collisions
+        );
+        assert!(
+            !with_collision_flag(at(0.5 + HELD_MOVE_THROUGH_CLOUD_M + 1e-3), &tcp, true)
+                .ignore_collisions
+        );
+        // Not holding: every move is planned against the cloud, however short.
+        assert!(!with_collision_flag(at(0.51), &tcp, false).ignore_collisions);
+        // A flag already set is recomputed, not kept.
+        let mut k = at(0.8);
+        k.ignore_collisions = true;
+        assert!(!with_collision_flag(k, &tcp, true).ignore_collisions);
     }
 }

@@ -62,4 +62,7 @@ pub mod transblock;
 pub mod weights;
 
 pub use error::{PolicyError, Result};
-pub use predict::{GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode};
+pub use predict::{
+    GripperPose, InstructionEmbedding, KeyframeAt, Policy, PolicyConfig, PolicyMode, SceneEncoding,
+    TranslationCandidate,
+};

@@ -554,6 +554,38 @@ impl StageTimings {
     }
 }
 
+/// A translation the head scored at the finest sampling level (base frame).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TranslationCandidate {
+    /// Position (m, base frame).
+    pub position: Point3<f64>,
+    /// Its translation logit.
+    pub logit: f32,
+}
+
+/// What the heads read of an encoded observation: kept with a prediction so that other
+/// translation candidates can be made into keyframes without encoding the scene again.
+#[derive(Debug, Clone)]
+pub struct SceneEncoding {
+    embedding: Vec<f32>,
+    coord: Vec<[f32; 3]>,
+}
+
+/// The keyframe the rotation and open heads give at one translation.
+#[derive(Debug, Clone, Copy)]
+pub struct KeyframeAt {
+    /// The keyframe (`ignore_collisions` is always false: EquAct does not predict it).
+    pub keyframe: Keyframe,
+    /// Sigmoid of the open logit.
+    pub open_probability: f32,
+    /// The rotation logit at the refined rotation.
+    pub rotation_logit: f64,
+    /// The best rotation logit on the coarse grid.
+    pub coarse_rotation_logit: f64,
+    /// CPU seconds of the rotation head and of the rotation search.
+    seconds: (f64, f64),
+}
+
 /// One prediction with what led to it.
 #[derive(Debug, Clone)]
 pub struct Prediction {
@@ -569,6 +601,10 @@ pub struct Prediction {
     pub coarse_rotation_logit: f64,
     /// Per sampling level, the samples (base frame) and their logits.
     pub levels: Vec<(Vec<[f32; 3]>, Vec<f32>)>,
+    /// The finest level's samples, best logit first (the first is the keyframe's).
+    pub candidates: Vec<TranslationCandidate>,
+    /// The encoded scene, for [`Policy::keyframe_at`] on other candidates.
+    pub scene: SceneEncoding,
     /// Cloud points inside the workspace box.
     pub in_workspace: usize,
     /// Stage timings.
@@ -704,6 +740,7 @@ impl Policy {
         let mut anchors: Vec<Point3<f64>> = Vec::new();
         let mut best = (Point3::origin(), f32::NEG_INFINITY);
         let mut levels = Vec::with_capacity(s.levels);
+        let mut candidates = Vec::new();
         for level in 0..s.levels {
             let samples: Vec<Point3<f64>> = if level == 0 {
                 (0..s.per_level)
@@ -728,15 +765,63 @@ impl Policy {
             if let Some(&i) = order.first() {
                 best = (samples[i], logits[i]);
             }
+            candidates = samples
+                .iter()
+                .zip(&logits)
+                .map(|(q, &logit)| TranslationCandidate {
+                    position: ws * q,
+                    logit,
+                })
+                .collect();
             levels.push((queries, logits));
         }
+        candidates.sort_by(|a, b| b.logit.total_cmp(&a.logit));
         let translation_head = t.elapsed();
 
+        let scene = SceneEncoding {
+            embedding: enc.embedding,
+            coord: enc.coord,
+        };
+
+        let at = self.keyframe_at(&scene, &(ws * best.0))?;
+        let timings = StageTimings {
+            input_prep,
+            language: enc.language_seconds,
+            blocks: enc
+                .blocks
+                .iter()
+                .map(|b| (b.name.clone(), b.seconds))
+                .collect(),
+            encoder,
+            translation_head,
+            rotation_head: at.seconds.0,
+            rotation_search: at.seconds.1,
+            total: t_total.elapsed(),
+            wall_total: wall.elapsed().as_secs_f64(),
+        };
+        Ok(Prediction {
+            keyframe: at.keyframe,
+            open_probability: at.open_probability,
+            translation_logit: best.1,
+            rotation_logit: at.rotation_logit,
+            coarse_rotation_logit: at.coarse_rotation_logit,
+            levels,
+            candidates,
+            scene,
+            in_workspace: prep.in_workspace,
+            timings,
+        })
+    }
+
+    /// The keyframe at `position` (base frame) of an encoded scene: the rotation head's
+    /// argmax on the grid refined by the pattern search, and the open head. A caller whose
+    /// planner refuses the best prediction turns the next [`Prediction::candidates`] into
+    /// keyframes with this.
+    pub fn keyframe_at(&self, scene: &SceneEncoding, position: &Point3<f64>) -> Result<KeyframeAt> {
         let t = CpuTimer::start();
-        let position = ws * best.0;
         let rot = self.model.heads().rot_query(
-            &enc.embedding,
-            &enc.coord,
+            &scene.embedding,
+            &scene.coord,
             [position.x as f32, position.y as f32, position.z as f32],
         )?;
         let rotation_head = t.elapsed();
@@ -760,30 +845,12 @@ impl Policy {
                     message: e.to_string(),
                 }
             })?;
-        let timings = StageTimings {
-            input_prep,
-            language: enc.language_seconds,
-            blocks: enc
-                .blocks
-                .iter()
-                .map(|b| (b.name.clone(), b.seconds))
-                .collect(),
-            encoder,
-            translation_head,
-            rotation_head,
-            rotation_search,
-            total: t_total.elapsed(),
-            wall_total: wall.elapsed().as_secs_f64(),
-        };
-        Ok(Prediction {
+        Ok(KeyframeAt {
             keyframe,
             open_probability,
-            translation_logit: best.1,
             rotation_logit,
             coarse_rotation_logit: coarse_logit,
-            levels,
-            in_workspace: prep.in_workspace,
-            timings,
+            seconds: (rotation_head, rotation_search),
         })
     }
 

@@ -90,6 +90,35 @@ fn prediction_is_deterministic_per_seed() {
 }
 
 #[test]
+fn candidates_are_the_finest_level_ranked_and_each_becomes_a_keyframe() {
+    let mut p = tiny(PolicyMode::Gated);
+    let cloud = scene(2);
+    let instr = InstructionEmbedding::random(3);
+    p.seed = 5;
+    let a = p.predict_detailed(&cloud, &gripper(), &instr).unwrap();
+    let (queries, logits) = a.levels.last().unwrap();
+    assert_eq!(a.candidates.len(), queries.len());
+    assert!(a.candidates.windows(2).all(|w| w[0].logit >= w[1].logit));
+    let best = logits.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    assert_eq!(a.candidates[0].logit, best);
+    assert_eq!(a.candidates[0].logit, a.translation_logit);
+    // Every candidate is one of the level's samples with its logit.
+    for c in &a.candidates {
+        assert!(queries.iter().zip(logits).any(|(q, &l)| l == c.logit
+            && (0..3).all(|i| (f64::from(q[i]) - c.position[i]).abs() < 1e-6)));
+    }
+    // The best candidate's keyframe is the prediction; another candidate gets its own
+    // position with the rotation head's answer there.
+    let first = p.keyframe_at(&a.scene, &a.candidates[0].position).unwrap();
+    assert_eq!(first.keyframe, a.keyframe);
+    assert_eq!(first.rotation_logit, a.rotation_logit);
+    let other = p.keyframe_at(&a.scene, &a.candidates[5].position).unwrap();
+    let t = other.keyframe.base_from_tcp.translation();
+    assert!((t - a.candidates[5].position.coords).norm() < 1e-9);
+    assert!(other.rotation_logit >= other.coarse_rotation_logit);
+}
+
+#[test]
 fn a_network_with_the_per_degree_scalar_film_predicts_and_reads_the_instruction() {
     // The paper's cheap iFiLM: random weights with its keys load, the policy predicts, and
     // another instruction changes the logits of the same samples.

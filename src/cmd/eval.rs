@@ -46,6 +46,10 @@ pub struct EvalArgs {
     /// Network size the weights were trained with.
     #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
     pub network: NetworkSize,
+    /// Next-ranked keyframes of the learned policy to try when the planner refuses its
+    /// best one (0: the network's argmax or nothing, as the paper evaluates).
+    #[arg(long, default_value_t = equact::learned::DEFAULT_ALTERNATIVES)]
+    pub alternatives: usize,
     /// Where the episodes' recordings go.
     #[arg(long, default_value = "recordings/eval")]
     pub out: PathBuf,
@@ -97,7 +101,9 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
             let policy = {
                 let mut network = args.network.config();
                 network.model.heads = args.heads.kind();
-                LearnedPolicy::load_with(network, model, first, &cfg, args.seed)?
+                let mut policy = LearnedPolicy::load_with(network, model, first, &cfg, args.seed)?;
+                policy.set_alternatives(args.alternatives);
+                policy
             };
             Box::new(LearnedEval { policy, embeddings })
         }

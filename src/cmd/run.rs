@@ -71,6 +71,10 @@ pub struct RunArgs {
     /// Field heads the weights were trained with (`equact train --heads`).
     #[arg(long, value_enum, default_value_t = super::policy::HeadsArg::Equivariant)]
     pub heads: super::policy::HeadsArg,
+    /// Next-ranked keyframes of the learned policy to try when the planner refuses its
+    /// best one (0: the network's argmax or nothing, as the paper evaluates).
+    #[arg(long, default_value_t = equact::learned::DEFAULT_ALTERNATIVES)]
+    pub alternatives: usize,
     /// On a real cell, start moving without asking (for scripted runs; interactive runs
     /// ask for Enter first).
     #[arg(long)]
@@ -195,13 +199,10 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                     || format!("reading the instruction embedding {}", embedding.display()),
                 )?,
             };
-            Some(LearnedPolicy::load_with(
-                network,
-                weights,
-                instruction,
-                &cfg,
-                args.seed,
-            )?)
+            let mut policy =
+                LearnedPolicy::load_with(network, weights, instruction, &cfg, args.seed)?;
+            policy.set_alternatives(args.alternatives);
+            Some(policy)
         }
     };
 

@@ -27,6 +27,8 @@ static SERIAL: Mutex<()> = Mutex::new(());
 struct Run {
     report: EpisodeReport,
     still: bool,
+    /// The arm's joints at the end.
+    final_q: [f64; 6],
 }
 
 fn run_episode(
@@ -82,7 +84,11 @@ fn run_episode_with(
     let snap = cell.controller.snapshot();
     let still = snap.actual_qd.iter().all(|v| v.abs() < 1e-3);
     cell.controller.shutdown();
-    Run { report, still }
+    Run {
+        report,
+        still,
+        final_q: snap.actual_q,
+    }
 }
 
 fn check_recording(report: &EpisodeReport) {
@@ -267,6 +273,99 @@ fn unreachable_keyframe_ends_in_plan_failed_without_moving() {
     );
     assert!(
         run.report.detail.contains("keyframe 0"),
+        "{}",
+        run.report.detail
+    );
+    assert!(run.still);
+    check_recording(&run.report);
+}
+
+/// One keyframe with ranked alternatives (a policy's next-best answers), then done.
+struct Ranked {
+    ranked: Vec<Keyframe>,
+    next: usize,
+}
+
+impl KeyframeSource for Ranked {
+    fn next_keyframe(
+        &mut self,
+        _obs: &equact::episode::Observation<'_>,
+    ) -> anyhow::Result<Option<Keyframe>> {
+        if self.next > 0 {
+            return Ok(None);
+        }
+        self.next = 1;
+        Ok(self.ranked.first().copied())
+    }
+
+    fn alternative(&mut self) -> anyhow::Result<Option<Keyframe>> {
+        let k = self.ranked.get(self.next).copied();
+        self.next += 1;
+        Ok(k)
+    }
+
+    fn name(&self) -> &str {
+        "ranked"
+    }
+}
+
+#[test]
+fn a_refused_keyframe_is_replaced_by_the_next_ranked_one() {
+    let far = |x: f64| Keyframe {
+        base_from_tcp: Transform::from_xyz_rpy([x, 0.0, 0.3], [std::f64::consts::PI, 0.0, 0.0]),
+        gripper_open: true,
+        ignore_collisions: false,
+    };
+    // The first two are out of reach; the third, the expert's first keyframe, is executed.
+    let target = Arc::new(Mutex::new(None));
+    let t = target.clone();
+    let run = run_episode_with(
+        "ranked",
+        6,
+        move |task| {
+            let reachable = task.expert_keyframes()[0];
+            *t.lock().unwrap() = Some(reachable);
+            Box::new(Ranked {
+                ranked: vec![far(2.5), far(3.0), reachable],
+                next: 0,
+            })
+        },
+        |_| {},
+    );
+    assert_eq!(
+        run.report.outcome,
+        Outcome::TaskNotDone,
+        "{}",
+        run.report.detail
+    );
+    assert_eq!(run.report.steps, 1, "{}", run.report.detail);
+    assert_eq!(run.report.counts.get("/keyframes").copied(), Some(3));
+    // The arm went to the third-ranked keyframe.
+    let reached = planner::model::RobotModel::ur5()
+        .unwrap()
+        .fk_tcp(&run.final_q)
+        .translation();
+    let wanted = target.lock().unwrap().unwrap().base_from_tcp.translation();
+    assert!((reached - wanted).norm() < 0.005, "{reached:?} {wanted:?}");
+    assert!(run.still);
+    check_recording(&run.report);
+
+    // When every alternative is refused too, the episode says so and the arm stays put.
+    let run = run_episode_with(
+        "ranked_refused",
+        6,
+        |_| {
+            Box::new(Ranked {
+                ranked: vec![far(2.5), far(3.0)],
+                next: 0,
+            })
+        },
+        |_| {},
+    );
+    assert_eq!(run.report.outcome, Outcome::PlanFailed);
+    assert_eq!(run.report.steps, 0);
+    assert!(
+        run.report.detail.contains("1 next-ranked"),
         "{}",
         run.report.detail
     );
