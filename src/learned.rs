@@ -36,12 +36,21 @@ pub const DEFAULT_ALTERNATIVES: usize = 8;
 /// points lie where the gripper goes; the table and fixed obstacles still count.
 pub const HELD_MOVE_THROUGH_CLOUD_M: f64 = 0.09;
 
+/// How far each ranked keyframe is also tried moved back along its approach axis (m): a
+/// grasp predicted a centimetre too deep puts the palm on the object or the fingertips on
+/// the table, and the same grasp a little shallower still closes on the object.
+pub const BACK_OFFS_M: [f64; 3] = [0.0, 0.01, 0.02];
+
 /// The last prediction's encoded scene and its remaining translation candidates.
 struct LastPrediction {
     scene: SceneEncoding,
-    /// Best first; the first (the predicted keyframe's) is already used.
+    /// Best first; the first is the predicted keyframe's.
     candidates: Vec<TranslationCandidate>,
+    /// The next alternative: candidate `next / BACK_OFFS_M.len()` moved back by
+    /// `BACK_OFFS_M[next % BACK_OFFS_M.len()]` (0, the prediction itself, is already used).
     next: usize,
+    /// The keyframe of the candidate being backed off, by candidate index.
+    current: (usize, Keyframe),
     /// The observation's TCP position and whether the gripper held an object.
     tcp: nalgebra::Vector3<f64>,
     holding: bool,
@@ -52,6 +61,14 @@ impl LastPrediction {
     fn with_collision_flag(&self, keyframe: Keyframe) -> Keyframe {
         with_collision_flag(keyframe, &self.tcp, self.holding)
     }
+}
+
+/// The keyframe moved back by `distance` (m) along its approach axis (the TCP z).
+pub fn backed_off(mut keyframe: Keyframe, distance: f64) -> Keyframe {
+    let approach = keyframe.base_from_tcp.isometry().rotation * nalgebra::Vector3::z();
+    let p = keyframe.base_from_tcp.translation() - approach * distance;
+    keyframe.base_from_tcp = Transform::from_parts(p, keyframe.base_from_tcp.isometry().rotation);
+    keyframe
 }
 
 /// Marks a short move of a held object as planned without the cloud
@@ -144,7 +161,8 @@ impl LearnedPolicy {
 
     /// How many next-ranked keyframes to offer when the planner refuses a prediction (the
     /// finest sampling level's next-best translations, each with the rotation and open heads'
-    /// answer there); 0 executes the network's argmax or nothing, as the paper evaluates.
+    /// answer there), each also tried moved back by [`BACK_OFFS_M`]; 0 executes the
+    /// network's argmax or nothing, as the paper evaluates.
     pub fn set_alternatives(&mut self, n: usize) {
         self.alternatives = n;
     }
@@ -186,6 +204,7 @@ impl KeyframeSource for LearnedPolicy {
             scene: prediction.scene,
             candidates: prediction.candidates,
             next: 1,
+            current: (0, prediction.keyframe),
             tcp: base_from_tcp.translation(),
             holding: obs.gripper.holds_object(),
         };
@@ -198,18 +217,23 @@ impl KeyframeSource for LearnedPolicy {
         let Some(last) = self.last.as_mut() else {
             return Ok(None);
         };
-        if last.next > self.alternatives {
+        let (c, b) = (last.next / BACK_OFFS_M.len(), last.next % BACK_OFFS_M.len());
+        if c > self.alternatives {
             return Ok(None);
         }
-        let Some(candidate) = last.candidates.get(last.next) else {
+        let Some(candidate) = last.candidates.get(c) else {
             return Ok(None);
         };
         last.next += 1;
-        let at = self
-            .policy
-            .keyframe_at(&last.scene, &candidate.position)
-            .context("the EquAct network could not rank another keyframe")?;
-        Ok(Some(last.with_collision_flag(at.keyframe)))
+        if last.current.0 != c {
+            let at = self
+                .policy
+                .keyframe_at(&last.scene, &candidate.position)
+                .context("the EquAct network could not rank another keyframe")?;
+            last.current = (c, at.keyframe);
+        }
+        let keyframe = backed_off(last.current.1, BACK_OFFS_M[b]);
+        Ok(Some(last.with_collision_flag(keyframe)))
     }
 
     fn name(&self) -> &str {
@@ -229,6 +253,21 @@ mod tests {
             false,
         )
         .unwrap()
+    }
+
+    #[test]
+    fn backing_off_moves_along_the_approach_axis_only() {
+        // Pointing down (roll π): the approach axis is −z of the base, so backing off rises.
+        let k = at(0.5);
+        let b = backed_off(k, 0.02);
+        let d = b.base_from_tcp.translation() - k.base_from_tcp.translation();
+        assert!((d - Vector3::new(0.0, 0.0, 0.02)).norm() < 1e-12, "{d:?}");
+        assert_eq!(
+            b.base_from_tcp.isometry().rotation,
+            k.base_from_tcp.isometry().rotation
+        );
+        assert_eq!(b.gripper_open, k.gripper_open);
+        assert_eq!(backed_off(k, 0.0), k);
     }
 
     #[test]

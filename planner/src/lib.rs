@@ -7,6 +7,12 @@
 //! `parry3d` gives the exact link, obstacle and point queries of the final re-check of every
 //! trajectory ([`exact`]), independent of the sphere model the search uses; `cpu-time` reads
 //! the thread's CPU clock for benchmark stage times (a safe wrapper of `clock_gettime`).
+//!
+//! Keyframe semantics against the observed cloud ([`Planner::plan_to_keyframe`]): cloud
+//! points in the gripper's closing volume at the goal are the object to grasp or place, and
+//! points inside the gripper where it stands at the start are what it holds or touches; both
+//! are excluded for that one motion. "Ignore collisions" drops the cloud; static obstacles
+//! (the table) always count.
 
 pub mod checker;
 pub mod cloud_io;

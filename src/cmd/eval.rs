@@ -47,7 +47,8 @@ pub struct EvalArgs {
     #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
     pub network: NetworkSize,
     /// Next-ranked keyframes of the learned policy to try when the planner refuses its
-    /// best one (0: the network's argmax or nothing, as the paper evaluates).
+    /// best one, each also moved back 1 and 2 cm along its approach axis (0: the network's
+    /// argmax or nothing, as the paper evaluates).
     #[arg(long, default_value_t = equact::learned::DEFAULT_ALTERNATIVES)]
     pub alternatives: usize,
     /// Where the episodes' recordings go.
