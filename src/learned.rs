@@ -167,6 +167,12 @@ impl LearnedPolicy {
         self.alternatives = n;
     }
 
+    /// Threads of each prediction (see `policy::parallel`; the keyframes do not depend on
+    /// it). 1 by default: on a real cell the UR driver's threads need a free core.
+    pub fn set_threads(&mut self, threads: usize) {
+        self.policy.set_threads(threads);
+    }
+
     /// Seeds the next episode's predictions (each prediction adds its index).
     pub fn set_seed(&mut self, seed: u64) {
         self.episode_seed = seed;

@@ -74,6 +74,20 @@ impl EdgeSet {
         dst: Vec<usize>,
         rbf: &GaussianRbf,
     ) -> Result<Self> {
+        Self::new_threads(calc, lmax, (pos_src, pos_dst), src, dst, rbf, 1)
+    }
+
+    /// [`EdgeSet::new`] with the frames and radial bases computed on `threads` threads (the
+    /// same edge set).
+    pub fn new_threads(
+        calc: &WignerCalculator,
+        lmax: usize,
+        (pos_src, pos_dst): (&[[f32; 3]], &[[f32; 3]]),
+        src: Vec<usize>,
+        dst: Vec<usize>,
+        rbf: &GaussianRbf,
+        threads: usize,
+    ) -> Result<Self> {
         if src.len() != dst.len() {
             return Err(PolicyError::ShapeMismatch {
                 name: "edge_dst".into(),
@@ -83,8 +97,15 @@ impl EdgeSet {
         }
         let vec = edge_vectors(pos_src, pos_dst, &src, &dst)?;
         let dist = edge_lengths(&vec);
-        let attr = rbf.features(&dist);
-        Self::assemble(calc, lmax, src, dst, vec, dist, attr)
+        let parts = crate::parallel::split_even(dist.len(), threads.min(dist.len() / 256));
+        let attr = if parts.len() > 1 {
+            EdgeFeatures::concat(crate::parallel::run_parts(parts, |r| {
+                rbf.features(&dist[r])
+            }))?
+        } else {
+            rbf.features(&dist)
+        };
+        Self::assemble(calc, lmax, (src, dst), (vec, dist), attr, threads)
     }
 
     /// Builds an edge set from given edge vectors and features (e.g. a fixture's).
@@ -101,27 +122,21 @@ impl EdgeSet {
         check_len("edge_vec", vec.len(), &[e])?;
         let dist = edge_lengths(&vec);
         let attr = EdgeFeatures::dense(attr, e)?;
-        Self::assemble(calc, lmax, src, dst, vec, dist, attr)
+        Self::assemble(calc, lmax, (src, dst), (vec, dist), attr, 1)
     }
 
-    /// The edge set with its Wigner matrices computed from the edge vectors.
+    /// The edge set with its Wigner matrices computed from the edge vectors (on `threads`
+    /// threads).
     fn assemble(
         calc: &WignerCalculator,
         lmax: usize,
-        src: Vec<usize>,
-        dst: Vec<usize>,
-        vec: Vec<[f32; 3]>,
-        dist: Vec<f32>,
+        (src, dst): (Vec<usize>, Vec<usize>),
+        (vec, dist): (Vec<[f32; 3]>, Vec<f32>),
         attr: EdgeFeatures,
+        threads: usize,
     ) -> Result<Self> {
-        if attr.rows() != src.len() {
-            return Err(PolicyError::ShapeMismatch {
-                name: "edge_attr".into(),
-                expected: vec![src.len(), attr.cols()],
-                got: vec![attr.rows(), attr.cols()],
-            });
-        }
-        let wigners = EdgeWigners::new(calc, lmax, &vec)?;
+        Self::check_attr(&attr, src.len())?;
+        let wigners = EdgeWigners::new_threads(calc, lmax, &vec, threads)?;
         Ok(Self {
             src,
             dst,
@@ -130,6 +145,18 @@ impl EdgeSet {
             wigners,
             attr,
         })
+    }
+
+    /// An error unless `attr` has one row per edge.
+    fn check_attr(attr: &EdgeFeatures, edges: usize) -> Result<()> {
+        if attr.rows() != edges {
+            return Err(PolicyError::ShapeMismatch {
+                name: "edge_attr".into(),
+                expected: vec![edges, attr.cols()],
+                got: vec![attr.rows(), attr.cols()],
+            });
+        }
+        Ok(())
     }
 
     /// Number of edges.
@@ -180,6 +207,8 @@ pub struct GraphAttention {
     /// `so2_conv_1` on the source half of the messages only, for all-zero destinations
     /// (built by [`GraphAttention::prepare_zero_destinations`]).
     conv1_sources: Option<So2Conv>,
+    /// Threads of a forward pass ([`GraphAttention::set_threads`]).
+    threads: usize,
 }
 
 impl GraphAttention {
@@ -244,6 +273,7 @@ impl GraphAttention {
             grid,
             proj,
             conv1_sources: None,
+            threads: 1,
         })
     }
 
@@ -309,19 +339,55 @@ impl GraphAttention {
         let mut agg = vec![0.0f32; nd * row];
         // Whole destination groups at a time keep the buffers small; the softmax is per
         // destination, so this is exact.
-        for r in destination_chunks(&edges.dst, EDGE_CHUNK) {
-            let wig = edges.wigners.slice(r.clone());
-            self.forward_edges(
-                (x_src, x_dst),
-                conv1,
-                (ns, nd),
-                (&edges.src[r.clone()], &edges.dst[r.clone()]),
-                &wig,
-                edges.attr.slice(r.clone()),
-                &mut agg,
-            )?;
+        let chunks = destination_chunks(&edges.dst, EDGE_CHUNK);
+        let run = |chunks: &[std::ops::Range<usize>], (agg, d0): (&mut [f32], usize)| {
+            for r in chunks {
+                self.forward_edges(
+                    (x_src, x_dst),
+                    conv1,
+                    (ns, nd),
+                    (&edges.src[r.clone()], &edges.dst[r.clone()]),
+                    (&edges.wigners, r.clone()),
+                    edges.attr.slice(r.clone()),
+                    (&mut *agg, d0),
+                )?;
+            }
+            Ok(())
+        };
+        if self.threads < 2 || chunks.len() < 2 {
+            run(&chunks, (&mut agg, 0))?;
+        } else {
+            // More than one chunk means the edges are grouped by ascending destination, so
+            // consecutive chunks write consecutive, disjoint rows of `agg`: each thread
+            // gets a run of chunks and the rows from its first destination on.
+            let sizes: Vec<usize> = chunks.iter().map(|r| r.len()).collect();
+            let groups = crate::parallel::split_weighted(&sizes, self.threads);
+            let mut items = Vec::with_capacity(groups.len());
+            let mut rest = agg.as_mut_slice();
+            let mut d0 = 0;
+            for (g, next) in groups
+                .iter()
+                .zip(groups.iter().skip(1).map(Some).chain([None]))
+            {
+                let end = match next {
+                    Some(n) => edges.dst[chunks[n.start].start],
+                    None => nd,
+                };
+                let (head, tail) = rest.split_at_mut((end - d0) * row);
+                items.push((&chunks[g.clone()], head, d0));
+                rest = tail;
+                d0 = end;
+            }
+            crate::parallel::run_parts(items, |(c, a, d0)| run(c, (a, d0)))
+                .into_iter()
+                .collect::<Result<()>>()?;
         }
         self.proj.forward(&agg)
+    }
+
+    /// Threads of [`GraphAttention::forward`] (1: the caller's only; see [`crate::parallel`]).
+    pub fn set_threads(&mut self, threads: usize) {
+        self.threads = threads.max(1);
     }
 
     /// The message, attention and aggregation of one chunk of edges (whole destination
@@ -333,9 +399,9 @@ impl GraphAttention {
         conv1: &So2Conv,
         (ns, nd): (usize, usize),
         (src, dst): (&[usize], &[usize]),
-        wigners: &EdgeWigners,
+        (wigners, range): (&EdgeWigners, std::ops::Range<usize>),
         attr: EdgeFeaturesRef<'_>,
-        agg: &mut [f32],
+        (agg, d0): (&mut [f32], usize),
     ) -> Result<()> {
         let cfg = &self.cfg;
         let k = num_coefficients(cfg.lmax);
@@ -369,7 +435,7 @@ impl GraphAttention {
                 }
             }
         }
-        let x_rot = wigners.rotate(&self.map, &msg, mc)?;
+        let x_rot = wigners.rotate_range(range.clone(), &self.map, &msg, mc)?;
         drop(msg);
         let (h, extra) = conv1.forward_features(&x_rot, Some(attr))?;
         let n_alpha = cfg.num_heads * cfg.alpha_channels;
@@ -415,10 +481,18 @@ impl GraphAttention {
                 }
             }
         }
-        let back = wigners.rotate_back(&self.map, &v, heads * vc)?;
+        let back = wigners.rotate_back_range(range, &self.map, &v, heads * vc)?;
         let row = k * heads * vc;
         for e in 0..ne {
-            let d = dst[e];
+            // `agg` holds the rows from destination d0 on.
+            let d = dst[e]
+                .checked_sub(d0)
+                .filter(|d| (d + 1) * row <= agg.len())
+                .ok_or(PolicyError::IndexOutOfRange {
+                    name: "edge_dst of a destination chunk".into(),
+                    value: dst[e] as i64,
+                    len: nd,
+                })?;
             for (a, b) in agg[d * row..(d + 1) * row]
                 .iter_mut()
                 .zip(&back[e * row..(e + 1) * row])

@@ -100,9 +100,17 @@ pub struct FieldHeads {
     trans_calc: WignerCalculator,
     grid: Vec<GridRotation>,
     grid_wigners: Vec<Vec<f64>>,
+    /// Threads of the translation logits ([`FieldHeads::set_threads`]).
+    threads: usize,
 }
 
 impl FieldHeads {
+    /// Threads of [`FieldHeads::trans_logits`]: the query batches are split among them (the
+    /// rotation query is one destination, one thread).
+    pub fn set_threads(&mut self, threads: usize) {
+        self.threads = threads.max(1);
+    }
+
     /// Loads `field_distance_expansion`, `trans_field_layer.0`, `rot_field_layer.0` and
     /// `s2_conv.w` from `s`; the rotation grid is HEALPix level `grid_level`.
     pub fn load(s: &Scope<'_>, cfg: FieldHeadsConfig, grid_level: u32) -> Result<Self> {
@@ -161,6 +169,7 @@ impl FieldHeads {
             trans_calc: WignerCalculator::new(TRANS_LMAX)?,
             grid,
             grid_wigners,
+            threads: 1,
         })
     }
 
@@ -229,23 +238,35 @@ impl FieldHeads {
             }
         }
         // Queries in small batches: each batch's edge set (300 edges per query, 1024 radial
-        // basis values per edge) stays in cache instead of hundreds of MB per level.
+        // basis values per edge) stays in cache instead of hundreds of MB per level. With
+        // threads, each takes a run of whole batches: the same batches, the same logits.
+        let batches = queries.len().div_ceil(TRANS_QUERY_BATCH);
+        let parts = crate::parallel::split_even(batches, self.threads);
+        let run = |r: std::ops::Range<usize>| -> Result<Vec<f32>> {
+            let qs = &queries
+                [r.start * TRANS_QUERY_BATCH..(r.end * TRANS_QUERY_BATCH).min(queries.len())];
+            let mut logits = Vec::with_capacity(qs.len());
+            for batch in qs.chunks(TRANS_QUERY_BATCH) {
+                let (src, dst) = Self::trans_edges(node_pos, batch)?;
+                let edges = EdgeSet::new(
+                    &self.trans_calc,
+                    TRANS_LMAX,
+                    node_pos,
+                    batch,
+                    src,
+                    dst,
+                    &self.rbf,
+                )?;
+                let y = self
+                    .trans
+                    .forward_zero_destinations(&x, batch.len(), &edges)?;
+                logits.extend((0..batch.len()).map(|q| y[q * k * c]));
+            }
+            Ok(logits)
+        };
         let mut logits = Vec::with_capacity(queries.len());
-        for batch in queries.chunks(TRANS_QUERY_BATCH) {
-            let (src, dst) = Self::trans_edges(node_pos, batch)?;
-            let edges = EdgeSet::new(
-                &self.trans_calc,
-                TRANS_LMAX,
-                node_pos,
-                batch,
-                src,
-                dst,
-                &self.rbf,
-            )?;
-            let y = self
-                .trans
-                .forward_zero_destinations(&x, batch.len(), &edges)?;
-            logits.extend((0..batch.len()).map(|q| y[q * k * c]));
+        for part in crate::parallel::run_parts(parts, run) {
+            logits.extend(part?);
         }
         Ok(logits)
     }

@@ -816,6 +816,54 @@ impl EdgeFeatures {
         self.view().rows()
     }
 
+    /// The rows of `parts` one after the other (parts of one radial basis: all dense or all
+    /// sparse, with the same columns; anything else is an error).
+    pub fn concat(parts: Vec<EdgeFeatures>) -> Result<Self> {
+        let mut parts = parts.into_iter();
+        let Some(mut out) = parts.next() else {
+            return Ok(Self::Dense {
+                cols: 0,
+                values: Vec::new(),
+            });
+        };
+        for p in parts {
+            match (&mut out, p) {
+                (Self::Dense { cols, values }, Self::Dense { cols: c, values: v })
+                    if *cols == c =>
+                {
+                    values.extend_from_slice(&v);
+                }
+                (
+                    Self::Sparse {
+                        cols,
+                        ptr,
+                        idx,
+                        val,
+                    },
+                    Self::Sparse {
+                        cols: c,
+                        ptr: p2,
+                        idx: i2,
+                        val: v2,
+                    },
+                ) if *cols == c => {
+                    let base = idx.len();
+                    ptr.extend(p2.iter().skip(1).map(|o| o + base));
+                    idx.extend_from_slice(&i2);
+                    val.extend_from_slice(&v2);
+                }
+                (o, p) => {
+                    return Err(PolicyError::ShapeMismatch {
+                        name: "edge feature parts".into(),
+                        expected: vec![o.cols()],
+                        got: vec![p.cols()],
+                    })
+                }
+            }
+        }
+        Ok(out)
+    }
+
     /// Values per row.
     pub fn cols(&self) -> usize {
         self.view().cols()

@@ -29,7 +29,8 @@
 //!   their gradients, and the rotation augmentation (no backward pass through the network
 //!   yet);
 //! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`);
-//! - [`matmul`]: the dense f32 matrix products the batched layers run on.
+//! - [`matmul`]: the dense f32 matrix products the batched layers run on;
+//! - [`parallel`]: the explicit, per-call worker threads of a prediction.
 //!
 //! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit) and,
 //! through its `gemm` on strided views, `matrixmultiply`'s cache-blocked sgemm for the large
@@ -50,6 +51,7 @@ pub mod matmul;
 pub mod minilm;
 pub mod model;
 pub mod optim;
+pub mod parallel;
 pub mod plain_heads;
 pub mod points;
 pub mod predict;

@@ -418,6 +418,8 @@ pub struct EquFieldUnet {
     norm_1: RmsNormSh,
     heads: Heads,
     calc: WignerCalculator,
+    /// Threads of a forward pass ([`EquFieldUnet::set_threads`]).
+    threads: usize,
 }
 
 /// The field heads of a model: the equivariant ones or the plain ablation, with one API
@@ -567,7 +569,33 @@ impl EquFieldUnet {
             up,
             norm_1,
             heads,
+            threads: 1,
         })
+    }
+
+    /// Threads of [`EquFieldUnet::encode`] and [`EquFieldUnet::query`] (1: the caller's
+    /// only). The U-net's graphs and attentions and the translation head's query batches
+    /// are split among them; the results are the same for any count (see [`crate::parallel`]).
+    pub fn set_threads(&mut self, threads: usize) {
+        let threads = threads.max(1);
+        self.threads = threads;
+        for b in self
+            .down
+            .iter_mut()
+            .chain([&mut self.middle])
+            .chain(&mut self.up)
+        {
+            b.block.set_threads(threads);
+        }
+        match &mut self.heads {
+            Heads::Equivariant(h) => h.set_threads(threads),
+            Heads::Plain(h) => h.set_threads(threads),
+        }
+    }
+
+    /// Threads of a forward pass.
+    pub fn threads(&self) -> usize {
+        self.threads
     }
 
     /// The field heads (rotation grid, logits on other rotations).
@@ -749,14 +777,14 @@ impl EquFieldUnet {
             Some(g) => g,
             None => knn_graph(&coord, b.k)?,
         };
-        let edges = EdgeSet::new(
+        let edges = EdgeSet::new_threads(
             &self.calc,
             lmax,
-            &coord,
-            &coord,
+            (&coord, &coord),
             src.clone(),
             dst.clone(),
             &b.rbf,
+            self.threads,
         )?;
         let y = b.block.forward(&x, &x, &edges, Some(condition))?;
         idx.graph = Some((src, dst));

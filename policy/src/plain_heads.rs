@@ -242,9 +242,16 @@ pub struct PlainHeads {
     calc: WignerCalculator,
     grid: Vec<GridRotation>,
     grid_wigners: Vec<Vec<f64>>,
+    /// Threads of the translation logits ([`PlainHeads::set_threads`]).
+    threads: usize,
 }
 
 impl PlainHeads {
+    /// Threads of [`PlainHeads::trans_logits`] (whole query batches each).
+    pub fn set_threads(&mut self, threads: usize) {
+        self.threads = threads.max(1);
+    }
+
     /// Loads `plain_trans_head.*` and `plain_rot_head.*` from `s`; the rotation grid is
     /// HEALPix level `grid_level`.
     pub fn load(s: &Scope<'_>, cfg: PlainHeadsConfig, grid_level: u32) -> Result<Self> {
@@ -260,6 +267,7 @@ impl PlainHeads {
             calc,
             grid,
             grid_wigners,
+            threads: 1,
         })
     }
 
@@ -277,11 +285,22 @@ impl PlainHeads {
         queries: &[[f32; 3]],
     ) -> Result<Vec<f32>> {
         let x = self.node_scalars(node_emb, node_pos.len())?;
+        let batches = queries.len().div_ceil(PLAIN_QUERY_BATCH);
+        let run = |r: std::ops::Range<usize>| -> Result<Vec<f32>> {
+            let qs = &queries
+                [r.start * PLAIN_QUERY_BATCH..(r.end * PLAIN_QUERY_BATCH).min(queries.len())];
+            let mut logits = Vec::with_capacity(qs.len());
+            for batch in qs.chunks(PLAIN_QUERY_BATCH) {
+                let (src, dst) = FieldHeads::trans_edges(node_pos, batch)?;
+                let (_, out) = self.trans.forward(&x, node_pos, batch, &src, &dst)?;
+                logits.extend(out);
+            }
+            Ok(logits)
+        };
         let mut logits = Vec::with_capacity(queries.len());
-        for batch in queries.chunks(PLAIN_QUERY_BATCH) {
-            let (src, dst) = FieldHeads::trans_edges(node_pos, batch)?;
-            let (_, out) = self.trans.forward(&x, node_pos, batch, &src, &dst)?;
-            logits.extend(out);
+        let parts = crate::parallel::split_even(batches, self.threads);
+        for part in crate::parallel::run_parts(parts, run) {
+            logits.extend(part?);
         }
         Ok(logits)
     }

@@ -43,9 +43,8 @@ use crate::so3::WignerCalculator;
 use crate::weights::Weights;
 
 /// The calling thread's CPU time in seconds (Linux `/proc/thread-self/schedstat`), or the
-/// wall time since the first call where that is unavailable. Inference is single-threaded,
-/// so on an idle machine both agree; on a shared one the CPU time is what a free core would
-/// take.
+/// wall time since the first call where that is unavailable. On one thread and an idle
+/// machine both agree; on a shared one the CPU time is what a free core would take.
 pub fn thread_seconds() -> f64 {
     static START: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
     std::fs::read_to_string("/proc/thread-self/schedstat")
@@ -57,19 +56,21 @@ pub fn thread_seconds() -> f64 {
         )
 }
 
-/// A stopwatch on [`thread_seconds`].
+/// A stopwatch on [`thread_seconds`] plus the inference workers' CPU time
+/// ([`crate::parallel::worker_seconds`]): the CPU cost of a stage however many threads ran
+/// it (workers of other concurrent predictions count too).
 #[derive(Debug, Clone, Copy)]
 pub struct CpuTimer(f64);
 
 impl CpuTimer {
     /// Starts the stopwatch.
     pub fn start() -> Self {
-        Self(thread_seconds())
+        Self(thread_seconds() + crate::parallel::worker_seconds())
     }
 
     /// Seconds since the start.
     pub fn elapsed(&self) -> f64 {
-        thread_seconds() - self.0
+        thread_seconds() + crate::parallel::worker_seconds() - self.0
     }
 }
 
@@ -509,7 +510,7 @@ pub struct PreparedInput {
     pub in_workspace: usize,
 }
 
-/// CPU time of each stage of one prediction (seconds, see [`thread_seconds`]).
+/// CPU time of each stage of one prediction, all its threads (seconds, see [`CpuTimer`]).
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct StageTimings {
     /// Crop, farthest point sampling, permutation.
@@ -528,7 +529,7 @@ pub struct StageTimings {
     pub rotation_search: f64,
     /// Everything.
     pub total: f64,
-    /// Everything, wall-clock (the other fields are thread CPU time, see [`thread_seconds`]).
+    /// Everything, wall-clock (the other fields are CPU time, see [`CpuTimer`]).
     pub wall_total: f64,
 }
 
@@ -664,6 +665,19 @@ impl Policy {
     /// The configuration.
     pub fn config(&self) -> &PolicyConfig {
         &self.cfg
+    }
+
+    /// Threads of each prediction (1, the default: the caller's thread only). More run the
+    /// U-net's graphs and attentions and the translation head's query batches on scoped
+    /// threads started per call; the keyframe is the same for any count
+    /// (see [`crate::parallel`]).
+    pub fn set_threads(&mut self, threads: usize) {
+        self.model.set_threads(threads);
+    }
+
+    /// Threads of each prediction.
+    pub fn threads(&self) -> usize {
+        self.model.threads()
     }
 
     /// The network.

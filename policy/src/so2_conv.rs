@@ -102,8 +102,45 @@ pub struct EdgeWigners {
 impl EdgeWigners {
     /// D of the reference's edge frame (`init_edge_rot_mat2`) of each edge vector.
     pub fn new(calc: &WignerCalculator, lmax: usize, edge_vec: &[[f32; 3]]) -> Result<Self> {
+        Self::new_threads(calc, lmax, edge_vec, 1)
+    }
+
+    /// [`EdgeWigners::new`] with the edges split over `threads` threads (the same matrices).
+    pub fn new_threads(
+        calc: &WignerCalculator,
+        lmax: usize,
+        edge_vec: &[[f32; 3]],
+        threads: usize,
+    ) -> Result<Self> {
         let k = num_coefficients(lmax);
         let mut d = vec![0.0f32; edge_vec.len() * k * k];
+        // Below a few hundred edges a thread costs more than it saves.
+        let parts = crate::parallel::split_even(edge_vec.len(), threads.min(edge_vec.len() / 256));
+        let mut items = Vec::with_capacity(parts.len());
+        let mut rest = d.as_mut_slice();
+        for r in &parts {
+            let (head, tail) = rest.split_at_mut(r.len() * k * k);
+            items.push((&edge_vec[r.clone()], head));
+            rest = tail;
+        }
+        crate::parallel::run_parts(items, |(vecs, out)| Self::fill(calc, lmax, vecs, out))
+            .into_iter()
+            .collect::<Result<()>>()?;
+        Ok(Self {
+            lmax,
+            edges: edge_vec.len(),
+            d,
+        })
+    }
+
+    /// Writes the matrices of `edge_vec` into `d` (`[E, k, k]`).
+    fn fill(
+        calc: &WignerCalculator,
+        lmax: usize,
+        edge_vec: &[[f32; 3]],
+        d: &mut [f32],
+    ) -> Result<()> {
+        let k = num_coefficients(lmax);
         let mut sh = Vec::new();
         for (v, de) in edge_vec.iter().zip(d.chunks_exact_mut(k * k)) {
             let r = edge_rot_mat([f64::from(v[0]), f64::from(v[1]), f64::from(v[2])])?;
@@ -119,11 +156,19 @@ impl EdgeWigners {
                 }
             }
         }
-        Ok(Self {
-            lmax,
-            edges: edge_vec.len(),
-            d,
-        })
+        Ok(())
+    }
+
+    /// Edges in `range`, or an error if it runs past the edges.
+    fn range_len(&self, range: &std::ops::Range<usize>) -> Result<usize> {
+        if range.start > range.end || range.end > self.edges {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "edge range".into(),
+                value: range.end as i64,
+                len: self.edges,
+            });
+        }
+        Ok(range.len())
     }
 
     /// The matrices of the edges in `range` (a copy).
@@ -139,12 +184,25 @@ impl EdgeWigners {
     /// Rotates `x` `[E, (lmax+1)², c]` into the edge frames, keeping the reduced rows:
     /// `[E, n_reduced, c]`.
     pub fn rotate(&self, map: &CoefficientMapping, x: &[f32], c: usize) -> Result<Vec<f32>> {
+        self.rotate_range(0..self.edges, map, x, c)
+    }
+
+    /// [`EdgeWigners::rotate`] for the edges in `range` only (`x` holds just those edges'
+    /// features); no copy of the matrices.
+    pub fn rotate_range(
+        &self,
+        range: std::ops::Range<usize>,
+        map: &CoefficientMapping,
+        x: &[f32],
+        c: usize,
+    ) -> Result<Vec<f32>> {
         let k = num_coefficients(self.lmax);
-        check_len("features to rotate", x.len(), &[self.edges, k, c])?;
+        let ne = self.range_len(&range)?;
+        check_len("features to rotate", x.len(), &[ne, k, c])?;
         let nr = map.len();
-        let mut y = vec![0.0f32; self.edges * nr * c];
-        for e in 0..self.edges {
-            let d = &self.d[e * k * k..(e + 1) * k * k];
+        let mut y = vec![0.0f32; ne * nr * c];
+        for e in 0..ne {
+            let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
             let xe = &x[e * k * c..(e + 1) * k * c];
             let ye = &mut y[e * nr * c..(e + 1) * nr * c];
             for (r, &i) in map.reduced.iter().enumerate() {
@@ -164,12 +222,24 @@ impl EdgeWigners {
     /// Rotates `y` `[E, n_reduced, c]` back to the global frame with Dᵀ and the reference's
     /// rescaling of degrees above mmax: `[E, (lmax+1)², c]`.
     pub fn rotate_back(&self, map: &CoefficientMapping, y: &[f32], c: usize) -> Result<Vec<f32>> {
+        self.rotate_back_range(0..self.edges, map, y, c)
+    }
+
+    /// [`EdgeWigners::rotate_back`] for the edges in `range` only.
+    pub fn rotate_back_range(
+        &self,
+        range: std::ops::Range<usize>,
+        map: &CoefficientMapping,
+        y: &[f32],
+        c: usize,
+    ) -> Result<Vec<f32>> {
         let k = num_coefficients(self.lmax);
         let nr = map.len();
-        check_len("features to rotate back", y.len(), &[self.edges, nr, c])?;
-        let mut x = vec![0.0f32; self.edges * k * c];
-        for e in 0..self.edges {
-            let d = &self.d[e * k * k..(e + 1) * k * k];
+        let ne = self.range_len(&range)?;
+        check_len("features to rotate back", y.len(), &[ne, nr, c])?;
+        let mut x = vec![0.0f32; ne * k * c];
+        for e in 0..ne {
+            let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
             let ye = &y[e * nr * c..(e + 1) * nr * c];
             let xe = &mut x[e * k * c..(e + 1) * k * c];
             for (r, &i) in map.reduced.iter().enumerate() {

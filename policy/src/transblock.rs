@@ -208,6 +208,11 @@ pub struct TransBlock {
 }
 
 impl TransBlock {
+    /// Threads of the block's attention (see [`crate::parallel`]).
+    pub fn set_threads(&mut self, threads: usize) {
+        self.ga.set_threads(threads);
+    }
+
     /// Loads the block's modules (`norm_1_src`, `norm_1_dst`, `ga`, `norm_2`, `ffn`,
     /// `ffn_shortcut`) from `s`, with the reference's S2 grids.
     pub fn load(s: &Scope<'_>, cfg: TransBlockConfig) -> Result<Self> {

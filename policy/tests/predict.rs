@@ -90,6 +90,31 @@ fn prediction_is_deterministic_per_seed() {
 }
 
 #[test]
+fn worker_threads_change_nothing_but_the_time() {
+    let cloud = scene(3);
+    let instr = InstructionEmbedding::random(3);
+    for mut p in [
+        tiny(PolicyMode::Parity),
+        tiny(PolicyMode::Gated),
+        tiny_plain(PolicyMode::Gated),
+    ] {
+        p.seed = 9;
+        let one = p.predict_detailed(&cloud, &gripper(), &instr).unwrap();
+        // Three threads split the tiny graphs (1920 edges in the full-resolution U-net
+        // blocks, eight query batches per level) unevenly.
+        p.set_threads(3);
+        assert_eq!(p.threads(), 3);
+        let three = p.predict_detailed(&cloud, &gripper(), &instr).unwrap();
+        assert_eq!(one.levels, three.levels, "translation logits, bit for bit");
+        assert_eq!(one.keyframe, three.keyframe);
+        assert_eq!(one.rotation_logit, three.rotation_logit);
+        assert_eq!(one.open_probability, three.open_probability);
+        p.set_threads(0);
+        assert_eq!(p.threads(), 1, "0 threads means the caller's only");
+    }
+}
+
+#[test]
 fn candidates_are_the_finest_level_ranked_and_each_becomes_a_keyframe() {
     let mut p = tiny(PolicyMode::Gated);
     let cloud = scene(2);

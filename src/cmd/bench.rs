@@ -59,6 +59,10 @@ pub struct PolicyBenchArgs {
     /// Seed of the motions, the scene and the predictions.
     #[arg(long, default_value_t = 1)]
     pub seed: u64,
+    /// Thread counts to time each mode with, comma-separated (the first is the baseline of
+    /// the wall-clock speed-ups; the equivariance runs on the last).
+    #[arg(long, default_value = "1", value_delimiter = ',')]
+    pub threads: Vec<usize>,
 }
 
 /// Arguments of `equact bench planner`.
@@ -379,6 +383,61 @@ fn error_summary(errs: &[[f64; 3]]) -> serde_json::Value {
     })
 }
 
+/// Times `a.predictions` predictions of `policy` on one scene: the median of each stage (CPU
+/// seconds of all threads) and of the wall-clock total.
+fn time_predictions(
+    policy: &mut policy::predict::Policy,
+    a: &PolicyBenchArgs,
+    name: &str,
+    (cloud, gripper, instruction): (
+        &cell_types::PointCloud,
+        &policy::predict::GripperPose,
+        &policy::predict::InstructionEmbedding,
+    ),
+) -> anyhow::Result<(serde_json::Value, f64)> {
+    let mut runs = Vec::new();
+    for i in 0..a.predictions.max(1) {
+        policy.seed = a.seed + i as u64;
+        runs.push(policy.predict_detailed(cloud, gripper, instruction)?);
+        eprintln!(
+            "{name}: {} threads: prediction {} of {}: {:.3} s CPU, {:.3} s wall",
+            policy.threads(),
+            i + 1,
+            a.predictions.max(1),
+            runs.last().map_or(0.0, |r| r.timings.total),
+            runs.last().map_or(0.0, |r| r.timings.wall_total)
+        );
+    }
+    let stage = |f: &dyn Fn(&policy::predict::StageTimings) -> f64| {
+        let mut v: Vec<f64> = runs.iter().map(|r| f(&r.timings)).collect();
+        median(&mut v)
+    };
+    let mut blocks = serde_json::Map::new();
+    if let Some(first) = runs.first() {
+        for (j, (bn, _)) in first.timings.blocks.iter().enumerate() {
+            let mut v: Vec<f64> = runs
+                .iter()
+                .filter_map(|r| r.timings.blocks.get(j).map(|b| b.1))
+                .collect();
+            blocks.insert(bn.clone(), serde_json::json!(median(&mut v)));
+        }
+    }
+    let wall = stage(&|t| t.wall_total);
+    let timings = serde_json::json!({
+        "input_prep": stage(&|t| t.input_prep),
+        "language": stage(&|t| t.language),
+        "unet_blocks": blocks,
+        "unet_total": stage(&|t| t.blocks.iter().map(|b| b.1).sum()),
+        "encoder": stage(&|t| t.encoder),
+        "translation_head": stage(&|t| t.translation_head),
+        "rotation_head": stage(&|t| t.rotation_head),
+        "rotation_search": stage(&|t| t.rotation_search),
+        "total": stage(&|t| t.total),
+        "wall_total": wall,
+    });
+    Ok((timings, wall))
+}
+
 /// A uniformly random rotation (normalised Gaussian quaternion) and a shift within ±0.2 m.
 fn random_motion(rng: &mut rand_chacha::ChaCha8Rng) -> nalgebra::Isometry3<f64> {
     use rand::Rng;
@@ -439,8 +498,9 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
             "field_nn_c": physical.model.field_nn_c,
             "translation_samples": physical.sampling.levels * physical.sampling.per_level,
             "rotation_grid_level": physical.rotation.grid_level,
-            "threads": 1,
-            "timings": "thread CPU seconds (the machine may be shared; wall_total is wall-clock)",
+            "threads": a.threads,
+            "timings": "CPU seconds of all the prediction's threads (the machine may be \
+                        shared); wall_total is wall-clock",
         }),
     );
     for mode in modes {
@@ -451,42 +511,23 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
         let t = policy::predict::CpuTimer::start();
         let mut policy = Policy::random(cfg.clone(), 1)?;
         let build_s = t.elapsed();
-        let mut runs = Vec::new();
-        for i in 0..a.predictions.max(1) {
-            policy.seed = a.seed + i as u64;
-            runs.push(policy.predict_detailed(&cloud, &gripper, &instruction)?);
-            eprintln!(
-                "{name}: prediction {} of {}: {:.3} s",
-                i + 1,
-                a.predictions.max(1),
-                runs.last().map_or(0.0, |r| r.timings.total)
+        if a.threads.is_empty() || a.threads.contains(&0) {
+            anyhow::bail!("--threads takes counts of at least 1, e.g. --threads 1,2");
+        }
+        let mut by_threads = serde_json::Map::new();
+        let (mut timings, mut total, mut base_wall) = (serde_json::Value::Null, 0.0, None);
+        for &threads in &a.threads {
+            policy.set_threads(threads);
+            let (t, wall) =
+                time_predictions(&mut policy, &a, &name, (&cloud, &gripper, &instruction))?;
+            let base = *base_wall.get_or_insert(wall);
+            total = t["total"].as_f64().unwrap_or(f64::NAN);
+            by_threads.insert(
+                threads.to_string(),
+                serde_json::json!({"stage_timings_s": t, "wall_speedup": base / wall}),
             );
+            timings = t;
         }
-        let stage = |f: &dyn Fn(&policy::predict::StageTimings) -> f64| {
-            let mut v: Vec<f64> = runs.iter().map(|r| f(&r.timings)).collect();
-            median(&mut v)
-        };
-        let mut blocks = serde_json::Map::new();
-        if let Some(first) = runs.first() {
-            for (j, (bn, _)) in first.timings.blocks.iter().enumerate() {
-                let mut v: Vec<f64> = runs
-                    .iter()
-                    .filter_map(|r| r.timings.blocks.get(j).map(|b| b.1))
-                    .collect();
-                blocks.insert(bn.clone(), serde_json::json!(median(&mut v)));
-            }
-        }
-        let timings = serde_json::json!({
-            "input_prep": stage(&|t| t.input_prep),
-            "language": stage(&|t| t.language),
-            "unet_blocks": blocks,
-            "unet_total": stage(&|t| t.blocks.iter().map(|b| b.1).sum()),
-            "encoder": stage(&|t| t.encoder),
-            "translation_head": stage(&|t| t.translation_head),
-            "rotation_head": stage(&|t| t.rotation_head),
-            "rotation_search": stage(&|t| t.rotation_search),
-            "total": stage(&|t| t.total),
-        });
         // Equivariance of the network on one prepared input.
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(a.seed);
         let prep = policy.prepare(&cloud, &gripper, &mut rng)?;
@@ -554,9 +595,9 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
             );
         }
         eprintln!(
-            "{name}: median total {:.3} s; equivariance {}; argmax moves with the input in \
-             {argmax_ok} of {} (max angle {max_angle:.2e} rad)",
-            stage(&|t| t.total),
+            "{name}: median total {total:.3} s (CPU, {} threads); equivariance {}; argmax moves \
+             with the input in {argmax_ok} of {} (max angle {max_angle:.2e} rad)",
+            policy.threads(),
             error_summary(&errs),
             angles.len(),
         );
@@ -564,8 +605,9 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
             name,
             serde_json::json!({
                 "build_random_weights_s": build_s,
-                "time_per_keyframe_s": stage(&|t| t.total),
+                "time_per_keyframe_s": total,
                 "stage_timings_s": timings,
+                "by_threads": by_threads,
                 "equivariance": {
                     "all": error_summary(&errs),
                     "forward_s": forward_s,

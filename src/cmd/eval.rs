@@ -51,6 +51,10 @@ pub struct EvalArgs {
     /// argmax or nothing, as the paper evaluates).
     #[arg(long, default_value_t = equact::learned::DEFAULT_ALTERNATIVES)]
     pub alternatives: usize,
+    /// Threads of each network prediction (1: the caller's only; the keyframes are the
+    /// same for any count). Leave a core free for the UR driver on a real cell.
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
     /// Where the episodes' recordings go.
     #[arg(long, default_value = "recordings/eval")]
     pub out: PathBuf,
@@ -104,6 +108,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 network.model.heads = args.heads.kind();
                 let mut policy = LearnedPolicy::load_with(network, model, first, &cfg, args.seed)?;
                 policy.set_alternatives(args.alternatives);
+                policy.set_threads(args.threads);
                 policy
             };
             Box::new(LearnedEval { policy, embeddings })

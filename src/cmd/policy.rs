@@ -122,6 +122,9 @@ pub struct PredictArgs {
     /// S2 activation grid size in equivariant mode.
     #[arg(long, default_value_t = 16)]
     pub s2_grid: usize,
+    /// Threads of the prediction (the keyframe is the same for any count).
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
     /// Print JSON.
     #[arg(long)]
     pub json: bool,
@@ -146,6 +149,7 @@ fn predict(a: PredictArgs) -> anyhow::Result<()> {
     };
     let load_s = t.elapsed().as_secs_f64();
     policy.seed = a.seed;
+    policy.set_threads(a.threads);
     let p = policy.predict_detailed(&cloud, &gripper, &instruction)?;
     let k = p.keyframe;
     let tr = k.base_from_tcp.translation();
@@ -188,8 +192,8 @@ fn predict(a: PredictArgs) -> anyhow::Result<()> {
     let t = &p.timings;
     let unet: f64 = t.blocks.iter().map(|b| b.1).sum();
     println!(
-        "timing (thread CPU time; wall {:.3} s): total {:.3} s = input prep {:.3} + encoder {:.3} (language {:.3}, U-net blocks {:.3}) + translation head {:.3} + rotation head {:.3} + rotation search {:.3}",
-        t.wall_total, t.total, t.input_prep, t.encoder, t.language, unet, t.translation_head, t.rotation_head, t.rotation_search
+        "timing (CPU time of {} thread(s); wall {:.3} s): total {:.3} s = input prep {:.3} + encoder {:.3} (language {:.3}, U-net blocks {:.3}) + translation head {:.3} + rotation head {:.3} + rotation search {:.3}",
+        policy.threads(), t.wall_total, t.total, t.input_prep, t.encoder, t.language, unet, t.translation_head, t.rotation_head, t.rotation_search
     );
     for (name, s) in &t.blocks {
         println!("  {name:<8} {s:.3} s");

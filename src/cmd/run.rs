@@ -76,6 +76,10 @@ pub struct RunArgs {
     /// argmax or nothing, as the paper evaluates).
     #[arg(long, default_value_t = equact::learned::DEFAULT_ALTERNATIVES)]
     pub alternatives: usize,
+    /// Threads of each network prediction (1: the caller's only; the keyframes are the
+    /// same for any count). Leave a core free for the UR driver on a real cell.
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
     /// On a real cell, start moving without asking (for scripted runs; interactive runs
     /// ask for Enter first).
     #[arg(long)]
@@ -203,6 +207,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             let mut policy =
                 LearnedPolicy::load_with(network, weights, instruction, &cfg, args.seed)?;
             policy.set_alternatives(args.alternatives);
+            policy.set_threads(args.threads);
             Some(policy)
         }
     };

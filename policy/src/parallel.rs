@@ -1,0 +1,134 @@
+//! Explicit worker threads for one prediction.
+//!
+//! Inference runs on the caller's thread unless it is given more ([`crate::predict::Policy::set_threads`]):
+//! then the work that splits into independent parts (the edges of each U-net attention by
+//! destination, the edge frames and radial bases of each U-net graph, the translation head's
+//! query batches) runs on scoped threads started for that call and joined before it returns,
+//! so no thread outlives a call and nothing runs in the background. Every part computes
+//! exactly what the single-threaded loop computes for it, in the same order, so the results
+//! do not depend on the thread count (tested bit for bit).
+//!
+//! Stage timings are thread CPU time ([`crate::predict::thread_seconds`]); the CPU time the
+//! workers spend is added to a process-wide counter ([`worker_seconds`]) that
+//! [`crate::predict::CpuTimer`] includes, so a stage's time stays its whole CPU cost.
+
+use std::ops::Range;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+/// Worker CPU time of all finished parts, nanoseconds.
+static WORKER_NANOS: AtomicU64 = AtomicU64::new(0);
+
+/// CPU seconds spent so far by worker threads of [`run_parts`] (all threads of the process
+/// together; the calling threads' own time is not in it).
+pub fn worker_seconds() -> f64 {
+    WORKER_NANOS.load(Ordering::Relaxed) as f64 * 1e-9
+}
+
+/// `n` items in at most `parts` contiguous ranges of nearly equal length (no empty range;
+/// none at all when `n` is 0).
+pub fn split_even(n: usize, parts: usize) -> Vec<Range<usize>> {
+    let parts = parts.clamp(1, n.max(1));
+    (0..parts)
+        .map(|p| p * n / parts..(p + 1) * n / parts)
+        .filter(|r| !r.is_empty())
+        .collect()
+}
+
+/// Cuts `0..weights.len()` into at most `parts` contiguous ranges of nearly equal total
+/// weight (no empty range), e.g. destination chunks by their edge counts.
+pub fn split_weighted(weights: &[usize], parts: usize) -> Vec<Range<usize>> {
+    let total: usize = weights.iter().sum();
+    let parts = parts.clamp(1, weights.len().max(1));
+    let mut out = Vec::with_capacity(parts);
+    let (mut start, mut acc) = (0, 0);
+    for (i, w) in weights.iter().enumerate() {
+        acc += w;
+        // Close the current range once it holds its share of the weight.
+        if out.len() + 1 < parts && acc * parts >= total * (out.len() + 1) {
+            out.push(start..i + 1);
+            start = i + 1;
+        }
+    }
+    if start < weights.len() {
+        out.push(start..weights.len());
+    }
+    out
+}
+
+/// Runs `work` on each of `items` (one per part), the first on the calling thread and each
+/// other on a scoped thread of its own; returns the results in order.
+///
+/// A part that panics propagates its panic to the caller once all parts have finished.
+pub fn run_parts<T: Send, R: Send>(items: Vec<T>, work: impl Fn(T) -> R + Sync) -> Vec<R> {
+    let mut items = items.into_iter();
+    let Some(first) = items.next() else {
+        return Vec::new();
+    };
+    let work = &work;
+    std::thread::scope(|s| {
+        let handles: Vec<_> = items
+            .map(|item| {
+                s.spawn(move || {
+                    let t0 = crate::predict::thread_seconds();
+                    let r = work(item);
+                    let ns = ((crate::predict::thread_seconds() - t0).max(0.0) * 1e9) as u64;
+                    WORKER_NANOS.fetch_add(ns, Ordering::Relaxed);
+                    r
+                })
+            })
+            .collect();
+        let mut out = Vec::with_capacity(handles.len() + 1);
+        out.push(work(first));
+        for h in handles {
+            match h.join() {
+                Ok(r) => out.push(r),
+                Err(p) => std::panic::resume_unwind(p),
+            }
+        }
+        out
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn even_splits_cover_the_items_once() {
+        for n in [0, 1, 2, 7, 100] {
+            for parts in [1, 2, 3, 8, 200] {
+                let r = split_even(n, parts);
+                assert!(r.len() <= parts.max(1));
+                assert!(r.iter().all(|r| !r.is_empty()));
+                let flat: Vec<usize> = r.into_iter().flatten().collect();
+                assert_eq!(flat, (0..n).collect::<Vec<_>>(), "n {n} parts {parts}");
+            }
+        }
+    }
+
+    #[test]
+    fn weighted_splits_balance_the_weight() {
+        let w = [10, 10, 10, 10, 1, 1, 1, 1, 1, 35];
+        let r = split_weighted(&w, 2);
+        assert_eq!(r, vec![0..4, 4..10]);
+        let flat: Vec<usize> = split_weighted(&w, 4).into_iter().flatten().collect();
+        assert_eq!(flat, (0..w.len()).collect::<Vec<_>>());
+        assert_eq!(split_weighted(&[5], 3), vec![0..1]);
+        assert!(split_weighted(&[], 3).is_empty());
+    }
+
+    #[test]
+    fn parts_run_in_order_and_count_worker_time() {
+        let before = worker_seconds();
+        let out = run_parts((0..4u64).collect(), |i| {
+            // Enough work for the workers' CPU time to register.
+            (0..200_000u64).fold(i, |a, x| a.wrapping_mul(31).wrapping_add(x))
+        });
+        let want: Vec<u64> = (0..4u64)
+            .map(|i| (0..200_000u64).fold(i, |a, x| a.wrapping_mul(31).wrapping_add(x)))
+            .collect();
+        assert_eq!(out, want);
+        assert!(worker_seconds() >= before);
+        assert!(run_parts(Vec::<u8>::new(), |x| x).is_empty());
+    }
+}
