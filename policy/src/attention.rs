@@ -417,7 +417,6 @@ impl GraphAttention {
                 got: vec![mc],
             });
         }
-        let mut msg = vec![0.0f32; ne * k * mc];
         for e in 0..ne {
             let (s, d) = (src[e], dst[e]);
             if s >= ns || d >= nd {
@@ -427,16 +426,15 @@ impl GraphAttention {
                     len: if s >= ns { ns } else { nd },
                 });
             }
-            for i in 0..k {
-                let m = &mut msg[(e * k + i) * mc..(e * k + i + 1) * mc];
-                m[..c].copy_from_slice(&x_src[(s * k + i) * c..(s * k + i + 1) * c]);
-                if let Some(x_dst) = x_dst {
-                    m[c..].copy_from_slice(&x_dst[(d * k + i) * c..(d * k + i + 1) * c]);
-                }
-            }
         }
-        let x_rot = wigners.rotate_range(range.clone(), &self.map, &msg, mc)?;
-        drop(msg);
+        // The messages are rotated straight from the node features (no gathered copy).
+        let x_rot = wigners.rotate_messages(
+            range.clone(),
+            &self.map,
+            c,
+            (x_src, src),
+            x_dst.map(|x| (x, dst)),
+        )?;
         let (h, extra) = conv1.forward_features(&x_rot, Some(attr))?;
         let n_alpha = cfg.num_heads * cfg.alpha_channels;
         let n_extra = n_alpha + cfg.hidden_channels;

@@ -702,16 +702,30 @@ impl GaussianRbf {
                 values: self.forward(d),
             };
         }
-        let mut row = vec![0.0f32; self.num_basis];
         let (mut ptr, mut idx, mut val) = (vec![0], Vec::new(), Vec::new());
+        ptr.reserve(d.len());
+        let mut row: Vec<(u32, f32)> = Vec::with_capacity(window);
         for &di in d {
-            self.eval_into(di, &mut row);
-            for (i, v) in row.iter_mut().enumerate() {
-                if *v != 0.0 {
-                    idx.push(i as u32);
-                    val.push(*v);
-                    *v = 0.0;
-                }
+            // The non-zero values of the bases within reach, in column order: what scanning
+            // the dense row would record, without writing and scanning all of it.
+            let u = (di - self.offset) / self.span;
+            let env = rbf_envelope(u);
+            row.clear();
+            if u.is_finite() {
+                let lo = self.by_mean.partition_point(|(m, _)| *m < u - self.reach);
+                let hi = self.by_mean.partition_point(|(m, _)| *m <= u + self.reach);
+                row.extend(
+                    self.by_mean[lo..hi]
+                        .iter()
+                        .map(|&(_, i)| (i as u32, self.value(i, u, env))),
+                );
+                row.sort_unstable_by_key(|e| e.0);
+            } else {
+                row.extend((0..self.num_basis).map(|i| (i as u32, self.value(i, u, env))));
+            }
+            for &(i, v) in row.iter().filter(|e| e.1 != 0.0) {
+                idx.push(i);
+                val.push(v);
             }
             ptr.push(idx.len());
         }
@@ -1237,4 +1251,45 @@ pub fn separable_s2_activation(
         }
     }
     Ok(y)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::predict::PolicyConfig;
+
+    #[test]
+    fn compressed_radial_features_equal_the_dense_values() {
+        // The field heads' 1024 narrow bases (physical sizes) and the U-net's wide ones.
+        let cfg = PolicyConfig::physical();
+        let w = crate::init::random_weights(&cfg.model, &cfg.extra, 3);
+        let narrow = GaussianRbf::load(&w.scope("field_distance_expansion."), 1.98).unwrap();
+        let d: Vec<f32> = (0..2000)
+            .map(|i| i as f32 * 1e-3 + 0.013)
+            .chain([0.0, 1.98, 2.5, f32::INFINITY])
+            .collect();
+        let sparse = narrow.features(&d);
+        assert!(matches!(sparse, EdgeFeatures::Sparse { .. }));
+        assert_eq!(sparse.rows(), d.len());
+        assert_eq!(sparse.to_dense(), narrow.forward(&d), "bit for bit");
+        // Split in parts and joined again: the same rows.
+        let parts = vec![narrow.features(&d[..700]), narrow.features(&d[700..])];
+        assert_eq!(EdgeFeatures::concat(parts).unwrap(), sparse);
+        // A U-net block's bases (wide: dense rows).
+        let key = w
+            .keys()
+            .into_iter()
+            .find(|k| k.ends_with("distance_expansion.mean") && !k.starts_with("field_"))
+            .expect("a U-net block's radial basis")
+            .trim_end_matches("mean")
+            .to_string();
+        let wide = GaussianRbf::load(&w.scope(&key), 0.2).unwrap();
+        let dense = wide.features(&d[..300]);
+        assert!(matches!(dense, EdgeFeatures::Dense { .. }));
+        let joined =
+            EdgeFeatures::concat(vec![wide.features(&d[..100]), wide.features(&d[100..300])]);
+        assert_eq!(joined.unwrap(), dense);
+        // Dense and compressed parts do not mix.
+        assert!(EdgeFeatures::concat(vec![dense, sparse]).is_err());
+    }
 }

@@ -219,6 +219,55 @@ impl EdgeWigners {
         Ok(y)
     }
 
+    /// [`EdgeWigners::rotate_range`] of the messages `concat(x_a[a[e]], x_b[b[e]])` along
+    /// channels (`x_a` `[Na, (lmax+1)², c]`; the second part is optional), read straight from
+    /// the node features instead of from a gathered copy: `[E, n_reduced, c or 2c]`, the
+    /// same values.
+    pub fn rotate_messages(
+        &self,
+        range: std::ops::Range<usize>,
+        map: &CoefficientMapping,
+        c: usize,
+        (x_a, a): (&[f32], &[usize]),
+        b: Option<(&[f32], &[usize])>,
+    ) -> Result<Vec<f32>> {
+        let k = num_coefficients(self.lmax);
+        let ne = self.range_len(&range)?;
+        let parts: Vec<(&[f32], &[usize])> = std::iter::once((x_a, a)).chain(b).collect();
+        for (x, idx) in &parts {
+            check_len("message node indices", idx.len(), &[ne])?;
+            let n = rows_of("message node features", x.len(), k * c)?;
+            if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "message node index".into(),
+                    value: bad as i64,
+                    len: n,
+                });
+            }
+        }
+        let mc = parts.len() * c;
+        let nr = map.len();
+        let mut y = vec![0.0f32; ne * nr * mc];
+        for e in 0..ne {
+            let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
+            let ye = &mut y[e * nr * mc..(e + 1) * nr * mc];
+            for (p, (x, idx)) in parts.iter().enumerate() {
+                let xe = &x[idx[e] * k * c..(idx[e] + 1) * k * c];
+                for (r, &i) in map.reduced.iter().enumerate() {
+                    let l = degree_of(i);
+                    let yr = &mut ye[r * mc + p * c..r * mc + (p + 1) * c];
+                    for j in l * l..(l + 1) * (l + 1) {
+                        let dij = d[i * k + j];
+                        for (yc, xc) in yr.iter_mut().zip(&xe[j * c..(j + 1) * c]) {
+                            *yc += dij * xc;
+                        }
+                    }
+                }
+            }
+        }
+        Ok(y)
+    }
+
     /// Rotates `y` `[E, n_reduced, c]` back to the global frame with Dᵀ and the reference's
     /// rescaling of degrees above mmax: `[E, (lmax+1)², c]`.
     pub fn rotate_back(&self, map: &CoefficientMapping, y: &[f32], c: usize) -> Result<Vec<f32>> {
@@ -486,5 +535,74 @@ impl So2Conv {
             }
         }
         Ok((y, extra))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn messages_rotated_from_the_nodes_equal_rotated_gathered_copies() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let (lmax, mmax, c, nodes, ne) = (3, 2, 5, 9, 40);
+        let k = num_coefficients(lmax);
+        let calc = WignerCalculator::new(lmax).unwrap();
+        let map = CoefficientMapping::new(lmax, mmax).unwrap();
+        let vecs: Vec<[f32; 3]> = (0..ne)
+            .map(|_| [0; 3].map(|_| rng.random_range(-1.0..1.0f32)))
+            .collect();
+        let w = EdgeWigners::new(&calc, lmax, &vecs).unwrap();
+        let mut feats = || -> Vec<f32> {
+            (0..nodes * k * c)
+                .map(|_| rng.random_range(-1.0..1.0f32))
+                .collect()
+        };
+        let (xa, xb) = (feats(), feats());
+        let a: Vec<usize> = (0..ne).map(|e| (e * 7) % nodes).collect();
+        let b: Vec<usize> = (0..ne).map(|e| (e * 3 + 1) % nodes).collect();
+        let range = 10..30;
+        let gather = |parts: &[(&[f32], &[usize])]| -> Vec<f32> {
+            let mc = parts.len() * c;
+            let mut m = vec![0.0f32; range.len() * k * mc];
+            for (e, edge) in range.clone().enumerate() {
+                for i in 0..k {
+                    for (p, (x, idx)) in parts.iter().enumerate() {
+                        let s = idx[edge];
+                        m[(e * k + i) * mc + p * c..(e * k + i) * mc + (p + 1) * c]
+                            .copy_from_slice(&x[(s * k + i) * c..(s * k + i + 1) * c]);
+                    }
+                }
+            }
+            m
+        };
+        let r = range.clone();
+        let both = w
+            .rotate_messages(
+                r.clone(),
+                &map,
+                c,
+                (&xa, &a[r.clone()]),
+                Some((&xb, &b[r.clone()])),
+            )
+            .unwrap();
+        let copied = gather(&[(&xa, &a), (&xb, &b)]);
+        assert_eq!(
+            both,
+            w.rotate_range(r.clone(), &map, &copied, 2 * c).unwrap()
+        );
+        let one = w
+            .rotate_messages(r.clone(), &map, c, (&xa, &a[r.clone()]), None)
+            .unwrap();
+        let copied = gather(&[(&xa, &a)]);
+        assert_eq!(one, w.rotate_range(r.clone(), &map, &copied, c).unwrap());
+        // A node index past the features is an error, not a panic.
+        let mut bad = a[r.clone()].to_vec();
+        bad[3] = nodes;
+        assert!(w.rotate_messages(r, &map, c, (&xa, &bad), None).is_err());
+        assert!(w
+            .rotate_messages(30..41, &map, c, (&xa, &a[..11]), None)
+            .is_err());
     }
 }
