@@ -382,7 +382,8 @@ impl GraphAttention {
                 .into_iter()
                 .collect::<Result<()>>()?;
         }
-        self.proj.forward(&agg)
+        // The projection is per destination: runs of them on the threads.
+        crate::parallel::map_rows(&agg, row, (self.threads, 64), |a| self.proj.forward(a))
     }
 
     /// Threads of [`GraphAttention::forward`] (1: the caller's only; see [`crate::parallel`]).

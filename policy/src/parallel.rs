@@ -89,6 +89,27 @@ pub fn run_parts<T: Send, R: Send>(items: Vec<T>, work: impl Fn(T) -> R + Sync) 
     })
 }
 
+/// Applies the row-wise `f` (rows of `row` values in, rows out) to runs of whole rows of `x`
+/// on up to `threads` threads, each with at least `min_rows` rows, and joins the outputs in
+/// order: what `f(x)` gives, for an `f` that treats every row on its own.
+pub fn map_rows(
+    x: &[f32],
+    row: usize,
+    (threads, min_rows): (usize, usize),
+    f: impl Fn(&[f32]) -> crate::error::Result<Vec<f32>> + Sync,
+) -> crate::error::Result<Vec<f32>> {
+    let rows = crate::layers::rows_of("row-wise input", x.len(), row.max(1))?;
+    let parts = split_even(rows, threads.min(rows / min_rows.max(1)));
+    if parts.len() < 2 {
+        return f(x);
+    }
+    let mut out = Vec::new();
+    for part in run_parts(parts, |r| f(&x[r.start * row..r.end * row])) {
+        out.extend(part?);
+    }
+    Ok(out)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -130,5 +151,31 @@ mod tests {
         assert_eq!(out, want);
         assert!(worker_seconds() >= before);
         assert!(run_parts(Vec::<u8>::new(), |x| x).is_empty());
+    }
+
+    #[test]
+    fn row_maps_join_in_order_and_pass_errors_on() {
+        let x: Vec<f32> = (0..40).map(|v| v as f32).collect();
+        let double = |r: &[f32]| Ok(r.iter().map(|v| 2.0 * v).collect());
+        let want: Vec<f32> = x.iter().map(|v| 2.0 * v).collect();
+        for threads in [1, 2, 3, 7] {
+            assert_eq!(map_rows(&x, 4, (threads, 2), double).unwrap(), want);
+        }
+        let failing = |r: &[f32]| {
+            if r.contains(&39.0) {
+                Err(crate::PolicyError::ShapeMismatch {
+                    name: "last row".into(),
+                    expected: vec![],
+                    got: vec![],
+                })
+            } else {
+                Ok(r.to_vec())
+            }
+        };
+        assert!(map_rows(&x, 4, (3, 1), failing).is_err());
+        assert!(
+            map_rows(&x[..7], 4, (2, 1), double).is_err(),
+            "a partial row"
+        );
     }
 }

@@ -531,6 +531,10 @@ pub struct StageTimings {
     pub total: f64,
     /// Everything, wall-clock (the other fields are CPU time, see [`CpuTimer`]).
     pub wall_total: f64,
+    /// The encoder, wall-clock.
+    pub wall_encoder: f64,
+    /// The translation head, wall-clock.
+    pub wall_translation_head: f64,
 }
 
 impl StageTimings {
@@ -551,6 +555,8 @@ impl StageTimings {
             "rotation_search": self.rotation_search,
             "total": self.total,
             "wall_total": self.wall_total,
+            "wall_encoder": self.wall_encoder,
+            "wall_translation_head": self.wall_translation_head,
         })
     }
 }
@@ -731,7 +737,7 @@ impl Policy {
         let prep = self.prepare(cloud, gripper, &mut rng)?;
         let input_prep = t.elapsed();
 
-        let t = CpuTimer::start();
+        let (t, w) = (CpuTimer::start(), Instant::now());
         let enc = self.model.encode(
             &prep.xyz,
             &prep.rgb,
@@ -740,10 +746,10 @@ impl Policy {
             instruction.values(),
             &[],
         )?;
-        let encoder = t.elapsed();
+        let (encoder, wall_encoder) = (t.elapsed(), w.elapsed().as_secs_f64());
 
         // Coarse-to-fine translation, sampled in the workspace frame.
-        let t = CpuTimer::start();
+        let (t, w) = (CpuTimer::start(), Instant::now());
         let cfg = &self.cfg;
         let s = cfg.sampling;
         let ws = cfg.base_from_workspace;
@@ -790,7 +796,7 @@ impl Policy {
             levels.push((queries, logits));
         }
         candidates.sort_by(|a, b| b.logit.total_cmp(&a.logit));
-        let translation_head = t.elapsed();
+        let (translation_head, wall_translation_head) = (t.elapsed(), w.elapsed().as_secs_f64());
 
         let scene = SceneEncoding {
             embedding: enc.embedding,
@@ -812,6 +818,8 @@ impl Policy {
             rotation_search: at.seconds.1,
             total: t_total.elapsed(),
             wall_total: wall.elapsed().as_secs_f64(),
+            wall_encoder,
+            wall_translation_head,
         };
         Ok(Prediction {
             keyframe: at.keyframe,

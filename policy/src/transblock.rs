@@ -205,11 +205,19 @@ pub struct TransBlock {
     norm_2: RmsNormSh,
     ffn: FeedForward,
     shortcut: Option<So3Linear>,
+    /// Threads of a forward pass ([`TransBlock::set_threads`]).
+    threads: usize,
 }
 
+/// Fewest nodes a thread takes after the attention (fewer cost more to hand over than to
+/// compute).
+const MIN_NODES_PER_THREAD: usize = 64;
+
 impl TransBlock {
-    /// Threads of the block's attention (see [`crate::parallel`]).
+    /// Threads of the block: its attention, and runs of nodes after it (see
+    /// [`crate::parallel`]).
     pub fn set_threads(&mut self, threads: usize) {
+        self.threads = threads.max(1);
         self.ga.set_threads(threads);
     }
 
@@ -265,6 +273,7 @@ impl TransBlock {
                 ffn_grid,
             )?,
             shortcut,
+            threads: 1,
         })
     }
 
@@ -277,20 +286,36 @@ impl TransBlock {
         edges: &EdgeSet,
         condition: Option<&[f32]>,
     ) -> Result<Vec<f32>> {
-        let xs = self.norm_1_src.forward(x_src)?;
-        let xd = self.norm_1_dst.forward(x_dst)?;
+        // The norms, and everything after the attention, are per node: with threads, runs of
+        // whole nodes go to each (one condition row serves every node; several rows group
+        // the nodes by batch, so those stay on one thread). Products over fewer rows sum each
+        // output in the same order, so the values do not change.
+        let k = num_coefficients(self.cfg.attn.lmax);
+        let row = k * self.cfg.attn.sphere_channels;
+        let par = (self.threads, MIN_NODES_PER_THREAD);
+        let xs = crate::parallel::map_rows(x_src, row, par, |x| self.norm_1_src.forward(x))?;
+        let xd = crate::parallel::map_rows(x_dst, row, par, |x| self.norm_1_dst.forward(x))?;
         let mut h = self.ga.forward(&xs, &xd, edges)?;
         for (a, b) in h.iter_mut().zip(x_dst) {
             *a += b;
         }
-        let mut y = self.ffn.forward(&self.norm_2.forward(&h)?, condition)?;
-        let res = match &self.shortcut {
-            Some(l) => l.forward(&h)?,
-            None => h,
-        };
-        for (a, b) in y.iter_mut().zip(&res) {
-            *a += b;
-        }
-        Ok(y)
+        let one_condition = condition.is_none_or(|c| Some(c.len()) == self.ffn.condition_dim());
+        let par = if one_condition { par } else { (1, 1) };
+        crate::parallel::map_rows(&h, row, par, |h| {
+            let mut y = self.ffn.forward(&self.norm_2.forward(h)?, condition)?;
+            match &self.shortcut {
+                Some(l) => {
+                    for (a, b) in y.iter_mut().zip(&l.forward(h)?) {
+                        *a += b;
+                    }
+                }
+                None => {
+                    for (a, b) in y.iter_mut().zip(h) {
+                        *a += b;
+                    }
+                }
+            }
+            Ok(y)
+        })
     }
 }

@@ -434,6 +434,8 @@ fn time_predictions(
         "rotation_search": stage(&|t| t.rotation_search),
         "total": stage(&|t| t.total),
         "wall_total": wall,
+        "wall_encoder": stage(&|t| t.wall_encoder),
+        "wall_translation_head": stage(&|t| t.wall_translation_head),
     });
     Ok((timings, wall))
 }
