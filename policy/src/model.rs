@@ -20,8 +20,8 @@ use crate::language::InstructionEncoder;
 use crate::layers::{rows_of, GaussianRbf, Linear, RmsNormSh};
 use crate::plain_heads::{PlainHeads, PlainHeadsConfig};
 use crate::points::{
-    check_finite, coefficient_max_pool, farthest_point_sampling, knn, upsample, upsample_weights,
-    UpsampleDistance,
+    check_finite, coefficient_max_pool, farthest_point_sampling, knn_threads, upsample,
+    upsample_weights, UpsampleDistance,
 };
 use crate::so3::{num_coefficients, WignerCalculator};
 use crate::transblock::{FilmKind, TransBlock, TransBlockConfig};
@@ -748,7 +748,7 @@ impl EquFieldUnet {
                 .collect::<Result<_>>()?;
             let nb = match idx.pool_knn.take() {
                 Some(v) => v,
-                None => knn(coord, &centres, POOL_NEIGHBOURS)?,
+                None => knn_threads(coord, &centres, POOL_NEIGHBOURS, self.threads)?,
             };
             let pooled = coefficient_max_pool(x, n, lmax, c, &nb)?;
             idx.fps = Some(fps);
@@ -764,7 +764,7 @@ impl EquFieldUnet {
             };
             let nb = match idx.up_knn.take() {
                 Some(v) => v,
-                None => knn(coord, up, UPSAMPLE_NEIGHBOURS)?,
+                None => knn_threads(coord, up, UPSAMPLE_NEIGHBOURS, self.threads)?,
             };
             let w = upsample_weights(up, coord, &nb, self.cfg.upsample_distance)?;
             let y = upsample(x, n, k * c, &nb, &w)?;
@@ -775,7 +775,7 @@ impl EquFieldUnet {
         };
         let (src, dst) = match idx.graph.take() {
             Some(g) => g,
-            None => knn_graph(&coord, b.k)?,
+            None => knn_graph_threads(&coord, b.k, self.threads)?,
         };
         let edges = EdgeSet::new_threads(
             &self.calc,
@@ -821,7 +821,16 @@ impl EquFieldUnet {
 /// The U-net's kNN graph: for each node its `k` nearest nodes (itself included) by
 /// increasing distance, the self edge dropped; (src, dst) grouped by destination.
 pub fn knn_graph(coord: &[[f32; 3]], k: usize) -> Result<(Vec<usize>, Vec<usize>)> {
-    let nb = knn(coord, coord, k)?;
+    knn_graph_threads(coord, k, 1)
+}
+
+/// [`knn_graph`] with the neighbour search on `threads` threads (the same graph).
+pub fn knn_graph_threads(
+    coord: &[[f32; 3]],
+    k: usize,
+    threads: usize,
+) -> Result<(Vec<usize>, Vec<usize>)> {
+    let nb = knn_threads(coord, coord, k, threads)?;
     let (mut src, mut dst) = (Vec::new(), Vec::new());
     for (d, row) in nb.iter().enumerate() {
         for &s in row.iter().filter(|&&s| s != d) {

@@ -68,6 +68,30 @@ pub fn farthest_point_sampling(pos: &[[f32; 3]], count: usize) -> Result<Vec<usi
 /// For each query, the indices of its `k` nearest points (fewer if there are fewer points),
 /// sorted by increasing squared distance, ties by index.
 pub fn knn(points: &[[f32; 3]], queries: &[[f32; 3]], k: usize) -> Result<Vec<Vec<usize>>> {
+    knn_threads(points, queries, k, 1)
+}
+
+/// [`knn`] with the queries split over `threads` threads (at least 64 queries each): the
+/// same neighbours.
+pub fn knn_threads(
+    points: &[[f32; 3]],
+    queries: &[[f32; 3]],
+    k: usize,
+    threads: usize,
+) -> Result<Vec<Vec<usize>>> {
+    let parts = crate::parallel::split_even(queries.len(), threads.min(queries.len() / 64));
+    if parts.len() < 2 {
+        return knn_serial(points, queries, k);
+    }
+    let mut out = Vec::with_capacity(queries.len());
+    for part in crate::parallel::run_parts(parts, |r| knn_serial(points, &queries[r], k)) {
+        out.extend(part?);
+    }
+    Ok(out)
+}
+
+/// [`knn`] on the calling thread.
+fn knn_serial(points: &[[f32; 3]], queries: &[[f32; 3]], k: usize) -> Result<Vec<Vec<usize>>> {
     check_finite("knn points", points)?;
     check_finite("knn queries", queries)?;
     if points.is_empty() {

@@ -28,6 +28,8 @@ pub enum BenchWhat {
     /// The EquAct policy, physical configuration: per-stage timing of a keyframe and the
     /// equivariance error of parity and equivariant mode over random SE(3) motions.
     Policy(PolicyBenchArgs),
+    /// One graph attention layer of the physical network, ours against PyTorch's on CPU.
+    Attention(super::bench_attention::AttentionBenchArgs),
 }
 
 /// Arguments of `equact bench policy`.
@@ -187,6 +189,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchWhat::Planner(a) => run_planner(a),
         BenchWhat::Ur(a) => super::bench_ur::run(a),
         BenchWhat::Policy(a) => run_policy(a),
+        BenchWhat::Attention(a) => super::bench_attention::run(a),
     }
 }
 
