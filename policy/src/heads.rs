@@ -241,8 +241,7 @@ impl FieldHeads {
         // basis values per edge) stays in cache instead of hundreds of MB per level. With
         // threads, each takes a run of whole batches: the same batches, the same logits.
         let batches = queries.len().div_ceil(TRANS_QUERY_BATCH);
-        let parts = crate::parallel::split_even(batches, self.threads);
-        let run = |r: std::ops::Range<usize>| -> Result<Vec<f32>> {
+        crate::parallel::map_ranges(batches, self.threads, |r| {
             let qs = &queries
                 [r.start * TRANS_QUERY_BATCH..(r.end * TRANS_QUERY_BATCH).min(queries.len())];
             let mut logits = Vec::with_capacity(qs.len());
@@ -263,12 +262,7 @@ impl FieldHeads {
                 logits.extend((0..batch.len()).map(|q| y[q * k * c]));
             }
             Ok(logits)
-        };
-        let mut logits = Vec::with_capacity(queries.len());
-        for part in crate::parallel::run_parts(parts, run) {
-            logits.extend(part?);
-        }
-        Ok(logits)
+        })
     }
 
     /// The rotation query at one point: open logit and rotation logits.

@@ -89,6 +89,24 @@ pub fn run_parts<T: Send, R: Send>(items: Vec<T>, work: impl Fn(T) -> R + Sync) 
     })
 }
 
+/// Runs `f` on at most `parts` contiguous ranges of `0..n` ([`split_even`]; all of it on the
+/// calling thread when that is one range) and joins the outputs in order.
+pub fn map_ranges<T: Send>(
+    n: usize,
+    parts: usize,
+    f: impl Fn(Range<usize>) -> crate::error::Result<Vec<T>> + Sync,
+) -> crate::error::Result<Vec<T>> {
+    let ranges = split_even(n, parts);
+    if ranges.len() < 2 {
+        return f(0..n);
+    }
+    let mut out = Vec::new();
+    for part in run_parts(ranges, f) {
+        out.extend(part?);
+    }
+    Ok(out)
+}
+
 /// Applies the row-wise `f` (rows of `row` values in, rows out) to runs of whole rows of `x`
 /// on up to `threads` threads, each with at least `min_rows` rows, and joins the outputs in
 /// order: what `f(x)` gives, for an `f` that treats every row on its own.
@@ -99,15 +117,9 @@ pub fn map_rows(
     f: impl Fn(&[f32]) -> crate::error::Result<Vec<f32>> + Sync,
 ) -> crate::error::Result<Vec<f32>> {
     let rows = crate::layers::rows_of("row-wise input", x.len(), row.max(1))?;
-    let parts = split_even(rows, threads.min(rows / min_rows.max(1)));
-    if parts.len() < 2 {
-        return f(x);
-    }
-    let mut out = Vec::new();
-    for part in run_parts(parts, |r| f(&x[r.start * row..r.end * row])) {
-        out.extend(part?);
-    }
-    Ok(out)
+    map_ranges(rows, threads.min(rows / min_rows.max(1)), |r| {
+        f(&x[r.start * row..r.end * row])
+    })
 }
 
 #[cfg(test)]

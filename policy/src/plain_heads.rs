@@ -286,7 +286,7 @@ impl PlainHeads {
     ) -> Result<Vec<f32>> {
         let x = self.node_scalars(node_emb, node_pos.len())?;
         let batches = queries.len().div_ceil(PLAIN_QUERY_BATCH);
-        let run = |r: std::ops::Range<usize>| -> Result<Vec<f32>> {
+        crate::parallel::map_ranges(batches, self.threads, |r| {
             let qs = &queries
                 [r.start * PLAIN_QUERY_BATCH..(r.end * PLAIN_QUERY_BATCH).min(queries.len())];
             let mut logits = Vec::with_capacity(qs.len());
@@ -296,13 +296,7 @@ impl PlainHeads {
                 logits.extend(out);
             }
             Ok(logits)
-        };
-        let mut logits = Vec::with_capacity(queries.len());
-        let parts = crate::parallel::split_even(batches, self.threads);
-        for part in crate::parallel::run_parts(parts, run) {
-            logits.extend(part?);
-        }
-        Ok(logits)
+        })
     }
 
     /// The rotation query at one point. `embedding` is the plain layer's output token at the

@@ -79,15 +79,9 @@ pub fn knn_threads(
     k: usize,
     threads: usize,
 ) -> Result<Vec<Vec<usize>>> {
-    let parts = crate::parallel::split_even(queries.len(), threads.min(queries.len() / 64));
-    if parts.len() < 2 {
-        return knn_serial(points, queries, k);
-    }
-    let mut out = Vec::with_capacity(queries.len());
-    for part in crate::parallel::run_parts(parts, |r| knn_serial(points, &queries[r], k)) {
-        out.extend(part?);
-    }
-    Ok(out)
+    crate::parallel::map_ranges(queries.len(), threads.min(queries.len() / 64), |r| {
+        knn_serial(points, &queries[r], k)
+    })
 }
 
 /// [`knn`] on the calling thread.
