@@ -373,6 +373,13 @@ impl GraphAttention {
                     Some(n) => edges.dst[chunks[n.start].start],
                     None => nd,
                 };
+                if end < d0 || end > nd {
+                    return Err(PolicyError::IndexOutOfRange {
+                        name: "edge_dst".into(),
+                        value: end as i64,
+                        len: nd,
+                    });
+                }
                 let (head, tail) = rest.split_at_mut((end - d0) * row);
                 items.push((&chunks[g.clone()], head, d0));
                 rest = tail;
@@ -548,4 +555,67 @@ pub fn grouped_softmax(logit: &[f32], dst: &[usize], nd: usize, heads: usize) ->
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::weights::Weights;
+
+    /// The `graph_attention` fixture's layer, input and edges (64 nodes, 960 edges).
+    fn fixture() -> (GraphAttention, Vec<f32>, EdgeSet) {
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/fixtures/graph_attention.safetensors"
+        );
+        let w = Weights::from_file(std::path::Path::new(path)).unwrap();
+        let cfg = AttentionConfig {
+            lmax: 3,
+            mmax: 2,
+            sphere_channels: 16,
+            hidden_channels: 16,
+            num_heads: 2,
+            alpha_channels: 8,
+            value_channels: 8,
+            output_channels: 16,
+        };
+        let ga = GraphAttention::load(&w.scope("param."), cfg).unwrap();
+        let idx = |k: &str| -> Vec<usize> {
+            w.i64_any(k)
+                .unwrap()
+                .1
+                .iter()
+                .map(|&i| i as usize)
+                .collect()
+        };
+        let vec: Vec<[f32; 3]> = w
+            .f32_any("in.edge_vec")
+            .unwrap()
+            .1
+            .chunks_exact(3)
+            .map(|c| [c[0], c[1], c[2]])
+            .collect();
+        let attr = w.f32_any("in.edge_attr").unwrap().1;
+        let calc = WignerCalculator::new(3).unwrap();
+        let edges =
+            EdgeSet::from_parts(&calc, 3, idx("in.edge_src"), idx("in.edge_dst"), vec, attr)
+                .unwrap();
+        (ga, w.f32_any("in.x").unwrap().1, edges)
+    }
+
+    #[test]
+    fn threaded_attention_equals_one_thread_and_refuses_bad_destinations() {
+        let (mut ga, x, mut edges) = fixture();
+        let one = ga.forward(&x, &x, &edges).unwrap();
+        ga.set_threads(2);
+        assert_eq!(ga.forward(&x, &x, &edges).unwrap(), one, "bit for bit");
+        // Destinations past the 64 nodes from the second chunk on (edge 520 starts it), still
+        // in ascending order: an error naming the edges, not a panic while the rows of the
+        // aggregate are handed out to the threads.
+        for d in edges.dst.iter_mut().skip(520) {
+            *d = 70;
+        }
+        let err = ga.forward(&x, &x, &edges).unwrap_err();
+        assert!(err.to_string().contains("edge_dst"), "{err}");
+    }
 }
