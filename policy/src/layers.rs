@@ -335,6 +335,19 @@ impl Linear {
         }
     }
 
+    /// [`Linear::forward_row`] of one row `x` with the outputs split over `threads` threads
+    /// (at least 4096 each): the same values.
+    pub fn forward_one_threads(&self, x: &[f32], threads: usize) -> Result<Vec<f32>> {
+        check_len("linear input row", x.len(), &[self.inp])?;
+        crate::parallel::map_ranges(self.out, threads.min(self.out / 4096), |r| {
+            Ok(r.map(|o| {
+                let v = dot(&self.w[o * self.inp..(o + 1) * self.inp], x);
+                self.b.as_ref().map_or(v, |b| v + b[o])
+            })
+            .collect())
+        })
+    }
+
     /// Applies the layer to every row of `x` (`[rows, inp]` → `[rows, out]`).
     pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
         if self.inp == 0 || x.len() % self.inp != 0 {
@@ -1083,9 +1096,15 @@ impl FilmLinear {
 
     /// The weights for one condition vector.
     pub fn weights(&self, condition: &[f32]) -> Result<FilmWeights> {
+        self.weights_threads(condition, 1)
+    }
+
+    /// [`FilmLinear::weights`] with the hypernetwork's outputs split over `threads` threads
+    /// (the same weights).
+    pub fn weights_threads(&self, condition: &[f32], threads: usize) -> Result<FilmWeights> {
         check_len("FiLM condition", condition.len(), &[self.encoder.inp])?;
         let m: Vec<f32> = condition.iter().map(|v| mish(*v)).collect();
-        let p = self.encoder.forward(&m)?;
+        let p = self.encoder.forward_one_threads(&m, threads)?;
         let nw = (self.lmax + 1) * self.cout * self.cin;
         let scale = 1.0 / ((self.lmax.max(1) * self.cin) as f32).sqrt();
         Ok(FilmWeights {
@@ -1110,16 +1129,38 @@ impl FilmLinear {
         let per = nodes / b;
         let mut y = Vec::with_capacity(nodes * k * self.cout);
         for batch in 0..b {
-            let fw =
-                self.weights(&condition[batch * self.encoder.inp..(batch + 1) * self.encoder.inp])?;
-            let wt = transpose_per_degree(&fw.w, self.lmax, self.cout, self.cin);
+            let prepared = self.prepare(
+                &condition[batch * self.encoder.inp..(batch + 1) * self.encoder.inp],
+                1,
+            )?;
             let xb = &x[batch * per * k * self.cin..(batch + 1) * per * k * self.cin];
-            y.extend(per_degree_apply(
-                xb, self.lmax, self.cin, self.cout, &wt, &fw.b,
-            )?);
+            y.extend(self.apply(xb, &prepared)?);
         }
         Ok(y)
     }
+
+    /// The per-degree map of one condition vector, ready for [`FilmLinear::apply`] (the
+    /// hypernetwork on `threads` threads): computed once per forward pass, not once per run
+    /// of nodes.
+    pub fn prepare(&self, condition: &[f32], threads: usize) -> Result<PreparedFilm> {
+        let fw = self.weights_threads(condition, threads)?;
+        Ok(PreparedFilm {
+            wt: transpose_per_degree(&fw.w, self.lmax, self.cout, self.cin),
+            b: fw.b,
+        })
+    }
+
+    /// Applies a prepared map to `x` `[N, (lmax+1)², cin]` (every node, one condition).
+    pub fn apply(&self, x: &[f32], prepared: &PreparedFilm) -> Result<Vec<f32>> {
+        per_degree_apply(x, self.lmax, self.cin, self.cout, &prepared.wt, &prepared.b)
+    }
+}
+
+/// A [`FilmLinear`]'s map for one condition: per-degree transposed weights and the bias.
+#[derive(Debug, Clone)]
+pub struct PreparedFilm {
+    wt: Vec<f32>,
+    b: Vec<f32>,
 }
 
 /// The paper's per-degree scalar iFiLM: an [`So3Linear`] (`weight`, `bias`) whose output is
@@ -1257,6 +1298,22 @@ pub fn separable_s2_activation(
 mod tests {
     use super::*;
     use crate::predict::PolicyConfig;
+
+    #[test]
+    fn a_row_split_over_threads_equals_the_one_thread_row() {
+        // A hypernetwork-sized layer: 9000 outputs of 16 inputs, split in three parts.
+        let (inp, out) = (16, 9000);
+        let w: Vec<f32> = (0..inp * out)
+            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 50.0)
+            .collect();
+        let b: Vec<f32> = (0..out).map(|i| (i % 7) as f32 * 0.1).collect();
+        let lin = Linear::new(inp, out, w, Some(b));
+        let x: Vec<f32> = (0..inp).map(|i| i as f32 * 0.25 - 2.0).collect();
+        let mut one = vec![0.0; out];
+        lin.forward_row(&x, &mut one);
+        assert_eq!(lin.forward_one_threads(&x, 3).unwrap(), one, "bit for bit");
+        assert!(lin.forward_one_threads(&x[..15], 2).is_err(), "a short row");
+    }
 
     #[test]
     fn compressed_radial_features_equal_the_dense_values() {

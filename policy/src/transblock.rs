@@ -11,7 +11,8 @@ use crate::attention::{AttentionConfig, EdgeSet, GraphAttention};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
 use crate::layers::{
-    rows_of, separable_s2_activation, FilmLinear, Linear, RmsNormSh, ScalarFilmLinear, So3Linear,
+    rows_of, separable_s2_activation, FilmLinear, Linear, PreparedFilm, RmsNormSh,
+    ScalarFilmLinear, So3Linear,
 };
 use crate::so3::num_coefficients;
 use crate::weights::Scope;
@@ -129,6 +130,31 @@ impl FeedForward {
     /// Applies the network to `x` `[n, (lmax+1)², cin]`; `condition` `[B, dim]` is required
     /// with FiLM (nodes grouped by batch, equal counts).
     pub fn forward(&self, x: &[f32], condition: Option<&[f32]>) -> Result<Vec<f32>> {
+        self.forward_prepared(x, condition, None)
+    }
+
+    /// The hypernetwork FiLM's map for a single condition row (`None` for the other first
+    /// linears, or several rows), on `threads` threads: computed once per forward pass.
+    pub fn prepare(
+        &self,
+        condition: Option<&[f32]>,
+        threads: usize,
+    ) -> Result<Option<PreparedFilm>> {
+        match (&self.first, condition) {
+            (FirstLinear::Film(f), Some(c)) if c.len() == f.condition_dim() => {
+                Ok(Some(f.prepare(c, threads)?))
+            }
+            _ => Ok(None),
+        }
+    }
+
+    /// [`FeedForward::forward`] with the FiLM map of [`FeedForward::prepare`] when given.
+    pub fn forward_prepared(
+        &self,
+        x: &[f32],
+        condition: Option<&[f32]>,
+        prepared: Option<&PreparedFilm>,
+    ) -> Result<Vec<f32>> {
         let k = num_coefficients(self.lmax);
         let n = rows_of("feed-forward input", x.len(), k * self.cin)?;
         let mut l0 = Vec::with_capacity(n * self.cin);
@@ -136,11 +162,12 @@ impl FeedForward {
             l0.extend_from_slice(&x[node * k * self.cin..node * k * self.cin + self.cin]);
         }
         let gating = self.gating.forward(&l0)?;
-        let u = match (&self.first, condition) {
-            (FirstLinear::Plain(l), _) => l.forward(x)?,
-            (FirstLinear::Film(f), Some(c)) => f.forward(x, c)?,
-            (FirstLinear::ScalarFilm(f), Some(c)) => f.forward(x, c)?,
-            (FirstLinear::Film(_) | FirstLinear::ScalarFilm(_), None) => {
+        let u = match (&self.first, condition, prepared) {
+            (FirstLinear::Film(f), _, Some(p)) => f.apply(x, p)?,
+            (FirstLinear::Plain(l), _, _) => l.forward(x)?,
+            (FirstLinear::Film(f), Some(c), None) => f.forward(x, c)?,
+            (FirstLinear::ScalarFilm(f), Some(c), _) => f.forward(x, c)?,
+            (FirstLinear::Film(_) | FirstLinear::ScalarFilm(_), None, _) => {
                 return Err(PolicyError::ShapeMismatch {
                     name: "FiLM condition (required by this feed-forward network)".into(),
                     expected: vec![1, self.condition_dim().unwrap_or(0)],
@@ -301,8 +328,11 @@ impl TransBlock {
         }
         let one_condition = condition.is_none_or(|c| Some(c.len()) == self.ffn.condition_dim());
         let par = if one_condition { par } else { (1, 1) };
+        // The hypernetwork's map is the same for every node: made once, on all the threads.
+        let film = self.ffn.prepare(condition, self.threads)?;
         crate::parallel::map_rows(&h, row, par, |h| {
-            let mut y = self.ffn.forward(&self.norm_2.forward(h)?, condition)?;
+            let n = self.norm_2.forward(h)?;
+            let mut y = self.ffn.forward_prepared(&n, condition, film.as_ref())?;
             match &self.shortcut {
                 Some(l) => {
                     for (a, b) in y.iter_mut().zip(&l.forward(h)?) {
