@@ -36,7 +36,8 @@
 //! through its `gemm` on strided views, `matrixmultiply`'s cache-blocked sgemm for the large
 //! batched products (run-time AVX2/FMA/AVX-512 kernels, single-threaded); `safetensors` to
 //! read the reference's tensor files, `serde_json` for their sidecars; `libm` (erf) and
-//! `unicode-normalization` (NFD) for the MiniLM encoder.
+//! `unicode-normalization` (NFD) for the MiniLM encoder; `cpu-time` for the stage timings'
+//! per-thread CPU clock.
 
 pub mod attention;
 pub mod autodiff;

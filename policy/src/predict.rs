@@ -42,18 +42,17 @@ use crate::rotation_head::{flat_wigner, RotationHead, SO3_COEFFS};
 use crate::so3::WignerCalculator;
 use crate::weights::Weights;
 
-/// The calling thread's CPU time in seconds (Linux `/proc/thread-self/schedstat`), or the
-/// wall time since the first call where that is unavailable. On one thread and an idle
-/// machine both agree; on a shared one the CPU time is what a free core would take.
+/// The calling thread's CPU time in seconds (`CLOCK_THREAD_CPUTIME_ID` through `cpu-time`, as
+/// the planner's stage clock), or the wall time since the first call where that is
+/// unavailable. On one thread and an idle machine both agree; on a shared one the CPU time is
+/// what a free core would take. (Linux's `/proc/thread-self/schedstat` lags a running thread
+/// by up to a scheduler tick, which lost short worker parts entirely.)
 pub fn thread_seconds() -> f64 {
     static START: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
-    std::fs::read_to_string("/proc/thread-self/schedstat")
-        .ok()
-        .and_then(|s| s.split_whitespace().next()?.parse::<u64>().ok())
-        .map_or_else(
-            || START.get_or_init(Instant::now).elapsed().as_secs_f64(),
-            |ns| ns as f64 * 1e-9,
-        )
+    cpu_time::ThreadTime::try_now().map_or_else(
+        |_| START.get_or_init(Instant::now).elapsed().as_secs_f64(),
+        |t| t.as_duration().as_secs_f64(),
+    )
 }
 
 /// A stopwatch on [`thread_seconds`] plus the inference workers' CPU time
