@@ -1743,3 +1743,35 @@ fn check_whole_model(fx: &FixtureFile) -> Result<Vec<Comparison>> {
     }
     Ok(out)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn threaded_attention_equals_one_thread_and_refuses_bad_destinations() {
+        // The `graph_attention` fixture's layer, input and edges (64 nodes, 960 edges).
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/fixtures/graph_attention.safetensors"
+        );
+        let fx = FixtureFile::load(Path::new(path)).unwrap();
+        let cfg = attention_config(&fx, "/constructor", None).unwrap();
+        let w = fx.weights();
+        let mut ga = crate::attention::GraphAttention::load(&w.scope("param."), cfg).unwrap();
+        let calc = WignerCalculator::new(cfg.lmax).unwrap();
+        let mut edges = fixture_edges(&fx, &calc, cfg.lmax, "", &mut Vec::new()).unwrap();
+        let x = fx.f32_any("in.x").unwrap().1;
+        let one = ga.forward(x, x, &edges).unwrap();
+        ga.set_threads(2);
+        assert_eq!(ga.forward(x, x, &edges).unwrap(), one, "bit for bit");
+        // Destinations past the 64 nodes from the second chunk on (edge 520 starts it), still
+        // in ascending order: an error naming the edges, not a panic while the rows of the
+        // aggregate are handed out to the threads.
+        for d in edges.dst.iter_mut().skip(520) {
+            *d = 70;
+        }
+        let err = ga.forward(x, x, &edges).unwrap_err();
+        assert!(err.to_string().contains("edge_dst"), "{err}");
+    }
+}

@@ -240,28 +240,21 @@ impl FieldHeads {
         // Queries in small batches: each batch's edge set (300 edges per query, 1024 radial
         // basis values per edge) stays in cache instead of hundreds of MB per level. With
         // threads, each takes a run of whole batches: the same batches, the same logits.
-        let batches = queries.len().div_ceil(TRANS_QUERY_BATCH);
-        crate::parallel::map_ranges(batches, self.threads, |r| {
-            let qs = &queries
-                [r.start * TRANS_QUERY_BATCH..(r.end * TRANS_QUERY_BATCH).min(queries.len())];
-            let mut logits = Vec::with_capacity(qs.len());
-            for batch in qs.chunks(TRANS_QUERY_BATCH) {
-                let (src, dst) = Self::trans_edges(node_pos, batch)?;
-                let edges = EdgeSet::new(
-                    &self.trans_calc,
-                    TRANS_LMAX,
-                    node_pos,
-                    batch,
-                    src,
-                    dst,
-                    &self.rbf,
-                )?;
-                let y = self
-                    .trans
-                    .forward_zero_destinations(&x, batch.len(), &edges)?;
-                logits.extend((0..batch.len()).map(|q| y[q * k * c]));
-            }
-            Ok(logits)
+        crate::parallel::map_chunks(queries, TRANS_QUERY_BATCH, self.threads, |batch| {
+            let (src, dst) = Self::trans_edges(node_pos, batch)?;
+            let edges = EdgeSet::new(
+                &self.trans_calc,
+                TRANS_LMAX,
+                node_pos,
+                batch,
+                src,
+                dst,
+                &self.rbf,
+            )?;
+            let y = self
+                .trans
+                .forward_zero_destinations(&x, batch.len(), &edges)?;
+            Ok((0..batch.len()).map(|q| y[q * k * c]).collect())
         })
     }
 

@@ -685,11 +685,17 @@ impl GaussianRbf {
             return;
         }
         out.iter_mut().for_each(|o| *o = 0.0);
-        let lo = self.by_mean.partition_point(|(m, _)| *m < u - self.reach);
-        let hi = self.by_mean.partition_point(|(m, _)| *m <= u + self.reach);
-        for &(_, i) in &self.by_mean[lo..hi] {
+        for &(_, i) in self.within_reach(u) {
             out[i] = self.value(i, u, env);
         }
+    }
+
+    /// The bases (mean, index), by mean, whose mean lies within `reach` of the normalised
+    /// distance `u`: every other basis is exactly 0 there.
+    fn within_reach(&self, u: f32) -> &[(f32, usize)] {
+        let lo = self.by_mean.partition_point(|(m, _)| *m < u - self.reach);
+        let hi = self.by_mean.partition_point(|(m, _)| *m <= u + self.reach);
+        &self.by_mean[lo..hi]
     }
 
     /// Basis `i` at normalised distance `u` with envelope `env`.
@@ -725,10 +731,8 @@ impl GaussianRbf {
             let env = rbf_envelope(u);
             row.clear();
             if u.is_finite() {
-                let lo = self.by_mean.partition_point(|(m, _)| *m < u - self.reach);
-                let hi = self.by_mean.partition_point(|(m, _)| *m <= u + self.reach);
                 row.extend(
-                    self.by_mean[lo..hi]
+                    self.within_reach(u)
                         .iter()
                         .map(|&(_, i)| (i as u32, self.value(i, u, env))),
                 );
@@ -1094,14 +1098,9 @@ impl FilmLinear {
         self.encoder.inp
     }
 
-    /// The weights for one condition vector.
-    pub fn weights(&self, condition: &[f32]) -> Result<FilmWeights> {
-        self.weights_threads(condition, 1)
-    }
-
-    /// [`FilmLinear::weights`] with the hypernetwork's outputs split over `threads` threads
-    /// (the same weights).
-    pub fn weights_threads(&self, condition: &[f32], threads: usize) -> Result<FilmWeights> {
+    /// The weights for one condition vector, the hypernetwork's outputs split over
+    /// `threads` threads (the same weights for any count).
+    pub fn weights(&self, condition: &[f32], threads: usize) -> Result<FilmWeights> {
         check_len("FiLM condition", condition.len(), &[self.encoder.inp])?;
         let m: Vec<f32> = condition.iter().map(|v| mish(*v)).collect();
         let p = self.encoder.forward_one_threads(&m, threads)?;
@@ -1143,7 +1142,7 @@ impl FilmLinear {
     /// hypernetwork on `threads` threads): computed once per forward pass, not once per run
     /// of nodes.
     pub fn prepare(&self, condition: &[f32], threads: usize) -> Result<PreparedFilm> {
-        let fw = self.weights_threads(condition, threads)?;
+        let fw = self.weights(condition, threads)?;
         Ok(PreparedFilm {
             wt: transpose_per_degree(&fw.w, self.lmax, self.cout, self.cin),
             b: fw.b,

@@ -1,9 +1,10 @@
 //! Explicit worker threads for one prediction.
 //!
 //! Inference runs on the caller's thread unless it is given more ([`crate::predict::Policy::set_threads`]):
-//! then the work that splits into independent parts (the edges of each U-net attention by
-//! destination, the edge frames and radial bases of each U-net graph, the translation head's
-//! query batches) runs on scoped threads started for that call and joined before it returns,
+//! then the work that splits into independent parts (the U-net's neighbour searches, the
+//! edge frames and radial bases of each U-net graph, each attention's edges by destination,
+//! the per-node layers by runs of nodes, the FiLM hypernetwork by outputs, the translation
+//! head's query batches) runs on scoped threads started for that call and joined before it returns,
 //! so no thread outlives a call and nothing runs in the background. Every part computes
 //! exactly what the single-threaded loop computes for it, in the same order, so the results
 //! do not depend on the thread count (tested bit for bit).
@@ -107,6 +108,25 @@ pub fn map_ranges<T: Send>(
     Ok(out)
 }
 
+/// Runs `f` on every `chunk`-long slice of `items` in turn (the last may be shorter), with
+/// runs of whole chunks on up to `threads` threads, and joins the outputs in order: the
+/// same chunks, so the same outputs, for any thread count.
+pub fn map_chunks<T: Sync, R: Send>(
+    items: &[T],
+    chunk: usize,
+    threads: usize,
+    f: impl Fn(&[T]) -> crate::error::Result<Vec<R>> + Sync,
+) -> crate::error::Result<Vec<R>> {
+    let chunk = chunk.max(1);
+    map_ranges(items.len().div_ceil(chunk), threads, |r| {
+        let mut out = Vec::new();
+        for c in items[r.start * chunk..(r.end * chunk).min(items.len())].chunks(chunk) {
+            out.extend(f(c)?);
+        }
+        Ok(out)
+    })
+}
+
 /// Applies the row-wise `f` (rows of `row` values in, rows out) to runs of whole rows of `x`
 /// on up to `threads` threads, each with at least `min_rows` rows, and joins the outputs in
 /// order: what `f(x)` gives, for an `f` that treats every row on its own.
@@ -166,6 +186,18 @@ mod tests {
             "the three workers' CPU time is counted"
         );
         assert!(run_parts(Vec::<u8>::new(), |x| x).is_empty());
+    }
+
+    #[test]
+    fn chunk_maps_see_the_same_chunks_for_any_thread_count() {
+        let items: Vec<u32> = (0..23).collect();
+        // Each chunk's output names the chunk it saw.
+        let f = |c: &[u32]| Ok(vec![(c[0], c.len())]);
+        let want: Vec<(u32, usize)> = (0..6).map(|i| (4 * i, if i < 5 { 4 } else { 3 })).collect();
+        for threads in [1, 2, 3, 8] {
+            assert_eq!(map_chunks(&items, 4, threads, f).unwrap(), want);
+        }
+        assert!(map_chunks(&items[..0], 4, 2, f).unwrap().is_empty());
     }
 
     #[test]

@@ -285,17 +285,10 @@ impl PlainHeads {
         queries: &[[f32; 3]],
     ) -> Result<Vec<f32>> {
         let x = self.node_scalars(node_emb, node_pos.len())?;
-        let batches = queries.len().div_ceil(PLAIN_QUERY_BATCH);
-        crate::parallel::map_ranges(batches, self.threads, |r| {
-            let qs = &queries
-                [r.start * PLAIN_QUERY_BATCH..(r.end * PLAIN_QUERY_BATCH).min(queries.len())];
-            let mut logits = Vec::with_capacity(qs.len());
-            for batch in qs.chunks(PLAIN_QUERY_BATCH) {
-                let (src, dst) = FieldHeads::trans_edges(node_pos, batch)?;
-                let (_, out) = self.trans.forward(&x, node_pos, batch, &src, &dst)?;
-                logits.extend(out);
-            }
-            Ok(logits)
+        crate::parallel::map_chunks(queries, PLAIN_QUERY_BATCH, self.threads, |batch| {
+            let (src, dst) = FieldHeads::trans_edges(node_pos, batch)?;
+            let (_, out) = self.trans.forward(&x, node_pos, batch, &src, &dst)?;
+            Ok(out)
         })
     }
 

@@ -184,25 +184,12 @@ impl EdgeWigners {
     /// Rotates `x` `[E, (lmax+1)², c]` into the edge frames, keeping the reduced rows:
     /// `[E, n_reduced, c]`.
     pub fn rotate(&self, map: &CoefficientMapping, x: &[f32], c: usize) -> Result<Vec<f32>> {
-        self.rotate_range(0..self.edges, map, x, c)
-    }
-
-    /// [`EdgeWigners::rotate`] for the edges in `range` only (`x` holds just those edges'
-    /// features); no copy of the matrices.
-    pub fn rotate_range(
-        &self,
-        range: std::ops::Range<usize>,
-        map: &CoefficientMapping,
-        x: &[f32],
-        c: usize,
-    ) -> Result<Vec<f32>> {
         let k = num_coefficients(self.lmax);
-        let ne = self.range_len(&range)?;
-        check_len("features to rotate", x.len(), &[ne, k, c])?;
+        check_len("features to rotate", x.len(), &[self.edges, k, c])?;
         let nr = map.len();
-        let mut y = vec![0.0f32; ne * nr * c];
-        for e in 0..ne {
-            let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
+        let mut y = vec![0.0f32; self.edges * nr * c];
+        for e in 0..self.edges {
+            let d = &self.d[e * k * k..(e + 1) * k * k];
             let xe = &x[e * k * c..(e + 1) * k * c];
             let ye = &mut y[e * nr * c..(e + 1) * nr * c];
             for (r, &i) in map.reduced.iter().enumerate() {
@@ -219,8 +206,8 @@ impl EdgeWigners {
         Ok(y)
     }
 
-    /// [`EdgeWigners::rotate_range`] of the messages `concat(x_a[a[e]], x_b[b[e]])` along
-    /// channels (`x_a` `[Na, (lmax+1)², c]`; the second part is optional), read straight from
+    /// [`EdgeWigners::rotate`] of the edges in `range` (no copy of their matrices) on the
+    /// messages `concat(x_a[a[e]], x_b[b[e]])` along channels (`x_a` `[Na, (lmax+1)², c]`; the second part is optional), read straight from
     /// the node features instead of from a gathered copy: `[E, n_reduced, c or 2c]`, the
     /// same values.
     pub fn rotate_messages(
@@ -578,6 +565,7 @@ mod tests {
             m
         };
         let r = range.clone();
+        let part = w.slice(r.clone());
         let both = w
             .rotate_messages(
                 r.clone(),
@@ -588,15 +576,12 @@ mod tests {
             )
             .unwrap();
         let copied = gather(&[(&xa, &a), (&xb, &b)]);
-        assert_eq!(
-            both,
-            w.rotate_range(r.clone(), &map, &copied, 2 * c).unwrap()
-        );
+        assert_eq!(both, part.rotate(&map, &copied, 2 * c).unwrap());
         let one = w
             .rotate_messages(r.clone(), &map, c, (&xa, &a[r.clone()]), None)
             .unwrap();
         let copied = gather(&[(&xa, &a)]);
-        assert_eq!(one, w.rotate_range(r.clone(), &map, &copied, c).unwrap());
+        assert_eq!(one, part.rotate(&map, &copied, c).unwrap());
         // A node index past the features is an error, not a panic.
         let mut bad = a[r.clone()].to_vec();
         bad[3] = nodes;

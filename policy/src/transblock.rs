@@ -333,17 +333,16 @@ impl TransBlock {
         crate::parallel::map_rows(&h, row, par, |h| {
             let n = self.norm_2.forward(h)?;
             let mut y = self.ffn.forward_prepared(&n, condition, film.as_ref())?;
-            match &self.shortcut {
+            let shortcut;
+            let res = match &self.shortcut {
                 Some(l) => {
-                    for (a, b) in y.iter_mut().zip(&l.forward(h)?) {
-                        *a += b;
-                    }
+                    shortcut = l.forward(h)?;
+                    &shortcut
                 }
-                None => {
-                    for (a, b) in y.iter_mut().zip(h) {
-                        *a += b;
-                    }
-                }
+                None => h,
+            };
+            for (a, b) in y.iter_mut().zip(res) {
+                *a += b;
             }
             Ok(y)
         })
