@@ -115,7 +115,6 @@ pub fn run(a: AttentionBenchArgs) -> anyhow::Result<()> {
             std::env::temp_dir().join(format!("equact-bench-attention-{}", std::process::id()));
         std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
         let problem = dir.join("problem.safetensors");
-        write_problem(&weights, &x, &edges, &y, [coord.len(), k, c], &problem)?;
         let config = serde_json::json!({
             "heads": attn_cfg.num_heads,
             "alpha": attn_cfg.alpha_channels,
@@ -124,36 +123,55 @@ pub fn run(a: AttentionBenchArgs) -> anyhow::Result<()> {
             "lmax": attn_cfg.lmax,
             "mmax": attn_cfg.mmax,
         });
-        let mut torch = serde_json::Map::new();
-        let mut speedups = serde_json::Map::new();
-        for &t in &a.threads {
-            let r = run_torch(py, &problem, &config, a.reps, t)?;
-            let err = r["max_abs_err"].as_f64().unwrap_or(f64::INFINITY);
-            let scale = r["max_abs_value"].as_f64().unwrap_or(1.0).max(1.0);
-            if err.is_nan() || err > 1e-3 * scale {
-                anyhow::bail!(
-                    "the PyTorch layer disagrees with ours (max abs error {err:.3e} on values up \
-                     to {scale:.3}): the comparison would not time the same computation"
-                );
-            }
-            let theirs = r["median_s"].as_f64().unwrap_or(f64::NAN);
-            let mine = out["ours"][t.to_string()]["median_s"]
-                .as_f64()
-                .unwrap_or(f64::NAN);
-            eprintln!(
-                "torch, {t} threads: median {theirs:.4} s (ours {mine:.4} s: {:.2}x), max abs \
-                 error {err:.2e}",
-                theirs / mine
-            );
-            speedups.insert(t.to_string(), serde_json::json!(theirs / mine));
-            torch.insert(t.to_string(), r);
-        }
+        // The problem file is tens of MB: gone again whether the comparison works or not.
+        let compared = write_problem(&weights, &x, &edges, &y, [coord.len(), k, c], &problem)
+            .and_then(|()| compare_with_torch(py, &problem, &config, &a, &out));
+        std::fs::remove_dir_all(&dir).ok();
+        let (torch, speedups) = compared?;
         out["torch"] = serde_json::Value::Object(torch);
         out["speedup_vs_torch"] = serde_json::Value::Object(speedups);
-        std::fs::remove_dir_all(&dir).ok();
     }
     println!("{}", serde_json::to_string_pretty(&out)?);
     Ok(())
+}
+
+/// Runs the PyTorch layer on the problem for each thread count, refuses outputs that differ
+/// from ours, and returns its results and the speed-ups over `out["ours"]`.
+fn compare_with_torch(
+    py: &std::path::Path,
+    problem: &std::path::Path,
+    config: &serde_json::Value,
+    a: &AttentionBenchArgs,
+    out: &serde_json::Value,
+) -> anyhow::Result<(
+    serde_json::Map<String, serde_json::Value>,
+    serde_json::Map<String, serde_json::Value>,
+)> {
+    let mut torch = serde_json::Map::new();
+    let mut speedups = serde_json::Map::new();
+    for &t in &a.threads {
+        let r = run_torch(py, problem, config, a.reps, t)?;
+        let err = r["max_abs_err"].as_f64().unwrap_or(f64::INFINITY);
+        let scale = r["max_abs_value"].as_f64().unwrap_or(1.0).max(1.0);
+        if err.is_nan() || err > 1e-3 * scale {
+            anyhow::bail!(
+                "the PyTorch layer disagrees with ours (max abs error {err:.3e} on values up \
+                     to {scale:.3}): the comparison would not time the same computation"
+            );
+        }
+        let theirs = r["median_s"].as_f64().unwrap_or(f64::NAN);
+        let mine = out["ours"][t.to_string()]["median_s"]
+            .as_f64()
+            .unwrap_or(f64::NAN);
+        eprintln!(
+            "torch, {t} threads: median {theirs:.4} s (ours {mine:.4} s: {:.2}x), max abs \
+                 error {err:.2e}",
+            theirs / mine
+        );
+        speedups.insert(t.to_string(), serde_json::json!(theirs / mine));
+        torch.insert(t.to_string(), r);
+    }
+    Ok((torch, speedups))
 }
 
 /// Writes the PyTorch side's problem: the layer's parameters (`param.*`, reference names),
