@@ -575,7 +575,10 @@ fn episode_steps(
                 };
                 return Ok((
                     Outcome::PlanFailed,
-                    format!("keyframe {step} could not be planned: {e}{also}"),
+                    format!(
+                        "keyframe {step} ({}) could not be planned: {e}{also}",
+                        describe_pose(&keyframe)
+                    ),
                 ));
             }
         };
@@ -736,4 +739,24 @@ fn episode_steps(
             Some(_) => format!("{MAX_KEYFRAMES} keyframes without finishing the task"),
         },
     ))
+}
+
+/// A keyframe's TCP position and approach axis (the TCP z) in the base frame, for messages.
+fn describe_pose(keyframe: &Keyframe) -> String {
+    let p = keyframe.base_from_tcp.translation();
+    let z = keyframe.base_from_tcp.isometry().rotation * Vector3::z();
+    format!(
+        "TCP at [{:.3}, {:.3}, {:.3}] m, approach [{:.2}, {:.2}, {:.2}], {}",
+        p.x,
+        p.y,
+        p.z,
+        z.x,
+        z.y,
+        z.z,
+        if keyframe.gripper_open {
+            "open"
+        } else {
+            "closed"
+        }
+    )
 }

@@ -50,6 +50,7 @@ enum Command {
 }
 
 fn main() -> std::process::ExitCode {
+    keep_freed_memory();
     let cli = Cli::parse();
     match dispatch(cli) {
         Ok(()) => std::process::ExitCode::SUCCESS,
@@ -69,6 +70,29 @@ fn main() -> std::process::ExitCode {
         }
     }
 }
+
+/// Tells glibc's allocator to keep freed memory in the process: no `mmap` per large block
+/// and no trimming of the heap top. Without this, every large tensor of a network forward
+/// or backward pass is a fresh `mmap` whose pages the kernel zeroes on first touch and
+/// takes back on `free`; training spent a fifth of each step in those page faults (two
+/// threads: 22.8 s -> 17.1 s for 12 steps). It is also the real-time habit (the ROS 2
+/// real-time guide's `mallopt` settings): no page fault in a control loop once the process
+/// has reached its peak. The cost is that the process keeps its peak memory until it exits.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+#[allow(unsafe_code)]
+fn keep_freed_memory() {
+    // SAFETY: mallopt only sets allocator parameters and takes plain integers; it runs
+    // before any other thread of the process exists. Its return value (0 when a parameter
+    // is refused) only means the defaults stay, which is correct, only slower.
+    unsafe {
+        libc::mallopt(libc::M_MMAP_MAX, 0);
+        libc::mallopt(libc::M_TRIM_THRESHOLD, -1);
+    }
+}
+
+/// Other allocators keep their own defaults.
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+fn keep_freed_memory() {}
 
 fn dispatch(cli: Cli) -> anyhow::Result<()> {
     match cli.command {

@@ -28,6 +28,7 @@ pub mod rotation;
 pub use ops::Act;
 
 use std::collections::HashMap;
+use std::rc::Rc;
 
 use crate::error::{PolicyError, Result};
 use crate::weights::Scope;
@@ -40,10 +41,20 @@ pub struct Var(usize);
 type BackFn = Box<dyn Fn(&Values<'_>, &[f32], &mut Grads)>;
 
 struct Node {
-    value: Vec<f32>,
+    /// Shared, so that a reshape records its input's values without copying them.
+    value: Rc<Vec<f32>>,
     shape: Vec<usize>,
     needs_grad: bool,
-    back: Option<BackFn>,
+    back: Option<Backward>,
+}
+
+/// How a node's output gradient reaches its inputs.
+enum Backward {
+    /// A closure maps it onto the inputs' accumulators.
+    Map(BackFn),
+    /// The output is its input's values under another shape: the gradient buffer itself
+    /// becomes (or is added to) the input's, without a copy.
+    PassTo(Var),
 }
 
 /// The recorded forward computation.
@@ -89,6 +100,23 @@ impl Grads {
         }
         let len = self.lens[v.0];
         Some(self.grads[v.0].get_or_insert_with(|| vec![0.0; len]))
+    }
+
+    /// Adds `g` into the accumulator of `v` (if it is trained), taking the buffer itself
+    /// when `v` has none yet (the same values as adding it to zeros).
+    fn add_owned(&mut self, v: Var, g: Vec<f32>) {
+        if !self.needs[v.0] {
+            return;
+        }
+        debug_assert_eq!(g.len(), self.lens[v.0]);
+        match &mut self.grads[v.0] {
+            Some(acc) => {
+                for (x, y) in acc.iter_mut().zip(&g) {
+                    *x += y;
+                }
+            }
+            empty @ None => *empty = Some(g),
+        }
     }
 
     /// Adds `g` into the accumulator of `v` (if it is trained).
@@ -154,6 +182,23 @@ impl Tape {
         parents: &[Var],
         back: Option<BackFn>,
     ) -> Var {
+        self.push_node(Rc::new(value), shape, parents, back.map(Backward::Map))
+    }
+
+    /// Records `a`'s values (shared, not copied) under `shape`; its gradient is handed on
+    /// to `a` as it is.
+    fn push_reshaped(&mut self, a: Var, shape: Vec<usize>) -> Var {
+        let value = Rc::clone(&self.nodes[a.0].value);
+        self.push_node(value, shape, &[a], Some(Backward::PassTo(a)))
+    }
+
+    fn push_node(
+        &mut self,
+        value: Rc<Vec<f32>>,
+        shape: Vec<usize>,
+        parents: &[Var],
+        back: Option<Backward>,
+    ) -> Var {
         debug_assert_eq!(value.len(), shape.iter().product::<usize>());
         let needs_grad = parents.iter().any(|p| self.nodes[p.0].needs_grad);
         self.nodes.push(Node {
@@ -174,7 +219,7 @@ impl Tape {
     ) -> Result<Var> {
         check_shape(what, value.len(), shape)?;
         self.nodes.push(Node {
-            value,
+            value: Rc::new(value),
             shape: shape.to_vec(),
             needs_grad: grad,
             back: None,
@@ -256,7 +301,10 @@ impl Tape {
             let Some(g) = grads.grads[i].take() else {
                 continue;
             };
-            back(&values, &g, &mut grads);
+            match back {
+                Backward::Map(f) => f(&values, &g, &mut grads),
+                Backward::PassTo(a) => grads.add_owned(*a, g),
+            }
         }
         Ok(Gradients { grads: grads.grads })
     }
@@ -285,4 +333,63 @@ fn check_shape(what: &str, len: usize, shape: &[usize]) -> Result<()> {
         });
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::check::{finite_difference_check, FdOptions};
+    use super::*;
+    use crate::weights::Weights;
+
+    #[test]
+    fn a_reshape_shares_its_values_and_hands_its_gradient_on() {
+        let mut t = Tape::new();
+        let x = t
+            .variable(vec![1.0, -2.0, 3.0, 0.5, 4.0, -1.5], &[2, 3])
+            .unwrap();
+        let r = t.reshape(x, &[3, 2]).unwrap();
+        assert_eq!(t.shape(r), &[3, 2]);
+        assert_eq!(t.value(r), t.value(x));
+        assert!(
+            std::ptr::eq(t.value(r).as_ptr(), t.value(x).as_ptr()),
+            "a reshape records no copy"
+        );
+        // x reaches the outputs three ways: through the sum's two operands (once through
+        // the reshape) and through a chain of two reshapes.
+        let twice = t.add(r, x).unwrap();
+        let chained = t.reshape(r, &[6]).unwrap();
+        let seed_twice = [0.5f32, -1.0, 2.0, 0.25, -0.75, 1.5];
+        let seed_chained = [1.0f32, 2.0, -3.0, 4.0, -5.0, 6.0];
+        let g = t
+            .backward_many(&[(twice, &seed_twice), (chained, &seed_chained)])
+            .unwrap();
+        let expected: Vec<f32> = seed_twice
+            .iter()
+            .zip(&seed_chained)
+            .map(|(a, b)| 2.0 * a + b)
+            .collect();
+        assert_eq!(g.of(x).unwrap(), expected.as_slice());
+    }
+
+    #[test]
+    fn gradients_through_reshapes_match_finite_differences() {
+        let w = Weights::from_tensors("none", Default::default());
+        let x = (vec![0.3f32, -0.7, 1.1, 0.9], vec![2, 2]);
+        let report = finite_difference_check(
+            &w,
+            "",
+            std::slice::from_ref(&x),
+            FdOptions::default(),
+            |t, _, v| {
+                // x ⊙ x through two reshapes of the same input: the first hands its
+                // gradient buffer on, the second adds to it.
+                let a = t.reshape(v[0], &[4])?;
+                let b = t.reshape(v[0], &[4, 1])?;
+                let y = t.mul(a, b)?;
+                t.reshape(y, &[1, 4])
+            },
+        )
+        .unwrap();
+        assert!(report.passed(), "{report:?}");
+    }
 }

@@ -174,13 +174,7 @@ impl Tape {
     /// The same values under another shape (same number of values).
     pub fn reshape(&mut self, a: Var, shape: &[usize]) -> Result<Var> {
         check_shape("reshape", self.value(a).len(), shape)?;
-        let v = self.value(a).to_vec();
-        Ok(self.push(
-            v,
-            shape.to_vec(),
-            &[a],
-            Some(Box::new(move |_, g, gr| gr.add(a, g))),
-        ))
+        Ok(self.push_reshaped(a, shape.to_vec()))
     }
 
     /// The sum of all values, shape `[1]`.
