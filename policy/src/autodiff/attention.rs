@@ -533,24 +533,13 @@ pub fn graph_attention(
     let a = layers::layer_norm(t, &s.sub("alpha_norm"), a, ach)?;
     let a = t.act(a, Act::SmoothLeakyRelu(0.2));
     let dot = t.param(s, "alpha_dot", &[heads, ach])?;
-    let head_of: Vec<usize> = (0..ne).flat_map(|_| 0..heads).collect();
-    let dot_rows = t.gather_rows(dot, ach, &head_of)?;
-    let prod = t.mul(a, dot_rows)?;
+    let prod = t.mul_broadcast(a, dot, [1, ne, heads * ach, 1])?;
     let ones = t.constant(vec![1.0; ach], &[1, ach])?;
     let logit = t.linear(prod, ones, None)?;
     let alpha = grouped_softmax(t, logit, dst, nd, heads)?;
 
     // Weight each head's values, rotate back, sum at the destinations, project.
-    let nr = map.len();
-    let spread: Vec<usize> = (0..ne)
-        .flat_map(|e| {
-            (0..nr).flat_map(move |_| {
-                (0..heads).flat_map(move |hd| std::iter::repeat_n(e * heads + hd, vc))
-            })
-        })
-        .collect();
-    let weights = t.gather_rows(alpha, 1, &spread)?;
-    let v = t.mul(v, weights)?;
+    let v = t.mul_broadcast(v, alpha, [ne, map.len(), heads, vc])?;
     let back = rotate_back(t, &edges.wigners, &map, v, heads * vc)?;
     let agg = t.scatter_add_rows(back, k * heads * vc, dst, nd)?;
     let agg = t.reshape(agg, &[nd, k, heads * vc])?;

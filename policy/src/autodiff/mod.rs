@@ -372,6 +372,51 @@ mod tests {
     }
 
     #[test]
+    fn a_broadcast_product_is_the_product_with_the_gathered_factors() {
+        // x [A=2, B=3, C=2, D=2] times s [2, 2], against `mul` with s gathered to x's
+        // shape: values and both gradients bit for bit.
+        let dims = [2usize, 3, 2, 2];
+        let x: Vec<f32> = (0..24).map(|i| 0.37 * i as f32 - 4.1).collect();
+        let s = vec![1.5f32, -0.25, 0.75, 2.0];
+        let seed: Vec<f32> = (0..24).map(|i| ((i * 7) % 5) as f32 - 1.7).collect();
+        let run = |fused: bool| {
+            let mut t = Tape::new();
+            let xv = t.variable(x.clone(), &[2, 3, 2, 2]).unwrap();
+            let sv = t.variable(s.clone(), &[2, 2]).unwrap();
+            let y = if fused {
+                t.mul_broadcast(xv, sv, dims).unwrap()
+            } else {
+                let idx: Vec<usize> = (0..2)
+                    .flat_map(|a| {
+                        (0..3).flat_map(move |_| (0..2).flat_map(move |c| [a * 2 + c; 2]))
+                    })
+                    .collect();
+                let tiled = t.gather_rows(sv, 1, &idx).unwrap();
+                t.mul(xv, tiled).unwrap()
+            };
+            let g = t.backward(y, &seed).unwrap();
+            (
+                t.value(y).to_vec(),
+                g.of(xv).unwrap().to_vec(),
+                g.of(sv).unwrap().to_vec(),
+            )
+        };
+        let (fused, gathered) = (run(true), run(false));
+        assert_eq!(fused, gathered);
+        // Flat index ((a·B + b)·C + c)·D + d reads s[a·C + c].
+        assert_eq!(fused.0[5], x[5] * s[0], "a 0, b 1, c 0");
+        assert_eq!(fused.0[7], x[7] * s[1], "a 0, b 1, c 1");
+        assert_eq!(fused.0[12], x[12] * s[2], "a 1, b 0, c 0");
+        let mut t = Tape::new();
+        let xv = t.variable(x.clone(), &[24]).unwrap();
+        let sv = t.variable(vec![0.0; 3], &[3]).unwrap();
+        assert!(
+            t.mul_broadcast(xv, sv, dims).is_err(),
+            "factors of the wrong length are an error"
+        );
+    }
+
+    #[test]
     fn gradients_through_reshapes_match_finite_differences() {
         let w = Weights::from_tensors("none", Default::default());
         let x = (vec![0.3f32, -0.7, 1.1, 0.9], vec![2, 2]);

@@ -81,6 +81,28 @@ fn same_len(what: &str, a: usize, b: usize) -> Result<()> {
     Ok(())
 }
 
+/// `out[c·run + d] (=|+=) x[c·run + d] · f[c]`: runs of `run` values, each scaled by its
+/// factor (one block of [`Tape::mul_broadcast`]).
+fn scale_runs(out: &mut [f32], x: &[f32], f: &[f32], run: usize, accumulate: bool) {
+    if run == 1 {
+        for ((o, xi), fi) in out.iter_mut().zip(x).zip(f) {
+            *o = if accumulate { *o + xi * fi } else { xi * fi };
+        }
+        return;
+    }
+    for ((oc, xc), fi) in out.chunks_exact_mut(run).zip(x.chunks_exact(run)).zip(f) {
+        if accumulate {
+            for (o, xi) in oc.iter_mut().zip(xc) {
+                *o += xi * fi;
+            }
+        } else {
+            for (o, xi) in oc.iter_mut().zip(xc) {
+                *o = xi * fi;
+            }
+        }
+    }
+}
+
 fn rows(what: &str, len: usize, row: usize) -> Result<usize> {
     crate::layers::rows_of(what, len, row)
 }
@@ -490,10 +512,84 @@ impl Tape {
                 got: vec![rows_x, c],
             });
         }
-        let r = rows_x / n;
-        let idx: Vec<usize> = (0..n).flat_map(|i| std::iter::repeat_n(i, r)).collect();
-        let tiled = self.gather_rows(s, c, &idx)?;
-        self.mul(x, tiled)
+        self.mul_broadcast(x, s, [n, rows_x / n, c, 1])
+    }
+
+    /// `x` `[A, B, C, D]` times `s` `[A, C]` broadcast over B and D:
+    /// `y[a, b, c, d] = x[a, b, c, d] · s[a, c]` (a gate per node and channel over the node's
+    /// coefficient rows, an attention weight per edge and head over the edge's rows and
+    /// value channels). The values and gradients are those of `mul` with `s` gathered to
+    /// `x`'s shape, summed in the same order, without the gathered copy and its indices.
+    pub fn mul_broadcast(&mut self, x: Var, s: Var, dims: [usize; 4]) -> Result<Var> {
+        let [na, nb, nc, nd] = dims;
+        same_len(
+            "broadcast product input",
+            na * nb * nc * nd,
+            self.value(x).len(),
+        )?;
+        same_len("broadcast product factors", na * nc, self.value(s).len())?;
+        let block = nc * nd;
+        let (xv, sv) = (self.value(x), self.value(s));
+        let mut y = vec![0.0f32; xv.len()];
+        if block > 0 {
+            for (ab, (yb, xb)) in y
+                .chunks_exact_mut(block)
+                .zip(xv.chunks_exact(block))
+                .enumerate()
+            {
+                scale_runs(yb, xb, &sv[(ab / nb) * nc..(ab / nb + 1) * nc], nd, false);
+            }
+        }
+        let shape = self.shape(x).to_vec();
+        Ok(self.push(
+            y,
+            shape,
+            &[x, s],
+            Some(Box::new(move |vals, g, gr| {
+                if block == 0 {
+                    return;
+                }
+                if let Some(acc) = gr.acc(x) {
+                    let sv = vals.get(s);
+                    for (ab, (ar, gb)) in acc
+                        .chunks_exact_mut(block)
+                        .zip(g.chunks_exact(block))
+                        .enumerate()
+                    {
+                        scale_runs(ar, gb, &sv[(ab / nb) * nc..(ab / nb + 1) * nc], nd, true);
+                    }
+                }
+                if let Some(acc) = gr.acc(s) {
+                    let xv = vals.get(x);
+                    for (ab, (xb, gb)) in xv
+                        .chunks_exact(block)
+                        .zip(g.chunks_exact(block))
+                        .enumerate()
+                    {
+                        let ar = &mut acc[(ab / nb) * nc..(ab / nb + 1) * nc];
+                        if nd == 1 {
+                            for ((a, xi), gi) in ar.iter_mut().zip(xb).zip(gb) {
+                                *a += gi * xi;
+                            }
+                        } else {
+                            for ((a, xc), gc) in ar
+                                .iter_mut()
+                                .zip(xb.chunks_exact(nd))
+                                .zip(gb.chunks_exact(nd))
+                            {
+                                // Added one product at a time, in order: the sums of the
+                                // gathered product's backward, bit for bit.
+                                let mut sum = *a;
+                                for (gi, xi) in gc.iter().zip(xc) {
+                                    sum += gi * xi;
+                                }
+                                *a = sum;
+                            }
+                        }
+                    }
+                }
+            })),
+        ))
     }
 
     /// The separable S2 activation on `x` `[n, grid.reduced.len(), c]` with `gating` `[n,
