@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use super::{layers, Act, Tape, Var};
+use super::{layers, Act, Grads, Tape, Var};
 use crate::attention::{AttentionConfig, EdgeSet};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
@@ -327,9 +327,7 @@ pub fn so2_conv(
     } else {
         None
     };
-    // The outputs in m-major order (m = 0, +1, −1, +2, −2, ...; l ascending in each).
-    let mut y = t.slice_cols(o0, w0_out, extra..w0_out)?;
-    let mut ycols = l1 * cout;
+    let mut pairs = Vec::with_capacity(map.mmax);
     let mut roff = l1 * cin;
     for m in 1..=map.mmax {
         let nl = l1 - m;
@@ -342,33 +340,151 @@ pub fn so2_conv(
         let half = nl * cout;
         let w = t.param(&fs, "weight", &[2 * half, nl * cin])?;
         let w = keep_channels(t, w, 2 * half, (nl, cin, keep))?;
-        let oa = t.linear(va, w, None)?;
-        let ob = t.linear(vb, w, None)?;
-        // out(+m) = R a − I b, out(−m) = R b + I a.
-        let ra = t.slice_cols(oa, 2 * half, 0..half)?;
-        let ia = t.slice_cols(oa, 2 * half, half..2 * half)?;
-        let rb = t.slice_cols(ob, 2 * half, 0..half)?;
-        let ib = t.slice_cols(ob, 2 * half, half..2 * half)?;
-        let nib = t.scale(ib, -1.0);
-        let plus = t.add(ra, nib)?;
-        let minus = t.add(rb, ia)?;
-        y = t.concat_cols(y, ycols, plus, half)?;
-        ycols += half;
-        y = t.concat_cols(y, ycols, minus, half)?;
-        ycols += half;
+        pairs.push((t.linear(va, w, None)?, t.linear(vb, w, None)?));
     }
-    // Back to the reduced l-major order.
-    let mut from = vec![0usize; nr];
-    for (j, &p) in map.m_major().iter().enumerate() {
-        from[p] = j;
-    }
-    let yr = t.reshape(y, &[ne * nr, cout])?;
-    let idx: Vec<usize> = (0..ne)
-        .flat_map(|e| from.iter().map(move |j| e * nr + j))
-        .collect();
-    let y = t.gather_rows(yr, cout, &idx)?;
-    let y = t.reshape(y, &[ne, nr, cout])?;
+    let y = so2_outputs(t, map, (o0, w0_out, extra), &pairs, cout, ne);
     Ok((y, extra_out))
+}
+
+/// Where one output coefficient row of the SO(2) convolution comes from.
+#[derive(Debug, Clone, Copy)]
+enum So2Row {
+    /// Row `l` of the m = 0 product.
+    Zero(usize),
+    /// Row `i` of out(+m) = R a − I b, from pair `m − 1`.
+    Plus(usize, usize),
+    /// Row `i` of out(−m) = R b + I a, from pair `m − 1`.
+    Minus(usize, usize),
+}
+
+/// The SO(2) convolution's outputs in the reduced l-major order, `[ne, nr, cout]`: the
+/// m = 0 rows from `o0` (`[ne, w0]`, after its first `extra` scalars), and for each m > 0
+/// out(±m) from `pairs[m − 1]` = (a, b), each `[ne, 2·(lmax + 1 − m)·cout]` with the real
+/// part R before the imaginary part I. One pass, where the slices, the negation, the sums,
+/// the growing concatenations and the reordering gather of the plain composition each
+/// copied everything; the same values, and the same gradients (each input value feeds
+/// one output value).
+fn so2_outputs(
+    t: &mut Tape,
+    map: &CoefficientMapping,
+    (o0, w0, extra): (Var, usize, usize),
+    pairs: &[(Var, Var)],
+    cout: usize,
+    ne: usize,
+) -> Var {
+    let l1 = map.lmax + 1;
+    // m-major order (m = 0, +1, −1, +2, −2, ...; l ascending in each) to positions.
+    let mut by_m: Vec<So2Row> = (0..l1).map(So2Row::Zero).collect();
+    for m in 1..=map.mmax {
+        by_m.extend((0..l1 - m).map(|i| So2Row::Plus(m, i)));
+        by_m.extend((0..l1 - m).map(|i| So2Row::Minus(m, i)));
+    }
+    let mut rows = vec![So2Row::Zero(0); map.len()];
+    for (j, &p) in map.m_major().iter().enumerate() {
+        rows[p] = by_m[j];
+    }
+    let rows: Arc<[So2Row]> = rows.into();
+    let nr = rows.len();
+    // Width of pair m's rows and the offset of its imaginary part.
+    let half = move |m: usize| (l1 - m) * cout;
+    let mut y = vec![0.0f32; ne * nr * cout];
+    {
+        let v0 = t.value(o0);
+        let vp: Vec<(&[f32], &[f32])> = pairs
+            .iter()
+            .map(|&(a, b)| (t.value(a), t.value(b)))
+            .collect();
+        for (e, ye) in y.chunks_exact_mut(nr * cout).enumerate() {
+            for (row, yr) in rows.iter().zip(ye.chunks_exact_mut(cout)) {
+                match *row {
+                    So2Row::Zero(l) => {
+                        let at = e * w0 + extra + l * cout;
+                        yr.copy_from_slice(&v0[at..at + cout]);
+                    }
+                    So2Row::Plus(m, i) | So2Row::Minus(m, i) => {
+                        let (a, b) = vp[m - 1];
+                        let h = half(m);
+                        let base = e * 2 * h + i * cout;
+                        let (ra, ia) = (&a[base..base + cout], &a[base + h..base + h + cout]);
+                        let (rb, ib) = (&b[base..base + cout], &b[base + h..base + h + cout]);
+                        if matches!(row, So2Row::Plus(..)) {
+                            for ((o, x), z) in yr.iter_mut().zip(ra).zip(ib) {
+                                *o = x + -z;
+                            }
+                        } else {
+                            for ((o, x), z) in yr.iter_mut().zip(rb).zip(ia) {
+                                *o = x + z;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+    }
+    let mut parents = vec![o0];
+    parents.extend(pairs.iter().flat_map(|&(a, b)| [a, b]));
+    let pairs: Vec<(Var, Var)> = pairs.to_vec();
+    t.push(
+        y,
+        vec![ne, nr, cout],
+        &parents,
+        Some(Box::new(move |_, g, gr| {
+            // Each input value feeds exactly one output value: adding into the zeroed
+            // accumulators gives what the plain composition's chain of copies gave.
+            let add_rows = |gr: &mut Grads,
+                            v: Var,
+                            pick: &dyn Fn(So2Row) -> Option<(usize, f32)>,
+                            width: usize| {
+                if let Some(acc) = gr.acc(v) {
+                    for (e, ge) in g.chunks_exact(nr * cout).enumerate() {
+                        for (row, gr_row) in rows.iter().zip(ge.chunks_exact(cout)) {
+                            if let Some((col, sign)) = pick(*row) {
+                                let at = e * width + col;
+                                for (a, x) in acc[at..at + cout].iter_mut().zip(gr_row) {
+                                    *a += sign * x;
+                                }
+                            }
+                        }
+                    }
+                }
+            };
+            add_rows(
+                gr,
+                o0,
+                &|r| match r {
+                    So2Row::Zero(l) => Some((extra + l * cout, 1.0)),
+                    _ => None,
+                },
+                w0,
+            );
+            for (k, &(a, b)) in pairs.iter().enumerate() {
+                let m = k + 1;
+                let h = half(m);
+                // a: R a feeds out(+m), I a feeds out(−m).
+                add_rows(
+                    gr,
+                    a,
+                    &|r| match r {
+                        So2Row::Plus(mm, i) if mm == m => Some((i * cout, 1.0)),
+                        So2Row::Minus(mm, i) if mm == m => Some((h + i * cout, 1.0)),
+                        _ => None,
+                    },
+                    2 * h,
+                );
+                // b: R b feeds out(−m), −I b feeds out(+m).
+                add_rows(
+                    gr,
+                    b,
+                    &|r| match r {
+                        So2Row::Minus(mm, i) if mm == m => Some((i * cout, 1.0)),
+                        So2Row::Plus(mm, i) if mm == m => Some((h + i * cout, -1.0)),
+                        _ => None,
+                    },
+                    2 * h,
+                );
+            }
+        })),
+    )
 }
 
 /// Softmax of `logit` `[E, heads]` over the edges sharing a destination, as
