@@ -388,7 +388,8 @@ fn so2_outputs(
     // Width of pair m's rows and the offset of its imaginary part.
     let half = move |m: usize| (l1 - m) * cout;
     let mut y = vec![0.0f32; ne * nr * cout];
-    {
+    // No channels, no values (and no zero-width chunks).
+    if cout > 0 {
         let v0 = t.value(o0);
         let vp: Vec<(&[f32], &[f32])> = pairs
             .iter()
@@ -435,6 +436,9 @@ fn so2_outputs(
                             v: Var,
                             pick: &dyn Fn(So2Row) -> Option<(usize, f32)>,
                             width: usize| {
+                if cout == 0 {
+                    return;
+                }
                 if let Some(acc) = gr.acc(v) {
                     for (e, ge) in g.chunks_exact(nr * cout).enumerate() {
                         for (row, gr_row) in rows.iter().zip(ge.chunks_exact(cout)) {
