@@ -1,5 +1,6 @@
 //! The `equact` application library: the episode loop, MCAP recording and the pieces of the
-//! CLI that tests exercise directly. The binary (`src/main.rs`) only parses arguments.
+//! CLI that tests exercise directly. The binary (`src/main.rs`) only parses arguments and
+//! sets the allocator to keep freed memory (`libc::mallopt`, glibc only; see its doc).
 //!
 //! Libraries: `mcap` (the reference Rust MCAP writer/reader; lz4 chunk compression only, so
 //! a single small C library is built), `serde_json` + `base64` for Foxglove's JSON message
