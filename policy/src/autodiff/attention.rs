@@ -5,7 +5,7 @@
 
 use std::sync::Arc;
 
-use super::{layers, Act, Grads, Tape, Var};
+use super::{layers, Act, Tape, Var};
 use crate::attention::{AttentionConfig, EdgeSet};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
@@ -346,24 +346,22 @@ pub fn so2_conv(
     Ok((y, extra_out))
 }
 
-/// Where one output coefficient row of the SO(2) convolution comes from.
+/// One term of an SO(2) convolution output row: `sign ·` columns `col..col + cout` of
+/// input `input` (0: the m = 0 product; 2m − 1, 2m: pair m's a and b).
 #[derive(Debug, Clone, Copy)]
-enum So2Row {
-    /// Row `l` of the m = 0 product.
-    Zero(usize),
-    /// Row `i` of out(+m) = R a − I b, from pair `m − 1`.
-    Plus(usize, usize),
-    /// Row `i` of out(−m) = R b + I a, from pair `m − 1`.
-    Minus(usize, usize),
+struct So2Term {
+    input: usize,
+    col: usize,
+    sign: f32,
 }
 
 /// The SO(2) convolution's outputs in the reduced l-major order, `[ne, nr, cout]`: the
 /// m = 0 rows from `o0` (`[ne, w0]`, after its first `extra` scalars), and for each m > 0
-/// out(±m) from `pairs[m − 1]` = (a, b), each `[ne, 2·(lmax + 1 − m)·cout]` with the real
-/// part R before the imaginary part I. One pass, where the slices, the negation, the sums,
-/// the growing concatenations and the reordering gather of the plain composition each
-/// copied everything; the same values, and the same gradients (each input value feeds
-/// one output value).
+/// out(+m) = R a − I b and out(−m) = R b + I a from `pairs[m − 1]` = (a, b), each
+/// `[ne, 2·(lmax + 1 − m)·cout]` with the real part R before the imaginary part I. One
+/// table of terms drives both passes, where the plain composition's slices, negation,
+/// sums, growing concatenations and reordering gather each copied everything; the values
+/// and gradients are the same (each input value feeds one output value).
 fn so2_outputs(
     t: &mut Tape,
     map: &CoefficientMapping,
@@ -373,119 +371,78 @@ fn so2_outputs(
     ne: usize,
 ) -> Var {
     let l1 = map.lmax + 1;
-    // m-major order (m = 0, +1, −1, +2, −2, ...; l ascending in each) to positions.
-    let mut by_m: Vec<So2Row> = (0..l1).map(So2Row::Zero).collect();
+    let term = |input, col, sign| So2Term { input, col, sign };
+    // The inputs with their row widths.
+    let mut inputs = vec![(o0, w0)];
+    for (k, &(a, b)) in pairs.iter().enumerate() {
+        let width = 2 * (l1 - k - 1) * cout;
+        inputs.extend([(a, width), (b, width)]);
+    }
+    // Rows in m-major order (m = 0, +1, −1, +2, −2, ...; l ascending in each).
+    let mut by_m: Vec<Vec<So2Term>> = (0..l1)
+        .map(|l| vec![term(0, extra + l * cout, 1.0)])
+        .collect();
     for m in 1..=map.mmax {
-        by_m.extend((0..l1 - m).map(|i| So2Row::Plus(m, i)));
-        by_m.extend((0..l1 - m).map(|i| So2Row::Minus(m, i)));
+        let (a, b, half) = (2 * m - 1, 2 * m, (l1 - m) * cout);
+        by_m.extend(
+            (0..l1 - m).map(|i| vec![term(a, i * cout, 1.0), term(b, half + i * cout, -1.0)]),
+        );
+        by_m.extend(
+            (0..l1 - m).map(|i| vec![term(b, i * cout, 1.0), term(a, half + i * cout, 1.0)]),
+        );
     }
-    let mut rows = vec![So2Row::Zero(0); map.len()];
+    // ... placed at their l-major positions.
+    let mut rows = vec![Vec::new(); map.len()];
     for (j, &p) in map.m_major().iter().enumerate() {
-        rows[p] = by_m[j];
+        rows[p] = std::mem::take(&mut by_m[j]);
     }
-    let rows: Arc<[So2Row]> = rows.into();
+    let rows: Arc<[Vec<So2Term>]> = rows.into();
     let nr = rows.len();
-    // Width of pair m's rows and the offset of its imaginary part.
-    let half = move |m: usize| (l1 - m) * cout;
     let mut y = vec![0.0f32; ne * nr * cout];
     // No channels, no values (and no zero-width chunks).
     if cout > 0 {
-        let v0 = t.value(o0);
-        let vp: Vec<(&[f32], &[f32])> = pairs
-            .iter()
-            .map(|&(a, b)| (t.value(a), t.value(b)))
-            .collect();
+        let values: Vec<&[f32]> = inputs.iter().map(|&(v, _)| t.value(v)).collect();
         for (e, ye) in y.chunks_exact_mut(nr * cout).enumerate() {
-            for (row, yr) in rows.iter().zip(ye.chunks_exact_mut(cout)) {
-                match *row {
-                    So2Row::Zero(l) => {
-                        let at = e * w0 + extra + l * cout;
-                        yr.copy_from_slice(&v0[at..at + cout]);
-                    }
-                    So2Row::Plus(m, i) | So2Row::Minus(m, i) => {
-                        let (a, b) = vp[m - 1];
-                        let h = half(m);
-                        let base = e * 2 * h + i * cout;
-                        let (ra, ia) = (&a[base..base + cout], &a[base + h..base + h + cout]);
-                        let (rb, ib) = (&b[base..base + cout], &b[base + h..base + h + cout]);
-                        if matches!(row, So2Row::Plus(..)) {
-                            for ((o, x), z) in yr.iter_mut().zip(ra).zip(ib) {
-                                *o = x + -z;
-                            }
+            for (terms, yr) in rows.iter().zip(ye.chunks_exact_mut(cout)) {
+                for (k, tm) in terms.iter().enumerate() {
+                    let at = e * inputs[tm.input].1 + tm.col;
+                    let src = &values[tm.input][at..at + cout];
+                    for (o, x) in yr.iter_mut().zip(src) {
+                        *o = if k == 0 {
+                            tm.sign * x
                         } else {
-                            for ((o, x), z) in yr.iter_mut().zip(rb).zip(ia) {
-                                *o = x + z;
-                            }
-                        }
+                            *o + tm.sign * x
+                        };
                     }
                 }
             }
         }
     }
-    let mut parents = vec![o0];
-    parents.extend(pairs.iter().flat_map(|&(a, b)| [a, b]));
-    let pairs: Vec<(Var, Var)> = pairs.to_vec();
+    let parents: Vec<Var> = inputs.iter().map(|&(v, _)| v).collect();
     t.push(
         y,
         vec![ne, nr, cout],
         &parents,
         Some(Box::new(move |_, g, gr| {
+            if cout == 0 {
+                return;
+            }
             // Each input value feeds exactly one output value: adding into the zeroed
             // accumulators gives what the plain composition's chain of copies gave.
-            let add_rows = |gr: &mut Grads,
-                            v: Var,
-                            pick: &dyn Fn(So2Row) -> Option<(usize, f32)>,
-                            width: usize| {
-                if cout == 0 {
-                    return;
-                }
-                if let Some(acc) = gr.acc(v) {
-                    for (e, ge) in g.chunks_exact(nr * cout).enumerate() {
-                        for (row, gr_row) in rows.iter().zip(ge.chunks_exact(cout)) {
-                            if let Some((col, sign)) = pick(*row) {
-                                let at = e * width + col;
-                                for (a, x) in acc[at..at + cout].iter_mut().zip(gr_row) {
-                                    *a += sign * x;
-                                }
+            for (input, &(v, width)) in inputs.iter().enumerate() {
+                let Some(acc) = gr.acc(v) else {
+                    continue;
+                };
+                for (e, ge) in g.chunks_exact(nr * cout).enumerate() {
+                    for (terms, grow) in rows.iter().zip(ge.chunks_exact(cout)) {
+                        for tm in terms.iter().filter(|tm| tm.input == input) {
+                            let at = e * width + tm.col;
+                            for (a, x) in acc[at..at + cout].iter_mut().zip(grow) {
+                                *a += tm.sign * x;
                             }
                         }
                     }
                 }
-            };
-            add_rows(
-                gr,
-                o0,
-                &|r| match r {
-                    So2Row::Zero(l) => Some((extra + l * cout, 1.0)),
-                    _ => None,
-                },
-                w0,
-            );
-            for (k, &(a, b)) in pairs.iter().enumerate() {
-                let m = k + 1;
-                let h = half(m);
-                // a: R a feeds out(+m), I a feeds out(−m).
-                add_rows(
-                    gr,
-                    a,
-                    &|r| match r {
-                        So2Row::Plus(mm, i) if mm == m => Some((i * cout, 1.0)),
-                        So2Row::Minus(mm, i) if mm == m => Some((h + i * cout, 1.0)),
-                        _ => None,
-                    },
-                    2 * h,
-                );
-                // b: R b feeds out(−m), −I b feeds out(+m).
-                add_rows(
-                    gr,
-                    b,
-                    &|r| match r {
-                        So2Row::Minus(mm, i) if mm == m => Some((i * cout, 1.0)),
-                        So2Row::Plus(mm, i) if mm == m => Some((h + i * cout, -1.0)),
-                        _ => None,
-                    },
-                    2 * h,
-                );
             }
         })),
     )

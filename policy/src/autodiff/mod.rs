@@ -105,17 +105,11 @@ impl Grads {
     /// Adds `g` into the accumulator of `v` (if it is trained), taking the buffer itself
     /// when `v` has none yet (the same values as adding it to zeros).
     fn add_owned(&mut self, v: Var, g: Vec<f32>) {
-        if !self.needs[v.0] {
-            return;
-        }
-        debug_assert_eq!(g.len(), self.lens[v.0]);
-        match &mut self.grads[v.0] {
-            Some(acc) => {
-                for (x, y) in acc.iter_mut().zip(&g) {
-                    *x += y;
-                }
-            }
-            empty @ None => *empty = Some(g),
+        if self.needs[v.0] && self.grads[v.0].is_none() {
+            debug_assert_eq!(g.len(), self.lens[v.0]);
+            self.grads[v.0] = Some(g);
+        } else {
+            self.add(v, &g);
         }
     }
 

@@ -81,23 +81,28 @@ fn same_len(what: &str, a: usize, b: usize) -> Result<()> {
     Ok(())
 }
 
-/// `out[c·run + d] (=|+=) x[c·run + d] · f[c]`: runs of `run` values, each scaled by its
-/// factor (one block of [`Tape::mul_broadcast`]).
-fn scale_runs(out: &mut [f32], x: &[f32], f: &[f32], run: usize, accumulate: bool) {
-    if run == 1 {
-        for ((o, xi), fi) in out.iter_mut().zip(x).zip(f) {
-            *o = if accumulate { *o + xi * fi } else { xi * fi };
-        }
+/// `out[i] (=|+=) x[i] · s[a·C + c]` for `i = ((a·B + b)·C + c)·D + d`: the product of
+/// [`Tape::mul_broadcast`], in blocks of C runs of D values, each run scaled by its factor.
+fn scale_blocks(out: &mut [f32], x: &[f32], s: &[f32], [nb, nc, nd]: [usize; 3], accumulate: bool) {
+    let block = nc * nd;
+    if block == 0 {
         return;
     }
-    for ((oc, xc), fi) in out.chunks_exact_mut(run).zip(x.chunks_exact(run)).zip(f) {
-        if accumulate {
-            for (o, xi) in oc.iter_mut().zip(xc) {
-                *o += xi * fi;
+    for (ab, (ob, xb)) in out
+        .chunks_exact_mut(block)
+        .zip(x.chunks_exact(block))
+        .enumerate()
+    {
+        let f = &s[(ab / nb) * nc..(ab / nb + 1) * nc];
+        if nd == 1 {
+            for ((o, xi), fi) in ob.iter_mut().zip(xb).zip(f) {
+                *o = if accumulate { *o + xi * fi } else { xi * fi };
             }
-        } else {
+            continue;
+        }
+        for ((oc, xc), fi) in ob.chunks_exact_mut(nd).zip(xb.chunks_exact(nd)).zip(f) {
             for (o, xi) in oc.iter_mut().zip(xc) {
-                *o = xi * fi;
+                *o = if accumulate { *o + xi * fi } else { xi * fi };
             }
         }
     }
@@ -531,15 +536,7 @@ impl Tape {
         let block = nc * nd;
         let (xv, sv) = (self.value(x), self.value(s));
         let mut y = vec![0.0f32; xv.len()];
-        if block > 0 {
-            for (ab, (yb, xb)) in y
-                .chunks_exact_mut(block)
-                .zip(xv.chunks_exact(block))
-                .enumerate()
-            {
-                scale_runs(yb, xb, &sv[(ab / nb) * nc..(ab / nb + 1) * nc], nd, false);
-            }
-        }
+        scale_blocks(&mut y, xv, sv, [nb, nc, nd], false);
         let shape = self.shape(x).to_vec();
         Ok(self.push(
             y,
@@ -550,14 +547,7 @@ impl Tape {
                     return;
                 }
                 if let Some(acc) = gr.acc(x) {
-                    let sv = vals.get(s);
-                    for (ab, (ar, gb)) in acc
-                        .chunks_exact_mut(block)
-                        .zip(g.chunks_exact(block))
-                        .enumerate()
-                    {
-                        scale_runs(ar, gb, &sv[(ab / nb) * nc..(ab / nb + 1) * nc], nd, true);
-                    }
+                    scale_blocks(acc, g, vals.get(s), [nb, nc, nd], true);
                 }
                 if let Some(acc) = gr.acc(s) {
                     let xv = vals.get(x);
