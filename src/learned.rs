@@ -106,6 +106,7 @@ impl LearnedPolicy {
     ) -> anyhow::Result<Self> {
         let model =
             robot_model(cfg).context("building the arm model for the policy's TCP input")?;
+        check_instruction_width(&policy, &instruction)?;
         Ok(Self {
             episode_seed: policy.seed,
             policy,
@@ -154,6 +155,25 @@ impl LearnedPolicy {
         Self::new(policy, instruction, cfg)
     }
 
+    /// The model compiled into the binary (`policy::builtin`: the cpu network trained on the
+    /// simulated cell's demonstrations), with `network` (the built-in configuration, perhaps
+    /// with other threads or sampling) adapted to the cell's workspace box and table.
+    pub fn load_builtin(
+        network: PolicyConfig,
+        instruction: InstructionEmbedding,
+        cfg: &CellConfig,
+        seed: u64,
+    ) -> anyhow::Result<Self> {
+        let mut policy = policy::builtin::policy(for_cell(network, cfg)).with_context(|| {
+            format!(
+                "loading the built-in EquAct weights ({})",
+                policy::builtin::WEIGHTS_PATH
+            )
+        })?;
+        policy.seed = seed;
+        Self::new(policy, instruction, cfg)
+    }
+
     /// The instruction the next predictions follow.
     pub fn set_instruction(&mut self, instruction: InstructionEmbedding) {
         self.instruction = instruction;
@@ -179,6 +199,24 @@ impl LearnedPolicy {
         self.predictions = 0;
         self.last = None;
     }
+}
+
+/// Refuses an instruction embedding of another token width than the network reads, when
+/// the policy is loaded rather than at its first prediction mid-episode.
+fn check_instruction_width(
+    policy: &Policy,
+    instruction: &InstructionEmbedding,
+) -> anyhow::Result<()> {
+    let want = policy.model().language().token_dim();
+    if instruction.dim() != want {
+        anyhow::bail!(
+            "the instruction embedding has {} values per token, the network reads {want} \
+             (384: MiniLM, `--minilm` or the built-in embeddings; 512: CLIP files): give the \
+             embedding the weights were trained with",
+            instruction.dim()
+        );
+    }
+    Ok(())
 }
 
 /// The network configuration with the crop box, focus box and table of this cell.
@@ -293,5 +331,36 @@ mod tests {
         let mut k = at(0.8);
         k.ignore_collisions = true;
         assert!(!with_collision_flag(k, &tcp, true).ignore_collisions);
+    }
+
+    #[test]
+    fn an_instruction_of_another_token_width_is_refused_when_loading() {
+        #![allow(clippy::unwrap_used)]
+        let cfg = CellConfig::simulated().unwrap();
+        let text = "pick up the peach";
+        let minilm = policy::builtin::instruction(text).unwrap();
+        // The built-in model reads MiniLM's 384-wide tokens.
+        assert!(
+            LearnedPolicy::load_builtin(policy::builtin::config(), minilm.clone(), &cfg, 0).is_ok()
+        );
+        let clip = InstructionEmbedding::random(0);
+        let err = LearnedPolicy::load_builtin(policy::builtin::config(), clip, &cfg, 0)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            err.contains("has 512 values per token, the network reads 384"),
+            "{err}"
+        );
+        // And a CLIP-width network refuses MiniLM's.
+        let tiny = Policy::random(for_cell(PolicyConfig::tiny(), &cfg), 1).unwrap();
+        let err = LearnedPolicy::new(tiny, minilm, &cfg)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            err.contains("has 384 values per token, the network reads 512"),
+            "{err}"
+        );
     }
 }

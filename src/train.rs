@@ -25,6 +25,9 @@ pub enum Instructions<'a> {
     Folder(&'a Path),
     /// Embedded now with the MiniLM sentence model in this folder (per-token states).
     MiniLm(&'a Path),
+    /// The MiniLM states compiled into the binary (`policy::builtin`), for the simulated
+    /// tasks' own instructions.
+    Builtin,
 }
 
 impl Instructions<'_> {
@@ -43,14 +46,19 @@ impl Instructions<'_> {
                     )
                 })
             }
-            Self::MiniLm(_) => self.embed_text(&kind.instruction()),
+            Self::MiniLm(_) | Self::Builtin => self.embed_text(&kind.instruction()),
         }
     }
 
-    /// The embedding of free text (MiniLM only: a folder of files has no entry for it).
+    /// The embedding of free text (MiniLM; the built-in store has the tasks' own texts only,
+    /// and a folder of files has no entry for free text).
     pub fn embed_text(&self, text: &str) -> anyhow::Result<InstructionEmbedding> {
-        let Self::MiniLm(dir) = self else {
-            anyhow::bail!("free-text instructions need the MiniLM model (--minilm DIR)");
+        let dir = match self {
+            Self::MiniLm(dir) => dir,
+            Self::Builtin => return Ok(policy::builtin::instruction(text)?),
+            Self::Folder(_) => {
+                anyhow::bail!("free-text instructions need the MiniLM model (--minilm DIR)")
+            }
         };
         let model = policy::minilm::MiniLm::load(dir)
             .with_context(|| format!("loading the MiniLM sentence model from {}", dir.display()))?;

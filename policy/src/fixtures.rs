@@ -68,9 +68,15 @@ pub fn read_safetensors(path: &Path) -> Result<HashMap<String, StoredTensor>> {
         path: path.to_path_buf(),
         source,
     })?;
+    parse_safetensors(&bytes, path)
+}
+
+/// Parses every tensor of safetensors bytes (F32 and I64 only); `source` names them in
+/// errors (a file, or the model compiled into the binary).
+pub fn parse_safetensors(bytes: &[u8], source: &Path) -> Result<HashMap<String, StoredTensor>> {
     let st =
-        safetensors::SafeTensors::deserialize(&bytes).map_err(|e| PolicyError::Safetensors {
-            path: path.to_path_buf(),
+        safetensors::SafeTensors::deserialize(bytes).map_err(|e| PolicyError::Safetensors {
+            path: source.to_path_buf(),
             message: e.to_string(),
         })?;
     let mut out = HashMap::new();

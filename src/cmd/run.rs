@@ -3,7 +3,7 @@
 //! the recording is.
 
 use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -22,10 +22,13 @@ use equact::task::{TaskInstance, TaskKind};
 use firmware_iface::arm::Arm;
 use policy::predict::PolicyConfig;
 
+use super::policy::HeadsArg;
+
 /// Which policy drives the episode.
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum PolicyChoice {
-    /// The EquAct network, with the weights of `--weights` (`equact train` makes them).
+    /// The EquAct network: the built-in model, or the weights of `--weights` (`equact
+    /// train` makes them).
     Learned,
     /// The scripted expert, from the simulator's true object poses.
     Expert,
@@ -39,8 +42,9 @@ pub struct RunArgs {
     pub config: Option<PathBuf>,
     /// Task and variation: pick_fruit/{strawberry,peach,plum},
     /// disassemble_pipe/{first_link,second_link,all}, pluck_flower/{top,middle,bottom},
-    /// install_toilet_roll/{large,small}; without a variation, the first.
-    #[arg(long, default_value = "pick_fruit/strawberry")]
+    /// install_toilet_roll/{large,small}; without a variation, the first. The default is
+    /// the variation the built-in model does best (README, Training).
+    #[arg(long, default_value = "pick_fruit/plum")]
     pub task: String,
     /// Language instruction (defaults to the task variation's own).
     #[arg(long)]
@@ -52,9 +56,10 @@ pub struct RunArgs {
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Which policy to run.
-    #[arg(long, value_enum, default_value_t = PolicyChoice::Expert)]
+    #[arg(long, value_enum, default_value_t = PolicyChoice::Learned)]
     pub policy: PolicyChoice,
-    /// Network weights for `--policy learned` (safetensors, as `equact policy predict` reads).
+    /// Network weights for `--policy learned` (safetensors, as `equact policy predict` reads);
+    /// the built-in model (`policy/weights/cpu_gated.safetensors`, compiled in) when omitted.
     #[arg(long)]
     pub weights: Option<PathBuf>,
     /// Instruction embedding for `--policy learned` (safetensors, one F32 tensor: tokens x
@@ -63,14 +68,17 @@ pub struct RunArgs {
     pub instruction_embedding: Option<PathBuf>,
     /// For `--policy learned`: embed the instruction (`--instruction`, or the variation's)
     /// with the MiniLM sentence model in this folder, as `equact train --minilm` does.
+    /// Without this or `--instruction-embedding`, the built-in MiniLM embedding of the
+    /// instruction (the simulated tasks' own wording only).
     #[arg(long)]
     pub minilm: Option<PathBuf>,
-    /// Network size the weights were trained with.
-    #[arg(long, value_enum, default_value_t = NetworkSize::Physical)]
-    pub network: NetworkSize,
+    /// Network size the weights were trained with (default: cpu for the built-in model,
+    /// physical for `--weights`).
+    #[arg(long, value_enum)]
+    pub network: Option<NetworkSize>,
     /// Field heads the weights were trained with (`equact train --heads`).
-    #[arg(long, value_enum, default_value_t = super::policy::HeadsArg::Equivariant)]
-    pub heads: super::policy::HeadsArg,
+    #[arg(long, value_enum, default_value_t = HeadsArg::Equivariant)]
+    pub heads: HeadsArg,
     /// Next-ranked keyframes of the learned policy to try when the planner refuses its
     /// best one, each also moved back 1 and 2 cm along its approach axis (0: the network's
     /// argmax or nothing, as the paper evaluates).
@@ -108,6 +116,39 @@ impl NetworkSize {
     }
 }
 
+/// The network configuration for the chosen weights (`None`: the built-in model, which is
+/// the cpu network with equivariant heads; a weights file defaults to the physical size).
+pub fn network_config(
+    weights: Option<&Path>,
+    network: Option<NetworkSize>,
+    heads: HeadsArg,
+) -> anyhow::Result<PolicyConfig> {
+    if weights.is_none() {
+        if network.is_some_and(|n| n != NetworkSize::Cpu) || heads != HeadsArg::Equivariant {
+            anyhow::bail!(
+                "the built-in model ({}) is the cpu network with equivariant heads; another \
+                 --network or --heads needs its weights file (--weights / --model FILE)",
+                policy::builtin::WEIGHTS_PATH
+            );
+        }
+        return Ok(policy::builtin::config());
+    }
+    let mut cfg = network.unwrap_or(NetworkSize::Physical).config();
+    cfg.model.heads = heads.kind();
+    Ok(cfg)
+}
+
+/// Names the weights a learned policy runs, for the terminal and the recordings.
+pub fn describe_weights(weights: Option<&Path>) -> String {
+    match weights {
+        Some(w) => w.display().to_string(),
+        None => format!(
+            "the built-in model ({}, cpu network)",
+            policy::builtin::WEIGHTS_PATH
+        ),
+    }
+}
+
 impl PolicyChoice {
     fn label(self) -> &'static str {
         match self {
@@ -124,36 +165,23 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     if real && args.policy == PolicyChoice::Expert {
         anyhow::bail!(
             "the scripted expert reads the simulator's true object poses, which a real cell \
-             does not have: run a real cell with --policy learned --weights FILE \
-             --instruction-embedding FILE, or use the simulated cell (no --config)"
+             does not have: run a real cell with --policy learned (the default), or use the \
+             simulated cell (no --config)"
         );
     }
-    let learned_files = match args.policy {
-        PolicyChoice::Expert => None,
-        PolicyChoice::Learned => {
-            let Some(weights) = args.weights.clone() else {
-                anyhow::bail!(
-                    "--policy learned needs --weights FILE (the model.safetensors of an \
-                     `equact train` run); or run with --policy expert"
-                );
-            };
-            let embedding = match (&args.instruction_embedding, &args.minilm) {
-                (Some(e), _) => e.clone(),
-                (None, Some(m)) => m.clone(),
-                (None, None) => anyhow::bail!(
-                    "--policy learned needs --instruction-embedding FILE (tokens x width \
-                     safetensors, e.g. CLIP 53 x 512 or `equact policy embed --out`) or --minilm \
-                     DIR to embed the instruction `{}`",
-                    args.instruction
-                        .as_deref()
-                        .unwrap_or("of the task variation")
-                ),
-            };
-            Some((weights, embedding))
-        }
+    let learned_chosen = args.policy == PolicyChoice::Learned;
+    // Checked before anything starts: a wrong size or heads for the built-in model fails now.
+    let network = if learned_chosen {
+        Some(network_config(
+            args.weights.as_deref(),
+            args.network,
+            args.heads,
+        )?)
+    } else {
+        None
     };
     let kind = TaskKind::parse(&args.task).map_err(anyhow::Error::msg)?;
-    if let (Some(text), None) = (&args.instruction, &learned_files) {
+    if let (Some(text), false) = (&args.instruction, learned_chosen) {
         if *text != kind.instruction() {
             anyhow::bail!(
                 "the scripted expert follows the task variation, not free text: `{text}` is not \
@@ -182,30 +210,31 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     }
 
     // Load the network once, before any cell starts: a bad file fails fast.
-    let mut learned = match &learned_files {
+    let mut learned = match network {
         None => None,
-        Some((weights, embedding)) => {
+        Some(network) => {
             println!(
-                "loading the EquAct network ({:?}) from {}",
-                args.network,
-                weights.display()
+                "loading the EquAct network: {} (--policy expert runs the scripted expert)",
+                describe_weights(args.weights.as_deref())
             );
-            let mut network = args.network.config();
-            network.model.heads = args.heads.kind();
-            let instruction = match &args.minilm {
-                Some(dir) => {
-                    let text = args
-                        .instruction
-                        .clone()
-                        .unwrap_or_else(|| kind.instruction());
-                    equact::train::Instructions::MiniLm(dir).embed_text(&text)?
-                }
-                None => policy::predict::InstructionEmbedding::from_file(embedding).with_context(
-                    || format!("reading the instruction embedding {}", embedding.display()),
-                )?,
+            let text = args
+                .instruction
+                .clone()
+                .unwrap_or_else(|| kind.instruction());
+            let instruction = match (&args.instruction_embedding, &args.minilm) {
+                (Some(file), _) => policy::predict::InstructionEmbedding::from_file(file)
+                    .with_context(|| {
+                        format!("reading the instruction embedding {}", file.display())
+                    })?,
+                (None, Some(dir)) => equact::train::Instructions::MiniLm(dir).embed_text(&text)?,
+                (None, None) => equact::train::Instructions::Builtin.embed_text(&text)?,
             };
-            let mut policy =
-                LearnedPolicy::load_with(network, weights, instruction, &cfg, args.seed)?;
+            let mut policy = match &args.weights {
+                Some(weights) => {
+                    LearnedPolicy::load_with(network, weights, instruction, &cfg, args.seed)?
+                }
+                None => LearnedPolicy::load_builtin(network, instruction, &cfg, args.seed)?,
+            };
             policy.set_alternatives(args.alternatives);
             policy.set_threads(args.threads);
             Some(policy)
@@ -284,14 +313,17 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
         meta.insert("instruction".into(), kind.instruction());
         meta.insert("seed".into(), seed.to_string());
         meta.insert("policy".into(), args.policy.label().into());
-        if let Some((w, e)) = &learned_files {
-            meta.insert("weights".into(), w.display().to_string());
-            let key = if args.minilm.is_some() {
-                "minilm"
-            } else {
-                "instruction_embedding"
+        if learned_chosen {
+            meta.insert("weights".into(), describe_weights(args.weights.as_deref()));
+            let instruction = match (&args.instruction_embedding, &args.minilm) {
+                (Some(file), _) => ("instruction_embedding", file.display().to_string()),
+                (None, Some(dir)) => ("minilm", dir.display().to_string()),
+                (None, None) => (
+                    "instruction_embedding",
+                    format!("built-in ({})", policy::builtin::INSTRUCTIONS_PATH),
+                ),
             };
-            meta.insert(key.into(), e.display().to_string());
+            meta.insert(instruction.0.into(), instruction.1);
         }
         meta.insert("equact_version".into(), env!("CARGO_PKG_VERSION").into());
         meta.insert("config".into(), cfg.to_toml_string()?);
@@ -446,4 +478,34 @@ fn print_report(report: &equact::episode::EpisodeReport) {
         report.detail
     );
     println!("  recording: {}", report.recording.display());
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+
+    #[test]
+    fn the_builtin_model_is_the_cpu_network_with_equivariant_heads() {
+        let builtin = network_config(None, None, HeadsArg::Equivariant).unwrap();
+        assert_eq!(builtin.n_points, policy::builtin::config().n_points);
+        assert!(network_config(None, Some(NetworkSize::Cpu), HeadsArg::Equivariant).is_ok());
+        for (network, heads) in [
+            (Some(NetworkSize::Physical), HeadsArg::Equivariant),
+            (None, HeadsArg::Plain),
+        ] {
+            let err = network_config(None, network, heads)
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains("needs its weights file"), "{err}");
+        }
+        // A weights file keeps the documented default size, and takes the heads asked for.
+        let file = Path::new("runs/plain/model.safetensors");
+        let physical = network_config(Some(file), None, HeadsArg::Plain).unwrap();
+        assert_eq!(physical.n_points, PolicyConfig::physical().n_points);
+        assert_eq!(physical.model.heads, policy::model::HeadKind::Plain);
+        assert!(describe_weights(None).contains(policy::builtin::WEIGHTS_PATH));
+        assert_eq!(describe_weights(Some(file)), "runs/plain/model.safetensors");
+    }
 }

