@@ -133,43 +133,35 @@ impl LearnedPolicy {
                 instruction.display()
             )
         })?;
-        Self::load_with(network, weights, instruction, cfg, seed)
+        Self::load_with(network, Some(weights), instruction, cfg, seed)
     }
 
-    /// Loads the weights file, with an instruction embedding already in memory.
+    /// Loads the weights file `weights`, or the model compiled into the binary when `None`
+    /// (`policy::builtin`: the cpu network trained on the simulated cell's demonstrations),
+    /// with an instruction embedding already in memory and the network configuration
+    /// `network` adapted to the cell's workspace box and table.
     pub fn load_with(
         network: PolicyConfig,
-        weights: &Path,
+        weights: Option<&Path>,
         instruction: InstructionEmbedding,
         cfg: &CellConfig,
         seed: u64,
     ) -> anyhow::Result<Self> {
         let policy_cfg = for_cell(network, cfg);
-        let mut policy = Policy::load(policy_cfg, weights).with_context(|| {
-            format!(
-                "loading the EquAct weights {} (they must match the chosen --network size)",
-                weights.display()
-            )
-        })?;
-        policy.seed = seed;
-        Self::new(policy, instruction, cfg)
-    }
-
-    /// The model compiled into the binary (`policy::builtin`: the cpu network trained on the
-    /// simulated cell's demonstrations), with `network` (the built-in configuration, perhaps
-    /// with other threads or sampling) adapted to the cell's workspace box and table.
-    pub fn load_builtin(
-        network: PolicyConfig,
-        instruction: InstructionEmbedding,
-        cfg: &CellConfig,
-        seed: u64,
-    ) -> anyhow::Result<Self> {
-        let mut policy = policy::builtin::policy(for_cell(network, cfg)).with_context(|| {
-            format!(
-                "loading the built-in EquAct weights ({})",
-                policy::builtin::WEIGHTS_PATH
-            )
-        })?;
+        let mut policy = match weights {
+            Some(weights) => Policy::load(policy_cfg, weights).with_context(|| {
+                format!(
+                    "loading the EquAct weights {} (they must match the chosen --network size)",
+                    weights.display()
+                )
+            })?,
+            None => policy::builtin::policy(policy_cfg).with_context(|| {
+                format!(
+                    "loading the built-in EquAct weights ({})",
+                    policy::builtin::WEIGHTS_PATH
+                )
+            })?,
+        };
         policy.seed = seed;
         Self::new(policy, instruction, cfg)
     }
@@ -341,10 +333,11 @@ mod tests {
         let minilm = policy::builtin::instruction(text).unwrap();
         // The built-in model reads MiniLM's 384-wide tokens.
         assert!(
-            LearnedPolicy::load_builtin(policy::builtin::config(), minilm.clone(), &cfg, 0).is_ok()
+            LearnedPolicy::load_with(policy::builtin::config(), None, minilm.clone(), &cfg, 0)
+                .is_ok()
         );
         let clip = InstructionEmbedding::random(0);
-        let err = LearnedPolicy::load_builtin(policy::builtin::config(), clip, &cfg, 0)
+        let err = LearnedPolicy::load_with(policy::builtin::config(), None, clip, &cfg, 0)
             .err()
             .unwrap()
             .to_string();

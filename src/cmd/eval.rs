@@ -103,12 +103,13 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                     "evaluating {}",
                     super::run::describe_weights(args.model.as_deref())
                 );
-                let mut policy = match &args.model {
-                    Some(model) => {
-                        LearnedPolicy::load_with(network, model, first, &cfg, args.seed)?
-                    }
-                    None => LearnedPolicy::load_builtin(network, first, &cfg, args.seed)?,
-                };
+                let mut policy = LearnedPolicy::load_with(
+                    network,
+                    args.model.as_deref(),
+                    first,
+                    &cfg,
+                    args.seed,
+                )?;
                 policy.set_alternatives(args.alternatives);
                 policy.set_threads(args.threads);
                 policy

@@ -229,12 +229,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
                 (None, Some(dir)) => equact::train::Instructions::MiniLm(dir).embed_text(&text)?,
                 (None, None) => equact::train::Instructions::Builtin.embed_text(&text)?,
             };
-            let mut policy = match &args.weights {
-                Some(weights) => {
-                    LearnedPolicy::load_with(network, weights, instruction, &cfg, args.seed)?
-                }
-                None => LearnedPolicy::load_builtin(network, instruction, &cfg, args.seed)?,
-            };
+            let mut policy = LearnedPolicy::load_with(
+                network,
+                args.weights.as_deref(),
+                instruction,
+                &cfg,
+                args.seed,
+            )?;
             policy.set_alternatives(args.alternatives);
             policy.set_threads(args.threads);
             Some(policy)

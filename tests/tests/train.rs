@@ -110,8 +110,14 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     trainer.save(&out).unwrap();
 
     let embedding = Instructions::MiniLm(&minilm).embedding(kind).unwrap();
-    let policy =
-        LearnedPolicy::load_with(net, &out.join(WEIGHTS_FILE), embedding.clone(), &cfg, 0).unwrap();
+    let policy = LearnedPolicy::load_with(
+        net,
+        Some(&out.join(WEIGHTS_FILE)),
+        embedding.clone(),
+        &cfg,
+        0,
+    )
+    .unwrap();
     let mut learned = LearnedEval {
         policy,
         embeddings: vec![(kind, embedding)],
