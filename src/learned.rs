@@ -36,6 +36,11 @@ pub const DEFAULT_ALTERNATIVES: usize = 8;
 /// points lie where the gripper goes; the table and fixed obstacles still count.
 pub const HELD_MOVE_THROUGH_CLOUD_M: f64 = 0.09;
 
+/// How far apart (m) the translations of the next-ranked keyframes are, from each other and
+/// from the prediction: the finest sampling level's runners-up lie within millimetres of
+/// its best, and a keyframe the planner refuses is seldom planned a few millimetres over.
+pub const ALTERNATIVE_SEPARATION_M: f64 = 0.01;
+
 /// How far each ranked keyframe is also tried moved back along its approach axis (m): a
 /// grasp predicted a centimetre too deep puts the palm on the object or the fingertips on
 /// the table, and the same grasp a little shallower still closes on the object.
@@ -172,8 +177,8 @@ impl LearnedPolicy {
     }
 
     /// How many next-ranked keyframes to offer when the planner refuses a prediction (the
-    /// finest sampling level's next-best translations, each with the rotation and open heads'
-    /// answer there), each also tried moved back by [`BACK_OFFS_M`]; 0 executes the
+    /// best translations of every sampling level at least [`ALTERNATIVE_SEPARATION_M`]
+    /// apart, each with the rotation and open heads' answer there), each also tried moved back by [`BACK_OFFS_M`]; 0 executes the
     /// network's argmax or nothing, as the paper evaluates.
     pub fn set_alternatives(&mut self, n: usize) {
         self.alternatives = n;
@@ -236,9 +241,11 @@ impl KeyframeSource for LearnedPolicy {
             .policy
             .predict_detailed(obs.cloud, &gripper, &self.instruction)
             .context("the EquAct network could not predict a keyframe")?;
+        let candidates =
+            prediction.distinct_candidates(self.alternatives + 1, ALTERNATIVE_SEPARATION_M);
         let last = LastPrediction {
             scene: prediction.scene,
-            candidates: prediction.candidates,
+            candidates,
             next: 1,
             current: (0, prediction.keyframe),
             tcp: base_from_tcp.translation(),

@@ -15,6 +15,7 @@ pub mod plot;
 pub mod preflight;
 pub mod real_cell;
 pub mod recording;
+pub mod score;
 pub mod sim_cell;
 pub mod task;
 pub mod train;

@@ -125,6 +125,9 @@ pub enum PolicyError {
         /// What the parser said.
         message: String,
     },
+    /// A policy configuration that cannot run (sampling, point counts, boxes).
+    #[error("invalid policy configuration: {0}")]
+    BadConfig(String),
     /// A JSON sidecar could not be parsed or lacks a required field.
     #[error("sidecar {path}: {message}")]
     Sidecar {

@@ -397,7 +397,8 @@ impl PolicyConfig {
 
     /// The configuration trained on a 2-core CPU (`equact train`'s default): 512 points,
     /// 3 scales with 16-32 channels, l_max 3, the paper's per-degree scalar iFiLM, gated
-    /// activations (exactly equivariant and the cheapest to train).
+    /// activations (exactly equivariant and the cheapest to train); 4 levels of 333
+    /// translation queries at inference.
     pub fn cpu() -> Self {
         let model = ModelConfig {
             max_neighbors: vec![16; 3],
@@ -429,9 +430,13 @@ impl PolicyConfig {
             },
             n_points: 512,
             n_outside_focus: 128,
+            // Inference only (training samples its own three levels): a fourth level, a
+            // 7.8 mm ball, and 333 queries per level. On held-out demonstrations the
+            // keyframes' median position error fell from 29 mm (3 levels of 99) to 12 mm
+            // (`equact policy score`); the translation head costs about 4.5 times more.
             sampling: SamplingConfig {
-                levels: 3,
-                per_level: 99,
+                levels: 4,
+                per_level: 333,
                 top_k: 3,
                 fine_ball_diameter: 0.25,
             },
@@ -463,31 +468,31 @@ impl PolicyConfig {
 
     fn check(&self) -> Result<()> {
         let s = &self.sampling;
-        let bad = |name: &str, expected: usize, got: usize| PolicyError::ShapeMismatch {
-            name: format!("policy config: {name}"),
-            expected: vec![expected],
-            got: vec![got],
-        };
-        if s.levels == 0 || s.top_k == 0 || s.per_level < s.top_k || s.per_level % s.top_k != 0 {
-            return Err(bad(
-                "sampling.per_level (a positive multiple of top_k)",
-                s.top_k,
-                s.per_level,
+        if s.levels == 0 {
+            return Err(PolicyError::BadConfig(
+                "sampling.levels is 0: the translation needs at least one sampling level".into(),
             ));
         }
+        if s.top_k == 0 || s.per_level < s.top_k || s.per_level % s.top_k != 0 {
+            return Err(PolicyError::BadConfig(format!(
+                "sampling.per_level is {}: the translation queries per level must be a \
+                 positive multiple of the {} anchors kept per level (e.g. {})",
+                s.per_level,
+                s.top_k,
+                (s.per_level / s.top_k.max(1)).max(1) * s.top_k.max(1)
+            )));
+        }
         if self.n_points <= self.model.n_gripper_pos {
-            return Err(bad(
-                "n_points (more than the gripper points)",
-                self.model.n_gripper_pos + 1,
-                self.n_points,
-            ));
+            return Err(PolicyError::BadConfig(format!(
+                "n_points is {}: the network needs more points than the {} gripper points",
+                self.n_points, self.model.n_gripper_pos
+            )));
         }
         for b in [self.workspace_bounds, self.gripper_bounds] {
             if (0..3).any(|i| b[0][i].partial_cmp(&b[1][i]) != Some(std::cmp::Ordering::Less)) {
-                return Err(PolicyError::Sidecar {
-                    path: "policy config".into(),
-                    message: format!("bounds {b:?} are empty (min must be below max)"),
-                });
+                return Err(PolicyError::BadConfig(format!(
+                    "bounds {b:?} are empty (min must be below max)"
+                )));
             }
         }
         Ok(())
@@ -615,6 +620,44 @@ pub struct Prediction {
     pub in_workspace: usize,
     /// Stage timings.
     pub timings: StageTimings,
+}
+
+impl Prediction {
+    /// Up to `n` translation candidates at least `separation` (m) apart: the keyframe's own
+    /// position first, then the samples of every level, best logit first, each skipped when
+    /// it lies within `separation` of one already taken. The finest level's next-best
+    /// samples crowd within millimetres of the best (its balls are a few millimetres
+    /// wide), so a caller looking for another keyframe when the planner refuses this one
+    /// gets places that differ by more than the sampling noise.
+    pub fn distinct_candidates(&self, n: usize, separation: f64) -> Vec<TranslationCandidate> {
+        let mut all: Vec<TranslationCandidate> = self
+            .levels
+            .iter()
+            .flat_map(|(queries, logits)| {
+                queries
+                    .iter()
+                    .zip(logits)
+                    .map(|(q, &logit)| TranslationCandidate {
+                        position: Point3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2])),
+                        logit,
+                    })
+            })
+            .collect();
+        all.sort_by(|a, b| b.logit.total_cmp(&a.logit));
+        let mut out: Vec<TranslationCandidate> = Vec::with_capacity(n);
+        for c in self.candidates.first().into_iter().chain(&all) {
+            if out.len() >= n {
+                break;
+            }
+            if out
+                .iter()
+                .all(|k| (k.position - c.position).norm() >= separation)
+            {
+                out.push(*c);
+            }
+        }
+        out
+    }
 }
 
 /// The EquAct policy: network, configuration, rotation grid.

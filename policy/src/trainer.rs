@@ -35,6 +35,10 @@ use crate::training::{
 };
 use crate::weights::Weights;
 
+/// The paper's translation sampling levels in training: the whole gripper box, then balls
+/// of 12.5 cm and 3.1 cm radius around the best anchors.
+pub const TRAIN_LEVELS: usize = 3;
+
 /// Everything training needs besides the data and the weights.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TrainConfig {
@@ -42,6 +46,9 @@ pub struct TrainConfig {
     pub policy: PolicyConfig,
     /// The optimiser.
     pub optim: AdamWConfig,
+    /// Sampling levels of the translation loss ([`TRAIN_LEVELS`], the paper's); the
+    /// policy's own `sampling` is for inference and may refine further.
+    pub levels: usize,
     /// Translation queries per sampling level (the ground truth is added to each level).
     pub queries_per_level: usize,
     /// Anchors kept per level (10 in the reference's training).
@@ -180,7 +187,7 @@ pub fn sample_gradients(
     let mut losses = Losses::default();
     let mut seeds: Vec<(crate::autodiff::Var, Vec<f32>)> = Vec::new();
     let mut anchors: Vec<Point3<f64>> = Vec::new();
-    let levels = pc.sampling.levels;
+    let levels = cfg.levels;
     for level in 0..levels {
         let mut samples: Vec<Point3<f64>> = if level == 0 {
             (0..cfg.queries_per_level)
@@ -444,6 +451,7 @@ mod tests {
                 lr: 3e-3,
                 ..AdamWConfig::reference()
             },
+            levels: TRAIN_LEVELS,
             queries_per_level: 12,
             top_k: 3,
             rotation_grid_level: 0,
@@ -546,7 +554,7 @@ mod tests {
         let mut cfg = config(PolicyMode::Gated);
         // One sampling level: the finer levels' anchors are the top logits, a discrete
         // choice that a perturbation can flip (the loss then jumps).
-        cfg.policy.sampling.levels = 1;
+        cfg.levels = 1;
         let pc = &cfg.policy;
         let weights = random_weights(&pc.model, &pc.extra, 12);
         let grid = LossGrid::new(0).unwrap();

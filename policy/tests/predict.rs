@@ -144,6 +144,49 @@ fn candidates_are_the_finest_level_ranked_and_each_becomes_a_keyframe() {
 }
 
 #[test]
+fn distinct_candidates_start_at_the_keyframe_and_keep_apart() {
+    let mut p = tiny(PolicyMode::Gated);
+    let cloud = scene(2);
+    p.seed = 5;
+    let a = p
+        .predict_detailed(&cloud, &gripper(), &InstructionEmbedding::random(3))
+        .unwrap();
+    let samples: Vec<(Point3<f64>, f32)> = a
+        .levels
+        .iter()
+        .flat_map(|(q, l)| {
+            q.iter()
+                .zip(l)
+                .map(|(q, &l)| (Point3::new(q[0].into(), q[1].into(), q[2].into()), l))
+        })
+        .collect();
+    for separation in [0.0, 0.01, 0.05] {
+        let d = a.distinct_candidates(8, separation);
+        assert_eq!(d.len(), 8, "plenty of samples for 8");
+        assert_eq!(d[0], a.candidates[0], "the keyframe's own position first");
+        assert!(d[1..].windows(2).all(|w| w[0].logit >= w[1].logit));
+        for (i, c) in d.iter().enumerate() {
+            assert!(samples
+                .iter()
+                .any(|(q, l)| *l == c.logit && (q - c.position).norm() < 1e-6));
+            for k in &d[..i] {
+                assert!((k.position - c.position).norm() >= separation);
+            }
+        }
+        // Nothing better was skipped but for being too close to one taken.
+        let worst = d.last().unwrap().logit;
+        for (q, l) in &samples {
+            if *l > worst {
+                assert!(d
+                    .iter()
+                    .any(|k| (k.position - q).norm() < separation.max(1e-6)));
+            }
+        }
+    }
+    assert!(a.distinct_candidates(0, 0.01).is_empty());
+}
+
+#[test]
 fn a_network_with_the_per_degree_scalar_film_predicts_and_reads_the_instruction() {
     // The paper's cheap iFiLM: random weights with its keys load, the policy predicts, and
     // another instruction changes the logits of the same samples.

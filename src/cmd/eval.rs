@@ -57,6 +57,9 @@ pub struct EvalArgs {
     /// same for any count). Leave a core free for the UR driver on a real cell.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
+    /// The network's translation sampling (learned policy).
+    #[command(flatten)]
+    pub sampling: super::policy::SamplingArgs,
     /// Where the episodes' recordings go.
     #[arg(long, default_value = "recordings/eval")]
     pub out: PathBuf,
@@ -97,8 +100,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                 .map(|(_, e)| e.clone())
                 .context("no task variation to evaluate")?;
             let policy = {
-                let network =
-                    super::run::network_config(args.model.as_deref(), args.network, args.heads)?;
+                let network = args.sampling.apply(super::run::network_config(
+                    args.model.as_deref(),
+                    args.network,
+                    args.heads,
+                )?);
                 eprintln!(
                     "evaluating {}",
                     super::run::describe_weights(args.model.as_deref())

@@ -1,5 +1,6 @@
-//! `equact policy ...`: tools around the EquAct network: fixture parity checks and one
-//! prediction from a cloud file.
+//! `equact policy ...`: tools around the EquAct network: fixture parity checks, one
+//! prediction from a cloud file, instruction embeddings, and a model's keyframes scored
+//! against recorded demonstrations.
 
 use cell_types::{Base, Tcp, Transform};
 use clap::{Args, Subcommand, ValueEnum};
@@ -43,6 +44,10 @@ pub enum PolicyCommand {
         #[arg(long)]
         out: Option<std::path::PathBuf>,
     },
+    /// Score a learned model against recorded demonstrations without running the cell:
+    /// every step's keyframe against the expert's (position, rotation, open state), per
+    /// task variation.
+    Score(ScoreArgs),
 }
 
 /// Which network mode to run.
@@ -201,10 +206,121 @@ fn predict(a: PredictArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Arguments of `equact policy score`.
+#[derive(Args, Debug)]
+pub struct ScoreArgs {
+    /// The demonstrations (`equact demos collect --out DIR`; held-out seeds, e.g. `--seed
+    /// 1000000`, to judge generalisation).
+    #[arg(long)]
+    pub demos: std::path::PathBuf,
+    /// Network weights; the built-in model when omitted.
+    #[arg(long)]
+    pub model: Option<std::path::PathBuf>,
+    /// Network size the weights were trained with (default: cpu for the built-in model,
+    /// physical for `--model`).
+    #[arg(long, value_enum)]
+    pub network: Option<super::run::NetworkSize>,
+    /// Field heads the weights were trained with.
+    #[arg(long, value_enum, default_value_t = HeadsArg::Equivariant)]
+    pub heads: HeadsArg,
+    /// Folder of instruction embeddings (as `equact eval`).
+    #[arg(long, conflicts_with = "minilm")]
+    pub instruction_embeddings: Option<std::path::PathBuf>,
+    /// Embed the instructions with the MiniLM model in this folder; without either flag,
+    /// the built-in embeddings.
+    #[arg(long)]
+    pub minilm: Option<std::path::PathBuf>,
+    /// The translation sampling at inference.
+    #[command(flatten)]
+    pub sampling: SamplingArgs,
+    /// Seed of the first prediction (the next ones add one).
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+    /// Threads of each prediction.
+    #[arg(long, default_value_t = 1)]
+    pub threads: usize,
+    /// The cell configuration; the built-in simulated cell when omitted.
+    #[arg(long)]
+    pub config: Option<std::path::PathBuf>,
+    /// Print the table (and every step) as JSON instead of Markdown.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Overrides of the network's coarse-to-fine translation sampling at inference (training
+/// has its own `--queries`).
+#[derive(Args, Debug, Clone, Copy, Default)]
+pub struct SamplingArgs {
+    /// Translation queries per sampling level (a multiple of 3, the anchors kept per level);
+    /// default: the network configuration's.
+    #[arg(long)]
+    pub queries: Option<usize>,
+    /// Sampling levels (each one a ball a quarter the size of the previous level's around
+    /// its best three); default: the network configuration's.
+    #[arg(long)]
+    pub levels: Option<usize>,
+}
+
+impl SamplingArgs {
+    /// `cfg` with these overrides (checked when the policy is built).
+    pub fn apply(self, mut cfg: PolicyConfig) -> PolicyConfig {
+        if let Some(q) = self.queries {
+            cfg.sampling.per_level = q;
+        }
+        if let Some(l) = self.levels {
+            cfg.sampling.levels = l;
+        }
+        cfg
+    }
+}
+
+fn score(a: ScoreArgs) -> anyhow::Result<()> {
+    let cfg = super::config::load(a.config.as_ref())?;
+    let instructions = match (&a.instruction_embeddings, &a.minilm) {
+        (Some(d), _) => equact::train::Instructions::Folder(d),
+        (None, Some(m)) => equact::train::Instructions::MiniLm(m),
+        (None, None) => equact::train::Instructions::Builtin,
+    };
+    let samples = equact::train::load_samples(&a.demos, &cfg, &instructions)?;
+    let network = a.sampling.apply(super::run::network_config(
+        a.model.as_deref(),
+        a.network,
+        a.heads,
+    )?);
+    let network = equact::learned::for_cell(network, &cfg);
+    let mut policy = match &a.model {
+        Some(w) => Policy::load(network, w)?,
+        None => policy::builtin::policy(network)?,
+    };
+    policy.set_threads(a.threads);
+    let s = policy.config().sampling;
+    eprintln!(
+        "scoring {} on {} steps of {}: {} levels of {} translation queries",
+        super::run::describe_weights(a.model.as_deref()),
+        samples.len(),
+        a.demos.display(),
+        s.levels,
+        s.per_level
+    );
+    let table = equact::score::score(&mut policy, &samples, a.seed, &mut |l| eprintln!("{l}"))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&table)?);
+    } else {
+        print!("{}", table.markdown());
+        println!(
+            "\nprediction: median {:.2} s CPU ({} thread(s))",
+            table.prediction_cpu_median_s(),
+            policy.threads()
+        );
+    }
+    Ok(())
+}
+
 /// Runs `equact policy`.
 pub fn run(args: PolicyArgs) -> anyhow::Result<()> {
     match args.command {
         PolicyCommand::Predict(a) => predict(a),
+        PolicyCommand::Score(a) => score(a),
         PolicyCommand::Embed { text, minilm, out } => {
             let t = Instant::now();
             let model = policy::minilm::MiniLm::load(&minilm)?;
@@ -261,5 +377,45 @@ pub fn run(args: PolicyArgs) -> anyhow::Result<()> {
             println!("all {} fixtures passed", reports.len());
             Ok(())
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+
+    #[test]
+    fn sampling_overrides_apply_and_bad_ones_are_named() {
+        let cfg = PolicyConfig::tiny();
+        let same = SamplingArgs::default().apply(cfg.clone());
+        assert_eq!(same.sampling, cfg.sampling);
+        let finer = SamplingArgs {
+            queries: Some(90),
+            levels: Some(4),
+        }
+        .apply(cfg.clone());
+        assert_eq!((finer.sampling.per_level, finer.sampling.levels), (90, 4));
+        assert!(Policy::random(finer, 1).is_ok());
+        let odd = SamplingArgs {
+            queries: Some(100),
+            levels: None,
+        }
+        .apply(cfg.clone());
+        let err = Policy::random(odd, 1).unwrap_err().to_string();
+        assert!(
+            err.contains("per_level is 100")
+                && err.contains("multiple of the 3")
+                && err.contains("e.g. 99"),
+            "{err}"
+        );
+        let none = SamplingArgs {
+            queries: None,
+            levels: Some(0),
+        }
+        .apply(cfg);
+        let err = Policy::random(none, 1).unwrap_err().to_string();
+        assert!(err.contains("sampling.levels is 0"), "{err}");
     }
 }

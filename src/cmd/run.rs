@@ -88,6 +88,9 @@ pub struct RunArgs {
     /// same for any count). Leave a core free for the UR driver on a real cell.
     #[arg(long, default_value_t = 1)]
     pub threads: usize,
+    /// The network's translation sampling (learned policy).
+    #[command(flatten)]
+    pub sampling: super::policy::SamplingArgs,
     /// On a real cell, start moving without asking (for scripted runs; interactive runs
     /// ask for Enter first).
     #[arg(long)]
@@ -172,11 +175,11 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     let learned_chosen = args.policy == PolicyChoice::Learned;
     // Checked before anything starts: a wrong size or heads for the built-in model fails now.
     let network = if learned_chosen {
-        Some(network_config(
+        Some(args.sampling.apply(network_config(
             args.weights.as_deref(),
             args.network,
             args.heads,
-        )?)
+        )?))
     } else {
         None
     };

@@ -72,6 +72,12 @@ pub struct TrainArgs {
     /// Turn the rotation augmentation off.
     #[arg(long)]
     pub no_augment: bool,
+    /// Start a new run from these weights instead of random ones (`builtin`: the model
+    /// compiled into the binary), e.g. to fine-tune the simulation-trained model on
+    /// demonstrations recorded on the real cell. The optimiser starts afresh; the weights
+    /// must have exactly this network's parameters.
+    #[arg(long)]
+    pub init: Option<String>,
     /// Seed of the initial weights and of every draw.
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
@@ -105,6 +111,9 @@ struct RunSettings {
     augment: bool,
     seed: u64,
     lr: f32,
+    /// Where the initial weights came from (`None`: random from the seed).
+    #[serde(default)]
+    init: Option<String>,
 }
 
 fn equivariant_heads() -> String {
@@ -141,6 +150,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             lr: args.lr,
             ..AdamWConfig::reference()
         },
+        levels: policy::trainer::TRAIN_LEVELS,
         queries_per_level: args.queries,
         top_k: 10.min(args.queries),
         rotation_grid_level: args.rotation_grid_level,
@@ -160,6 +170,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         augment: cfg.augment,
         seed: cfg.seed,
         lr: args.lr,
+        init: args.init.clone(),
     };
     let mut trainer = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -259,14 +270,101 @@ fn open_run(out: &Path, cfg: TrainConfig, settings: &RunSettings) -> anyhow::Res
         eprintln!("resuming at step {} from {}", t.optim.step, out.display());
         return Ok(t);
     }
+    // The initial weights are checked before the run directory is written: a wrong
+    // `--init` leaves nothing behind.
+    let fresh = random_weights(&cfg.policy.model, &cfg.policy.extra, cfg.seed);
+    let weights = match settings.init.as_deref() {
+        None => fresh,
+        Some(init) => {
+            let w = if init == "builtin" {
+                policy::builtin::weights()?
+            } else {
+                policy::weights::Weights::from_file(Path::new(init))
+                    .with_context(|| format!("reading the initial weights {init}"))?
+            };
+            check_same_parameters(&w, &fresh).with_context(|| {
+                format!(
+                    "--init {init} does not fit the network being trained (--network, --heads, \
+                     --mode and the instruction width must be those the weights were made with)"
+                )
+            })?;
+            w
+        }
+    };
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     std::fs::write(&settings_path, serde_json::to_string_pretty(settings)?)
         .with_context(|| format!("writing {}", settings_path.display()))?;
-    let weights = random_weights(&cfg.policy.model, &cfg.policy.extra, cfg.seed);
     eprintln!(
-        "new run in {}: {} parameters",
+        "new run in {}: {} parameters, {}",
         out.display(),
-        weights.num_values()
+        weights.num_values(),
+        settings
+            .init
+            .as_deref()
+            .map_or("random initial weights".to_string(), |i| format!(
+                "initial weights from {i}"
+            ))
     );
     Ok(Trainer::new(cfg, weights)?)
+}
+
+/// Checks that `w` holds exactly the parameters of `want` (same names, same shapes).
+fn check_same_parameters(
+    w: &policy::weights::Weights,
+    want: &policy::weights::Weights,
+) -> anyhow::Result<()> {
+    let have: std::collections::BTreeSet<&str> = w.keys().into_iter().collect();
+    let need: std::collections::BTreeSet<&str> = want.keys().into_iter().collect();
+    let missing: Vec<&str> = need.difference(&have).copied().collect();
+    let extra: Vec<&str> = have.difference(&need).copied().collect();
+    if !missing.is_empty() || !extra.is_empty() {
+        anyhow::bail!(
+            "{} parameter(s) missing (first: {:?}), {} not in this network (first: {:?})",
+            missing.len(),
+            missing.first(),
+            extra.len(),
+            extra.first()
+        );
+    }
+    for key in need {
+        let (a, b) = (w.shape_of(key)?, want.shape_of(key)?);
+        if a != b {
+            anyhow::bail!("parameter {key} has shape {a:?}, this network's is {b:?}");
+        }
+    }
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+
+    #[test]
+    fn initial_weights_must_have_exactly_the_networks_parameters() {
+        let cpu = policy::predict::PolicyConfig::cpu();
+        let fresh = random_weights(&cpu.model, &cpu.extra, 0);
+        // The built-in model is the cpu network: it fits.
+        check_same_parameters(&policy::builtin::weights().unwrap(), &fresh).unwrap();
+        // The ablation's heads have other parameters.
+        let mut plain = cpu.clone();
+        plain.model.heads = HeadsArg::Plain.kind();
+        let plain = random_weights(&plain.model, &plain.extra, 0);
+        let err = check_same_parameters(&plain, &fresh)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("missing") && err.contains("not in this network"),
+            "{err}"
+        );
+        // Same names, another width: the CLIP-wide instruction encoder.
+        let mut clip = cpu.clone();
+        clip.extra.token_dim = 512;
+        let clip = random_weights(&clip.model, &clip.extra, 0);
+        let err = check_same_parameters(&clip, &fresh)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("has shape"), "{err}");
+    }
 }

@@ -21,11 +21,13 @@ use policy::predict::{PolicyConfig, PolicyMode};
 use policy::trainer::{TrainConfig, Trainer, WEIGHTS_FILE};
 
 /// How close the built-in model's keyframe must come to the expert's on a training scene
-/// (measured: 9 mm, 8 mm and 23 mm for reach, grasp and lift, approach axes 3-4 degrees apart;
-/// the bound is about the peach's radius, 3.4 cm).
+/// (measured with 4 × 333 translation queries: 3 mm, 5 mm and 18 mm for reach, grasp and
+/// lift; the bound is about the peach's radius, 3.4 cm).
 const BUILTIN_POSITION_M: f64 = 0.03;
-/// How far apart their approach axes may be.
-const BUILTIN_APPROACH_DEG: f64 = 10.0;
+/// How far apart their orientations may be (degrees; the fingers' half-turn symmetry
+/// aside; measured 9°, 1.5° and 2.7°: the round fruit leaves the turn about the approach
+/// axis loosely defined).
+const BUILTIN_ROTATION_DEG: f64 = 15.0;
 
 #[test]
 fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
@@ -57,31 +59,26 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     assert!((samples[0].1.gripper.base_from_tcp.translation() - home.translation()).norm() < 1e-12);
 
     // The built-in model was trained on this variation's seeds 0-14: on this demonstration's
-    // observations (seed 3) it gives the expert's keyframes back.
+    // observations (seed 3) it gives the expert's keyframes back (`equact policy score`).
     let mut builtin = policy::builtin::policy(for_cell(policy::builtin::config(), &cfg)).unwrap();
-    for (step, (_, sample)) in samples.iter().enumerate() {
-        let text = kind.instruction();
-        let instruction = policy::builtin::instruction(&text).unwrap();
-        let got = builtin
-            .predict(&sample.cloud, &sample.gripper, &instruction)
-            .unwrap();
-        let want = &sample.target;
-        let off = (got.base_from_tcp.translation() - want.base_from_tcp.translation()).norm();
-        let z =
-            |k: &cell_types::Keyframe| k.base_from_tcp.isometry().rotation * nalgebra::Vector3::z();
-        let tilt = z(&got).angle(&z(want)).to_degrees();
+    let mut lines = 0;
+    let table = equact::score::score(&mut builtin, &samples, 0, &mut |_| lines += 1).unwrap();
+    assert_eq!((lines, table.steps.len()), (samples.len(), samples.len()));
+    assert_eq!(table.rows.len(), 2, "{:?}", table.rows);
+    assert_eq!(table.rows[0].name, kind.name());
+    assert_eq!(table.rows[1].name, "all");
+    for (step, s) in table.steps.iter().enumerate() {
+        let e = &s.error;
+        assert_eq!(s.variation, kind.name());
+        assert!(s.prediction_cpu_s > 0.0);
         assert!(
-            off < BUILTIN_POSITION_M
-                && tilt < BUILTIN_APPROACH_DEG
-                && got.gripper_open == want.gripper_open,
-            "step {step}: the built-in model says {:?} (open {}), the expert {:?} (open {}): \
-             {off:.3} m, approach {tilt:.1} deg apart",
-            got.base_from_tcp.translation(),
-            got.gripper_open,
-            want.base_from_tcp.translation(),
-            want.gripper_open
+            e.position_m < BUILTIN_POSITION_M
+                && e.rotation_deg < BUILTIN_ROTATION_DEG
+                && e.open_agrees,
+            "step {step}: the built-in model's keyframe is {e:?} from the expert's"
         );
     }
+    assert!(table.rows[0].open_agrees == 1.0 && table.rows[0].steps == samples.len());
 
     let mut net = for_cell(PolicyConfig::tiny(), &cfg).with_mode(PolicyMode::Gated);
     net.extra.token_dim = policy::minilm::HIDDEN;
@@ -91,6 +88,7 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
             lr: 1e-3,
             ..AdamWConfig::reference()
         },
+        levels: policy::trainer::TRAIN_LEVELS,
         queries_per_level: 12,
         top_k: 3,
         rotation_grid_level: 0,

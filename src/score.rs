@@ -1,0 +1,248 @@
+//! Offline scoring of a learned policy against recorded demonstrations (`equact policy
+//! score`): every step's observation goes through the network, and its keyframe is compared
+//! with the expert's. No cell runs, so a model or an inference setting (the translation
+//! sampling) can be judged on held-out demonstrations in minutes instead of an hour of
+//! closed-loop episodes; the closed loop (`equact eval`) stays the measure of success.
+
+use std::collections::BTreeMap;
+
+use anyhow::Context;
+use cell_types::Keyframe;
+use nalgebra::{Rotation3, Vector3};
+use policy::predict::Policy;
+use policy::trainer::TrainSample;
+use serde::Serialize;
+
+use crate::task::TaskKind;
+
+/// How far a predicted keyframe is from the expert's.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
+pub struct KeyframeError {
+    /// Distance between the TCP positions (m).
+    pub position_m: f64,
+    /// Angle between the TCP orientations (degrees), the smaller of the angle to the
+    /// expert's and to the expert's turned half a turn about the approach axis: the
+    /// parallel gripper's two fingers are alike.
+    pub rotation_deg: f64,
+    /// Whether the gripper's open state agrees.
+    pub open_agrees: bool,
+}
+
+/// One scored step: its variation, the error and the prediction's cost.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ScoredStep {
+    /// `task/variation`.
+    pub variation: String,
+    /// The keyframe's error.
+    pub error: KeyframeError,
+    /// CPU seconds of the prediction, all of its threads (`policy::predict::StageTimings`).
+    pub prediction_cpu_s: f64,
+}
+
+/// Compares `got` with `want`.
+pub fn keyframe_error(got: &Keyframe, want: &Keyframe) -> KeyframeError {
+    let g = got.base_from_tcp.isometry();
+    let w = want.base_from_tcp.isometry();
+    let position_m = (g.translation.vector - w.translation.vector).norm();
+    let flip = Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI);
+    let rg = g.rotation.to_rotation_matrix();
+    let rw = w.rotation.to_rotation_matrix();
+    let rotation = rg.angle_to(&rw).min(rg.angle_to(&(rw * flip)));
+    KeyframeError {
+        position_m,
+        rotation_deg: rotation.to_degrees(),
+        open_agrees: got.gripper_open == want.gripper_open,
+    }
+}
+
+/// The errors of one group of steps (a task variation, or all of them).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ScoreRow {
+    /// `task/variation`, or `all`.
+    pub name: String,
+    /// Steps scored.
+    pub steps: usize,
+    /// Median position error (m).
+    pub position_median_m: f64,
+    /// 90th percentile of the position error (m).
+    pub position_p90_m: f64,
+    /// Share of steps within 1 cm of the expert's position.
+    pub within_1cm: f64,
+    /// Median rotation error (degrees).
+    pub rotation_median_deg: f64,
+    /// 90th percentile of the rotation error (degrees).
+    pub rotation_p90_deg: f64,
+    /// Share of steps whose open state agrees.
+    pub open_agrees: f64,
+}
+
+impl ScoreRow {
+    /// Summarises `errors` (none: every statistic NaN).
+    pub fn new(name: String, errors: &[KeyframeError]) -> Self {
+        let pos: Vec<f64> = errors.iter().map(|e| e.position_m).collect();
+        let rot: Vec<f64> = errors.iter().map(|e| e.rotation_deg).collect();
+        let share = |f: &dyn Fn(&KeyframeError) -> bool| {
+            if errors.is_empty() {
+                f64::NAN
+            } else {
+                errors.iter().filter(|e| f(e)).count() as f64 / errors.len() as f64
+            }
+        };
+        Self {
+            name,
+            steps: errors.len(),
+            position_median_m: quantile(&pos, 0.5),
+            position_p90_m: quantile(&pos, 0.9),
+            within_1cm: share(&|e| e.position_m <= 0.01),
+            rotation_median_deg: quantile(&rot, 0.5),
+            rotation_p90_deg: quantile(&rot, 0.9),
+            open_agrees: share(&|e| e.open_agrees),
+        }
+    }
+}
+
+/// The `q` quantile of `v` (nearest rank; NaN for none).
+pub fn quantile(v: &[f64], q: f64) -> f64 {
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let mut s = v.to_vec();
+    s.sort_by(f64::total_cmp);
+    let rank = ((q * s.len() as f64).ceil() as usize).clamp(1, s.len());
+    s[rank - 1]
+}
+
+/// Every step's error and the summaries per variation and overall.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct ScoreTable {
+    /// One row per task variation (sorted by name), then `all`.
+    pub rows: Vec<ScoreRow>,
+    /// Every step, in the order scored.
+    pub steps: Vec<ScoredStep>,
+}
+
+impl ScoreTable {
+    /// Median CPU seconds of one prediction (NaN for none).
+    pub fn prediction_cpu_median_s(&self) -> f64 {
+        let t: Vec<f64> = self.steps.iter().map(|s| s.prediction_cpu_s).collect();
+        quantile(&t, 0.5)
+    }
+}
+
+impl ScoreTable {
+    /// The rows as a Markdown table.
+    pub fn markdown(&self) -> String {
+        let mut s = String::from(
+            "| variation | steps | position median / p90 (mm) | within 1 cm | rotation median / p90 (deg) | open agrees |\n|---|---|---|---|---|---|\n",
+        );
+        for r in &self.rows {
+            s.push_str(&format!(
+                "| {} | {} | {:.1} / {:.1} | {:.0} % | {:.1} / {:.1} | {:.0} % |\n",
+                r.name,
+                r.steps,
+                r.position_median_m * 1e3,
+                r.position_p90_m * 1e3,
+                r.within_1cm * 100.0,
+                r.rotation_median_deg,
+                r.rotation_p90_deg,
+                r.open_agrees * 100.0
+            ));
+        }
+        s
+    }
+}
+
+/// Predicts every sample's keyframe with `policy` (prediction `i` seeded `seed + i`, so a
+/// score is reproducible) and compares it with the sample's expert keyframe; `progress`
+/// hears one line per step.
+pub fn score(
+    policy: &mut Policy,
+    samples: &[(TaskKind, TrainSample)],
+    seed: u64,
+    progress: &mut dyn FnMut(&str),
+) -> anyhow::Result<ScoreTable> {
+    let mut steps = Vec::with_capacity(samples.len());
+    let mut by_kind: BTreeMap<String, Vec<KeyframeError>> = BTreeMap::new();
+    for (i, (kind, sample)) in samples.iter().enumerate() {
+        policy.seed = seed.wrapping_add(i as u64);
+        let got = policy
+            .predict_detailed(&sample.cloud, &sample.gripper, &sample.instruction)
+            .with_context(|| format!("predicting step {i} ({})", kind.name()))?;
+        let e = keyframe_error(&got.keyframe, &sample.target);
+        progress(&format!(
+            "[{}/{}] {}: {:.1} mm, {:.1} deg, open {}",
+            i + 1,
+            samples.len(),
+            kind.name(),
+            e.position_m * 1e3,
+            e.rotation_deg,
+            if e.open_agrees { "agrees" } else { "differs" }
+        ));
+        by_kind.entry(kind.name()).or_default().push(e);
+        steps.push(ScoredStep {
+            variation: kind.name(),
+            error: e,
+            prediction_cpu_s: got.timings.total,
+        });
+    }
+    let mut rows: Vec<ScoreRow> = by_kind
+        .into_iter()
+        .map(|(name, errors)| ScoreRow::new(name, &errors))
+        .collect();
+    let all: Vec<KeyframeError> = steps.iter().map(|s| s.error).collect();
+    rows.push(ScoreRow::new("all".into(), &all));
+    Ok(ScoreTable { rows, steps })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+    use cell_types::{Base, Tcp, Transform};
+    use nalgebra::{Isometry3, Translation3, UnitQuaternion};
+
+    fn kf(x: f64, yaw: f64, roll: f64, open: bool) -> Keyframe {
+        let iso = Isometry3::from_parts(
+            Translation3::new(x, 0.1, 0.2),
+            UnitQuaternion::from_euler_angles(roll, 0.0, 0.0)
+                * UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+        );
+        Keyframe::new(Transform::<Base, Tcp>::from_isometry(iso), open, false).unwrap()
+    }
+
+    #[test]
+    fn errors_measure_distance_angle_and_the_finger_symmetry() {
+        let want = kf(0.5, 0.0, 0.0, true);
+        let e = keyframe_error(&kf(0.53, 0.0, 0.0, true), &want);
+        assert!((e.position_m - 0.03).abs() < 1e-12 && e.rotation_deg < 1e-9 && e.open_agrees);
+        // 20 degrees about the approach axis is 20 degrees; 180 is none (the fingers swap).
+        let e = keyframe_error(&kf(0.5, 20f64.to_radians(), 0.0, false), &want);
+        assert!((e.rotation_deg - 20.0).abs() < 1e-9 && !e.open_agrees);
+        let e = keyframe_error(&kf(0.5, std::f64::consts::PI, 0.0, true), &want);
+        assert!(e.rotation_deg < 1e-6, "{e:?}");
+        // A tilt of the approach axis has no such symmetry.
+        let e = keyframe_error(&kf(0.5, 0.0, 30f64.to_radians(), true), &want);
+        assert!((e.rotation_deg - 30.0).abs() < 1e-9, "{e:?}");
+    }
+
+    #[test]
+    fn rows_summarise_by_nearest_rank() {
+        let errors: Vec<KeyframeError> = (1..=10)
+            .map(|i| KeyframeError {
+                position_m: f64::from(i) * 0.002,
+                rotation_deg: f64::from(i),
+                open_agrees: i != 3,
+            })
+            .collect();
+        let r = ScoreRow::new("x".into(), &errors);
+        assert_eq!(r.steps, 10);
+        assert!((r.position_median_m - 0.010).abs() < 1e-12);
+        assert!((r.position_p90_m - 0.018).abs() < 1e-12);
+        assert!((r.within_1cm - 0.5).abs() < 1e-12);
+        assert_eq!((r.rotation_median_deg, r.rotation_p90_deg), (5.0, 9.0));
+        assert!((r.open_agrees - 0.9).abs() < 1e-12);
+        let empty = ScoreRow::new("none".into(), &[]);
+        assert!(empty.position_median_m.is_nan() && empty.open_agrees.is_nan());
+    }
+}
