@@ -152,21 +152,7 @@ impl LearnedPolicy {
         cfg: &CellConfig,
         seed: u64,
     ) -> anyhow::Result<Self> {
-        let policy_cfg = for_cell(network, cfg);
-        let mut policy = match weights {
-            Some(weights) => Policy::load(policy_cfg, weights).with_context(|| {
-                format!(
-                    "loading the EquAct weights {} (they must match the chosen --network size)",
-                    weights.display()
-                )
-            })?,
-            None => policy::builtin::policy(policy_cfg).with_context(|| {
-                format!(
-                    "loading the built-in EquAct weights ({})",
-                    policy::builtin::WEIGHTS_PATH
-                )
-            })?,
-        };
+        let mut policy = load_network(network, weights, cfg)?;
         policy.seed = seed;
         Self::new(policy, instruction, cfg)
     }
@@ -214,6 +200,30 @@ fn check_instruction_width(
         );
     }
     Ok(())
+}
+
+/// The network `network`, adapted to the cell's workspace box and table, with the weights
+/// file `weights`, or the model compiled into the binary when `None` (`policy::builtin`).
+pub fn load_network(
+    network: PolicyConfig,
+    weights: Option<&Path>,
+    cfg: &CellConfig,
+) -> anyhow::Result<Policy> {
+    let policy_cfg = for_cell(network, cfg);
+    match weights {
+        Some(weights) => Policy::load(policy_cfg, weights).with_context(|| {
+            format!(
+                "loading the EquAct weights {} (they must match the chosen --network size)",
+                weights.display()
+            )
+        }),
+        None => policy::builtin::policy(policy_cfg).with_context(|| {
+            format!(
+                "loading the built-in EquAct weights ({})",
+                policy::builtin::WEIGHTS_PATH
+            )
+        }),
+    }
 }
 
 /// The network configuration with the crop box, focus box and table of this cell.

@@ -4,7 +4,7 @@
 //! sampling) can be judged on held-out demonstrations in minutes instead of an hour of
 //! closed-loop episodes; the closed loop (`equact eval`) stays the measure of success.
 
-use std::collections::BTreeMap;
+use std::collections::BTreeSet;
 
 use anyhow::Context;
 use cell_types::Keyframe;
@@ -162,35 +162,41 @@ pub fn score(
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<ScoreTable> {
     let mut steps = Vec::with_capacity(samples.len());
-    let mut by_kind: BTreeMap<String, Vec<KeyframeError>> = BTreeMap::new();
     for (i, (kind, sample)) in samples.iter().enumerate() {
         policy.seed = seed.wrapping_add(i as u64);
         let got = policy
             .predict_detailed(&sample.cloud, &sample.gripper, &sample.instruction)
             .with_context(|| format!("predicting step {i} ({})", kind.name()))?;
         let e = keyframe_error(&got.keyframe, &sample.target);
+        let variation = kind.name();
         progress(&format!(
-            "[{}/{}] {}: {:.1} mm, {:.1} deg, open {}",
+            "[{}/{}] {variation}: {:.1} mm, {:.1} deg, open {}",
             i + 1,
             samples.len(),
-            kind.name(),
             e.position_m * 1e3,
             e.rotation_deg,
             if e.open_agrees { "agrees" } else { "differs" }
         ));
-        by_kind.entry(kind.name()).or_default().push(e);
         steps.push(ScoredStep {
-            variation: kind.name(),
+            variation,
             error: e,
             prediction_cpu_s: got.timings.total,
         });
     }
-    let mut rows: Vec<ScoreRow> = by_kind
+    // The errors of one variation (`None`: of all).
+    let errors_of = |name: Option<&str>| -> Vec<KeyframeError> {
+        steps
+            .iter()
+            .filter(|s| name.is_none_or(|n| s.variation == n))
+            .map(|s| s.error)
+            .collect()
+    };
+    let names: BTreeSet<&str> = steps.iter().map(|s| s.variation.as_str()).collect();
+    let mut rows: Vec<ScoreRow> = names
         .into_iter()
-        .map(|(name, errors)| ScoreRow::new(name, &errors))
+        .map(|n| ScoreRow::new(n.to_string(), &errors_of(Some(n))))
         .collect();
-    let all: Vec<KeyframeError> = steps.iter().map(|s| s.error).collect();
-    rows.push(ScoreRow::new("all".into(), &all));
+    rows.push(ScoreRow::new("all".into(), &errors_of(None)));
     Ok(ScoreTable { rows, steps })
 }
 

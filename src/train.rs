@@ -30,7 +30,18 @@ pub enum Instructions<'a> {
     Builtin,
 }
 
-impl Instructions<'_> {
+impl<'a> Instructions<'a> {
+    /// The source the command-line flags name: a folder of embedding files, else the MiniLM
+    /// model folder, else the built-in embeddings (the simulated tasks' instructions; other
+    /// texts are refused by name when embedded).
+    pub fn from_flags(folder: Option<&'a Path>, minilm: Option<&'a Path>) -> Self {
+        match (folder, minilm) {
+            (Some(d), _) => Self::Folder(d),
+            (None, Some(m)) => Self::MiniLm(m),
+            (None, None) => Self::Builtin,
+        }
+    }
+
     /// The embedding of `kind`'s instruction.
     pub fn embedding(&self, kind: TaskKind) -> anyhow::Result<InstructionEmbedding> {
         match self {

@@ -84,11 +84,10 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     let mut policy: Box<dyn EpisodePolicy> = match args.policy {
         PolicyChoice::Expert => Box::new(ExpertEval::default()),
         PolicyChoice::Learned => {
-            let instructions = match (&args.instruction_embeddings, &args.minilm) {
-                (Some(d), _) => Instructions::Folder(d),
-                (None, Some(m)) => Instructions::MiniLm(m),
-                (None, None) => Instructions::Builtin,
-            };
+            let instructions = Instructions::from_flags(
+                args.instruction_embeddings.as_deref(),
+                args.minilm.as_deref(),
+            );
             // Every variation's embedding is made before the first episode: a missing one
             // fails now, not an hour into the run.
             let mut embeddings = Vec::with_capacity(kinds.len());

@@ -276,22 +276,17 @@ impl SamplingArgs {
 
 fn score(a: ScoreArgs) -> anyhow::Result<()> {
     let cfg = super::config::load(a.config.as_ref())?;
-    let instructions = match (&a.instruction_embeddings, &a.minilm) {
-        (Some(d), _) => equact::train::Instructions::Folder(d),
-        (None, Some(m)) => equact::train::Instructions::MiniLm(m),
-        (None, None) => equact::train::Instructions::Builtin,
-    };
+    let instructions = equact::train::Instructions::from_flags(
+        a.instruction_embeddings.as_deref(),
+        a.minilm.as_deref(),
+    );
     let samples = equact::train::load_samples(&a.demos, &cfg, &instructions)?;
     let network = a.sampling.apply(super::run::network_config(
         a.model.as_deref(),
         a.network,
         a.heads,
     )?);
-    let network = equact::learned::for_cell(network, &cfg);
-    let mut policy = match &a.model {
-        Some(w) => Policy::load(network, w)?,
-        None => policy::builtin::policy(network)?,
-    };
+    let mut policy = equact::learned::load_network(network, a.model.as_deref(), &cfg)?;
     policy.set_threads(a.threads);
     let s = policy.config().sampling;
     eprintln!(

@@ -123,13 +123,10 @@ fn equivariant_heads() -> String {
 /// Runs `equact train`.
 pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let cell = super::config::load(args.config.as_ref())?;
-    let instructions = match (&args.instruction_embeddings, &args.minilm) {
-        (Some(d), _) => Instructions::Folder(d),
-        (None, Some(m)) => Instructions::MiniLm(m),
-        // The simulated tasks' instructions have built-in MiniLM embeddings; other texts
-        // are refused by name when the dataset is read.
-        (None, None) => Instructions::Builtin,
-    };
+    let instructions = Instructions::from_flags(
+        args.instruction_embeddings.as_deref(),
+        args.minilm.as_deref(),
+    );
     eprintln!("reading demonstrations from {}", args.demos.display());
     let samples = load_samples(&args.demos, &cell, &instructions)?;
     let token_dim = samples[0].1.instruction.dim();
