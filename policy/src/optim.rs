@@ -1,5 +1,7 @@
 //! AdamW over a [`Weights`] store, as the reference trains (lr 1e-4, weight decay 5e-4,
-//! none on biases and norms), with its moments saved beside the weights for resuming.
+//! none on biases and norms), with its moments saved beside the weights for resuming, and
+//! an optional warm-up and cosine decay of the rate (a function of the step alone, so a
+//! resumed run follows the same rates as an uninterrupted one).
 
 use std::collections::HashMap;
 use std::path::Path;
@@ -21,6 +23,46 @@ pub struct AdamWConfig {
     pub eps: f32,
     /// Decoupled weight decay of matrices (not of biases, norms or the radial basis).
     pub weight_decay: f32,
+    /// How the rate changes with the step (`lr` is its peak).
+    pub schedule: LrSchedule,
+}
+
+/// The learning rate as a function of the optimiser step.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum LrSchedule {
+    /// `lr` at every step (the reference's training).
+    Constant,
+    /// Linear warm-up from 0 over `warmup` steps, then a cosine decay to 0 at step `total`
+    /// (and 0 after it). Meant for fine-tuning trained weights with a fresh optimiser:
+    /// the warm-up lets the second moments settle before full-size steps, and the decay
+    /// anneals the weights instead of leaving them at a constant rate's noise level.
+    Cosine {
+        /// Steps of linear warm-up.
+        warmup: u64,
+        /// The step at which the rate reaches 0.
+        total: u64,
+    },
+}
+
+impl LrSchedule {
+    /// The factor of the peak rate for update number `step + 1` (`step` updates done).
+    pub fn factor(&self, step: u64) -> f64 {
+        match *self {
+            Self::Constant => 1.0,
+            Self::Cosine { warmup, total } => {
+                let s = step as f64 + 1.0;
+                if s <= warmup as f64 {
+                    s / (warmup as f64 + 1.0)
+                } else if step >= total {
+                    0.0
+                } else {
+                    let span = (total - warmup.min(total)).max(1) as f64;
+                    let done = (s - warmup as f64 - 1.0) / span;
+                    0.5 * (1.0 + (std::f64::consts::PI * done).cos())
+                }
+            }
+        }
+    }
 }
 
 impl AdamWConfig {
@@ -32,6 +74,7 @@ impl AdamWConfig {
             beta2: 0.999,
             eps: 1e-8,
             weight_decay: 5e-4,
+            schedule: LrSchedule::Constant,
         }
     }
 }
@@ -83,15 +126,16 @@ impl AdamW {
                 });
             }
         }
-        self.step += 1;
         let c = self.cfg;
+        let lr = f64::from(c.lr) * c.schedule.factor(self.step);
+        self.step += 1;
         let t = self.step as i32;
         let bc1 = 1.0 - f64::from(c.beta1).powi(t);
         let bc2 = 1.0 - f64::from(c.beta2).powi(t);
         for (key, g) in grads {
             let shape = weights.shape_of(key)?;
             let decay = if decays(key, &shape) {
-                c.lr * c.weight_decay
+                (lr * f64::from(c.weight_decay)) as f32
             } else {
                 0.0
             };
@@ -106,7 +150,7 @@ impl AdamW {
                 let mh = f64::from(m[i]) / bc1;
                 let vh = f64::from(v[i]) / bc2;
                 w[i] -= decay * w[i];
-                w[i] -= (f64::from(c.lr) * mh / (vh.sqrt() + f64::from(c.eps))) as f32;
+                w[i] -= (lr * mh / (vh.sqrt() + f64::from(c.eps))) as f32;
             }
         }
         Ok(())
@@ -236,6 +280,40 @@ mod tests {
         opt.update(&mut w, &zero).unwrap();
         assert!((w.f32_any("lin.weight").unwrap().1[0] - 0.95).abs() < 1e-6);
         assert_eq!(w.f32_any("lin.bias").unwrap().1[0], 1.0);
+    }
+
+    #[test]
+    fn cosine_schedule_warms_up_decays_to_zero_and_scales_the_update() {
+        let c = LrSchedule::Cosine {
+            warmup: 4,
+            total: 14,
+        };
+        let f: Vec<f64> = (0..16).map(|s| c.factor(s)).collect();
+        // Warm-up: 1/5 .. 4/5, rising.
+        for (k, v) in f[..4].iter().enumerate() {
+            assert!((v - (k as f64 + 1.0) / 5.0).abs() < 1e-12, "{f:?}");
+        }
+        // Then the peak, falling monotonically to 0 at step `total` and staying there.
+        assert!((f[4] - 1.0).abs() < 1e-12, "{f:?}");
+        assert!(f[4..14].windows(2).all(|w| w[1] < w[0]), "{f:?}");
+        assert!(
+            (f[9] - 0.5).abs() < 1e-12,
+            "halfway through the decay: {f:?}"
+        );
+        assert_eq!((f[14], f[15]), (0.0, 0.0));
+        assert_eq!(LrSchedule::Constant.factor(1_000_000), 1.0);
+        // The first AdamW step moves a parameter by about the scheduled rate.
+        let mut w = store(vec![1.0], vec![0.0]);
+        let mut opt = AdamW::new(AdamWConfig {
+            lr: 0.1,
+            weight_decay: 0.0,
+            schedule: c,
+            ..AdamWConfig::reference()
+        });
+        let g = vec![("lin.weight".to_string(), vec![1.0])];
+        opt.update(&mut w, &g).unwrap();
+        let moved = 1.0 - w.f32_any("lin.weight").unwrap().1[0];
+        assert!((moved - 0.02).abs() < 1e-6, "{moved}");
     }
 
     #[test]

@@ -256,12 +256,12 @@ pub const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 impl Trainer {
     /// Starts from `weights` (random or pre-trained).
     pub fn new(cfg: TrainConfig, weights: Weights) -> Result<Self> {
-        if cfg.batch == 0 || cfg.queries_per_level == 0 || cfg.top_k == 0 {
-            return Err(PolicyError::ShapeMismatch {
-                name: "training config: batch, queries_per_level and top_k must be positive".into(),
-                expected: vec![1, 1, 1],
-                got: vec![cfg.batch, cfg.queries_per_level, cfg.top_k],
-            });
+        if cfg.batch == 0 || cfg.queries_per_level == 0 || cfg.top_k == 0 || cfg.levels == 0 {
+            return Err(PolicyError::BadConfig(format!(
+                "training config: batch ({}), queries per level ({}), anchors per level ({}) and \
+                 sampling levels ({}) must all be at least 1",
+                cfg.batch, cfg.queries_per_level, cfg.top_k, cfg.levels
+            )));
         }
         Ok(Self {
             grid: LossGrid::new(cfg.rotation_grid_level)?,
@@ -655,6 +655,34 @@ mod tests {
 
     /// The CI smoke test of training: a few AdamW steps on one fixed sample lower its loss,
     /// and a checkpoint resumes to the same weights and step.
+    #[test]
+    fn a_further_sampling_level_adds_a_finer_translation_term_and_none_is_refused() {
+        let cfg = config(PolicyMode::Gated);
+        let pc = &cfg.policy;
+        let weights = random_weights(&pc.model, &pc.extra, 13);
+        let s = sample(3, pose(0.62, 0.08, 0.08, 0.7), false);
+        let losses = |levels: usize| {
+            let mut c = cfg.clone();
+            c.levels = levels;
+            let t = Trainer::new(c, weights.clone()).unwrap();
+            t.gradients(&[&s], 0).unwrap().0
+        };
+        let (three, four) = (losses(TRAIN_LEVELS), losses(TRAIN_LEVELS + 1));
+        // The first three levels draw the same samples; the fourth adds its own
+        // cross-entropy, and the heads read at the truth are untouched.
+        assert!(
+            four.translation > three.translation,
+            "{three:?} -> {four:?}"
+        );
+        assert_eq!((four.open, four.rotation), (three.open, three.rotation));
+        let mut none = cfg.clone();
+        none.levels = 0;
+        match Trainer::new(none, weights) {
+            Err(PolicyError::BadConfig(m)) => assert!(m.contains("sampling levels (0)"), "{m}"),
+            other => panic!("zero levels accepted: {:?}", other.map(|t| t.cfg.levels)),
+        }
+    }
+
     #[test]
     fn training_lowers_the_loss_on_a_fixed_batch_and_resumes() {
         let cfg = config(PolicyMode::Gated);

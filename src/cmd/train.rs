@@ -15,7 +15,7 @@ use anyhow::Context;
 use clap::Args;
 use equact::train::{load_samples, Instructions};
 use policy::init::random_weights;
-use policy::optim::AdamWConfig;
+use policy::optim::{AdamWConfig, LrSchedule};
 use policy::trainer::{TrainConfig, Trainer, WEIGHTS_FILE};
 use rand::seq::SliceRandom;
 use rand::SeedableRng;
@@ -60,12 +60,26 @@ pub struct TrainArgs {
     /// Samples per step.
     #[arg(long, default_value_t = 2)]
     pub batch: usize,
-    /// Learning rate.
+    /// Learning rate (the peak of `--schedule cosine`).
     #[arg(long, default_value_t = 1e-4)]
     pub lr: f32,
+    /// How the rate changes: constant (the reference), or a linear warm-up over
+    /// `--warmup` steps then a cosine decay to 0 at `--iterations` (for fine-tuning with
+    /// `--init`: a fresh optimiser, then annealed weights).
+    #[arg(long, value_enum, default_value_t = ScheduleArg::Constant)]
+    pub schedule: ScheduleArg,
+    /// Warm-up steps of `--schedule cosine`.
+    #[arg(long, default_value_t = 100)]
+    pub warmup: u64,
     /// Translation queries per sampling level.
     #[arg(long, default_value_t = 30)]
     pub queries: usize,
+    /// Sampling levels of the translation loss (the paper's 3: the gripper box, balls of
+    /// 12.5 and 3.1 cm). Each further level adds a ball a quarter the size, so the field is
+    /// also trained at the scale the inference's finer levels resolve (4 × 333 at inference
+    /// reaches 0.8 cm balls; with 3 training levels nothing teaches the field below ~2 cm).
+    #[arg(long, default_value_t = policy::trainer::TRAIN_LEVELS)]
+    pub levels: usize,
     /// HEALPix level of the rotation-loss grid (72·8^level rotations).
     #[arg(long, default_value_t = 2)]
     pub rotation_grid_level: u32,
@@ -97,6 +111,28 @@ pub struct TrainArgs {
     pub config: Option<PathBuf>,
 }
 
+/// `--schedule`.
+#[derive(clap::ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ScheduleArg {
+    /// The same rate at every step.
+    Constant,
+    /// Warm-up, then a cosine decay to 0 at the last step.
+    Cosine,
+}
+
+impl ScheduleArg {
+    /// The schedule for a run of `iterations` steps in all.
+    fn schedule(self, warmup: u64, iterations: u64) -> LrSchedule {
+        match self {
+            Self::Constant => LrSchedule::Constant,
+            Self::Cosine => LrSchedule::Cosine {
+                warmup: warmup.min(iterations),
+                total: iterations,
+            },
+        }
+    }
+}
+
 /// The settings a checkpoint was made with; a resume must use the same.
 #[derive(serde::Serialize, serde::Deserialize, PartialEq, Debug)]
 struct RunSettings {
@@ -114,6 +150,20 @@ struct RunSettings {
     /// Where the initial weights came from (`None`: random from the seed).
     #[serde(default)]
     init: Option<String>,
+    /// Translation sampling levels of the loss (runs from before the flag had 3).
+    #[serde(default = "train_levels")]
+    levels: usize,
+    /// The rate's schedule (runs from before it existed were constant).
+    #[serde(default = "constant_schedule")]
+    schedule: LrSchedule,
+}
+
+fn train_levels() -> usize {
+    policy::trainer::TRAIN_LEVELS
+}
+
+fn constant_schedule() -> LrSchedule {
+    LrSchedule::Constant
 }
 
 fn equivariant_heads() -> String {
@@ -145,9 +195,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         policy: policy_cfg,
         optim: AdamWConfig {
             lr: args.lr,
+            schedule: args.schedule.schedule(args.warmup, args.iterations),
             ..AdamWConfig::reference()
         },
-        levels: policy::trainer::TRAIN_LEVELS,
+        levels: args.levels,
         queries_per_level: args.queries,
         top_k: 10.min(args.queries),
         rotation_grid_level: args.rotation_grid_level,
@@ -168,6 +219,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         seed: cfg.seed,
         lr: args.lr,
         init: args.init.clone(),
+        levels: cfg.levels,
+        schedule: cfg.optim.schedule,
     };
     let mut trainer = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -337,6 +390,46 @@ mod tests {
     #![allow(clippy::unwrap_used)]
 
     use super::*;
+
+    #[test]
+    fn runs_from_before_the_schedule_resume_as_constant_and_cosine_ends_at_the_last_step() {
+        // A train.json written before `schedule` existed.
+        let old = r#"{"network":"Cpu","mode":"gated","heads":"Equivariant","token_dim":384,
+            "batch":2,"queries":30,"rotation_grid_level":2,"augment":true,"seed":0,"lr":0.0005}"#;
+        let s: RunSettings = serde_json::from_str(old).unwrap();
+        assert_eq!(s.schedule, LrSchedule::Constant);
+        assert_eq!(s.levels, 3);
+        assert_eq!(s.init, None);
+        // The cosine schedule spans the run's iterations; a resume asking for more steps
+        // has other settings, so it cannot silently restart the decay.
+        let c = ScheduleArg::Cosine.schedule(100, 2400);
+        assert_eq!(
+            c,
+            LrSchedule::Cosine {
+                warmup: 100,
+                total: 2400
+            }
+        );
+        let last = c.factor(2399);
+        assert!(
+            last > 0.0 && last < 1e-5,
+            "the last step's rate is nearly 0: {last}"
+        );
+        assert_eq!(c.factor(2400), 0.0);
+        assert_ne!(c, ScheduleArg::Cosine.schedule(100, 3000));
+        // A warm-up longer than the run is cut to it.
+        assert_eq!(
+            ScheduleArg::Cosine.schedule(500, 200),
+            LrSchedule::Cosine {
+                warmup: 200,
+                total: 200
+            }
+        );
+        assert_eq!(
+            ScheduleArg::Constant.schedule(100, 2400),
+            LrSchedule::Constant
+        );
+    }
 
     #[test]
     fn initial_weights_must_have_exactly_the_networks_parameters() {
