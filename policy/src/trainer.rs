@@ -653,8 +653,6 @@ mod tests {
         );
     }
 
-    /// The CI smoke test of training: a few AdamW steps on one fixed sample lower its loss,
-    /// and a checkpoint resumes to the same weights and step.
     #[test]
     fn a_further_sampling_level_adds_a_finer_translation_term_and_none_is_refused() {
         let cfg = config(PolicyMode::Gated);
@@ -683,6 +681,8 @@ mod tests {
         }
     }
 
+    /// The CI smoke test of training: a few AdamW steps on one fixed sample lower its loss,
+    /// and a checkpoint resumes to the same weights and step.
     #[test]
     fn training_lowers_the_loss_on_a_fixed_batch_and_resumes() {
         let cfg = config(PolicyMode::Gated);
