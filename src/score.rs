@@ -10,10 +10,9 @@ use anyhow::Context;
 use cell_types::Keyframe;
 use nalgebra::{Rotation3, Vector3};
 use policy::predict::Policy;
-use policy::trainer::TrainSample;
 use serde::Serialize;
 
-use crate::task::TaskKind;
+use crate::train::DemoSample;
 
 /// How far a predicted keyframe is from the expert's.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
@@ -28,11 +27,15 @@ pub struct KeyframeError {
     pub open_agrees: bool,
 }
 
-/// One scored step: its variation, the error and the prediction's cost.
+/// One scored step: which demonstration step it is, the error and the prediction's cost.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ScoredStep {
     /// `task/variation`.
     pub variation: String,
+    /// The demonstration's seed.
+    pub seed: u64,
+    /// The step's index in its demonstration (0: the first keyframe).
+    pub step: usize,
     /// The keyframe's error.
     pub error: KeyframeError,
     /// CPU seconds of the prediction, all of its threads (`policy::predict::StageTimings`).
@@ -157,28 +160,37 @@ impl ScoreTable {
 /// hears one line per step.
 pub fn score(
     policy: &mut Policy,
-    samples: &[(TaskKind, TrainSample)],
+    samples: &[DemoSample],
     seed: u64,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<ScoreTable> {
     let mut steps = Vec::with_capacity(samples.len());
-    for (i, (kind, sample)) in samples.iter().enumerate() {
+    for (i, demo) in samples.iter().enumerate() {
+        let (variation, sample) = (demo.kind.name(), &demo.sample);
         policy.seed = seed.wrapping_add(i as u64);
         let got = policy
             .predict_detailed(&sample.cloud, &sample.gripper, &sample.instruction)
-            .with_context(|| format!("predicting step {i} ({})", kind.name()))?;
+            .with_context(|| {
+                format!(
+                    "predicting {variation} seed {} step {}",
+                    demo.seed, demo.step
+                )
+            })?;
         let e = keyframe_error(&got.keyframe, &sample.target);
-        let variation = kind.name();
         progress(&format!(
-            "[{}/{}] {variation}: {:.1} mm, {:.1} deg, open {}",
+            "[{}/{}] {variation} seed {} step {}: {:.1} mm, {:.1} deg, open {}",
             i + 1,
             samples.len(),
+            demo.seed,
+            demo.step,
             e.position_m * 1e3,
             e.rotation_deg,
             if e.open_agrees { "agrees" } else { "differs" }
         ));
         steps.push(ScoredStep {
             variation,
+            seed: demo.seed,
+            step: demo.step,
             error: e,
             prediction_cpu_s: got.timings.total,
         });

@@ -82,13 +82,26 @@ impl<'a> Instructions<'a> {
     }
 }
 
+/// One step of a recorded demonstration as a training sample, with where it came from.
+#[derive(Debug, Clone)]
+pub struct DemoSample {
+    /// The episode's task variation.
+    pub kind: TaskKind,
+    /// The episode's seed.
+    pub seed: u64,
+    /// The step's index in its episode (0: the first keyframe).
+    pub step: usize,
+    /// The observation and the expert's keyframe.
+    pub sample: TrainSample,
+}
+
 /// The training samples of a dataset: every step of every successful episode, with the
-/// episode's task variation.
+/// episode's task variation, seed and step index.
 pub fn load_samples(
     dir: &Path,
     cfg: &CellConfig,
     instructions: &Instructions<'_>,
-) -> anyhow::Result<Vec<(TaskKind, TrainSample)>> {
+) -> anyhow::Result<Vec<DemoSample>> {
     let index = Index::load(dir)?;
     let model = robot_model(cfg)?;
     let mut embeddings: BTreeMap<String, InstructionEmbedding> = BTreeMap::new();
@@ -114,7 +127,7 @@ pub fn load_samples(
             }
         };
         let episode = read_shard(&dir.join(file))?;
-        for step in episode.steps {
+        for (index, step) in episode.steps.into_iter().enumerate() {
             let cloud = PointCloud {
                 frame: FrameId::Base,
                 points: step
@@ -124,9 +137,11 @@ pub fn load_samples(
                     .collect(),
                 rgb: Some(step.cloud_rgb.clone()),
             };
-            out.push((
+            out.push(DemoSample {
                 kind,
-                TrainSample {
+                seed: entry.seed,
+                step: index,
+                sample: TrainSample {
                     cloud,
                     gripper: GripperPose {
                         base_from_tcp: model.fk_tcp(&step.joints),
@@ -135,7 +150,7 @@ pub fn load_samples(
                     instruction: embedding.clone(),
                     target: step.keyframe,
                 },
-            ));
+            });
         }
     }
     if out.is_empty() {

@@ -21,6 +21,8 @@ use policy::so3::WignerCalculator;
 use policy::weights::Weights;
 use rand::{Rng, SeedableRng};
 
+use super::bench::median;
+
 /// The PyTorch layer (in the source tree; the benchmark runs from a checkout).
 const TORCH_SCRIPT: &str = concat!(
     env!("CARGO_MANIFEST_DIR"),
@@ -254,9 +256,4 @@ fn run_torch(
     let line = text.lines().last().unwrap_or_default();
     serde_json::from_str(line)
         .with_context(|| format!("reading the PyTorch layer's output {line:?}"))
-}
-
-fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }

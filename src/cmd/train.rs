@@ -179,8 +179,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     );
     eprintln!("reading demonstrations from {}", args.demos.display());
     let samples = load_samples(&args.demos, &cell, &instructions)?;
-    let token_dim = samples[0].1.instruction.dim();
-    let mut tasks: Vec<String> = samples.iter().map(|(k, _)| k.name()).collect();
+    let token_dim = samples[0].sample.instruction.dim();
+    let mut tasks: Vec<String> = samples.iter().map(|s| s.kind.name()).collect();
     tasks.dedup();
     eprintln!(
         "{} keyframe samples of {} task variation(s)",
@@ -247,7 +247,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         let batch: Vec<&policy::trainer::TrainSample> = order
             [at..(at + args.batch).min(order.len())]
             .iter()
-            .map(|&i| &samples[i].1)
+            .map(|&i| &samples[i].sample)
             .collect();
         let report = trainer
             .step(&batch)

@@ -45,8 +45,9 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     let index = Index::load(&demos).unwrap();
     let shard = read_shard(&demos.join(index.episodes[0].file.as_ref().unwrap())).unwrap();
     assert_eq!(samples.len(), shard.steps.len());
-    for ((k, sample), step) in samples.iter().zip(&shard.steps) {
-        assert_eq!(*k, kind);
+    for (i, (demo, step)) in samples.iter().zip(&shard.steps).enumerate() {
+        let sample = &demo.sample;
+        assert_eq!((demo.kind, demo.seed, demo.step), (kind, 3, i));
         assert_eq!(sample.target, step.keyframe);
         assert_eq!(sample.cloud.points.len(), step.cloud_xyz.len());
         assert_eq!(sample.gripper.open, step.gripper_open);
@@ -56,7 +57,9 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     let home = equact::episode::robot_model(&cfg)
         .unwrap()
         .fk_tcp(&shard.steps[0].joints);
-    assert!((samples[0].1.gripper.base_from_tcp.translation() - home.translation()).norm() < 1e-12);
+    assert!(
+        (samples[0].sample.gripper.base_from_tcp.translation() - home.translation()).norm() < 1e-12
+    );
 
     // The built-in model was trained on this variation's seeds 0-14: on this demonstration's
     // observations (seed 3) it gives the expert's keyframes back (`equact policy score`).
@@ -69,7 +72,10 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     assert_eq!(table.rows[1].name, "all");
     for (step, s) in table.steps.iter().enumerate() {
         let e = &s.error;
-        assert_eq!(s.variation, kind.name());
+        assert_eq!(
+            (s.variation.clone(), s.seed, s.step),
+            (kind.name(), 3, step)
+        );
         assert!(s.prediction_cpu_s > 0.0);
         assert!(
             e.position_m < BUILTIN_POSITION_M
@@ -99,7 +105,7 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     };
     let weights = random_weights(&net.model, &net.extra, 4);
     let mut trainer = Trainer::new(train, weights).unwrap();
-    let batch: Vec<_> = samples.iter().take(2).map(|(_, s)| s).collect();
+    let batch: Vec<_> = samples.iter().take(2).map(|d| &d.sample).collect();
     for _ in 0..3 {
         let r = trainer.step(&batch).unwrap();
         assert!(r.losses.total().is_finite() && r.grad_norm > 0.0, "{r:?}");
