@@ -358,16 +358,16 @@ impl Linear {
             });
         }
         let rows = x.len() / self.inp;
-        let mut y = vec![0.0; rows * self.out];
         if let (Some(wt), true) = (&self.wt, rows >= 2) {
-            if let Some(b) = &self.b {
-                for yr in y.chunks_exact_mut(self.out) {
-                    yr.copy_from_slice(b);
-                }
-            }
+            // The products accumulate onto the bias rows (no zero fill first).
+            let mut y = match &self.b {
+                Some(b) => b.repeat(rows),
+                None => vec![0.0; rows * self.out],
+            };
             axpy_rows(x, self.inp, wt, self.out, &mut y)?;
             return Ok(y);
         }
+        let mut y = vec![0.0; rows * self.out];
         for r in 0..rows {
             self.forward_row(
                 &x[r * self.inp..(r + 1) * self.inp],

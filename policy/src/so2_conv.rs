@@ -448,76 +448,82 @@ impl So2Conv {
         let rad_w = self.rad.as_ref().map_or(0, RadialMlp::out);
         let lmax = self.map.lmax;
         let l1 = lmax + 1;
-        let mut y = vec![0.0f32; edges * nr * cout];
-        let mut extra = vec![0.0f32; edges * self.extra];
+        // The inputs of each |m|'s linear map are gathered (and scaled by the radial MLP) in
+        // one pass each, and the outputs assembled in one pass at the end: no zero-filled
+        // buffers that are overwritten right after.
         // m = 0: all edges' inputs as one matrix [E, l1·cin], one batched linear map.
-        let mut v = vec![0.0f32; edges * l1 * cin];
+        let mut v = Vec::with_capacity(edges * l1 * cin);
         for e in 0..edges {
             let xe = &x[e * nr * cin..(e + 1) * nr * cin];
-            let ve = &mut v[e * l1 * cin..(e + 1) * l1 * cin];
             for l in 0..=lmax {
                 let p = self.map.position(l, 0);
-                ve[l * cin..(l + 1) * cin].copy_from_slice(&xe[p * cin..(p + 1) * cin]);
-            }
-            if let Some(r) = &rad {
-                for (vi, ri) in ve.iter_mut().zip(&r[e * rad_w..e * rad_w + l1 * cin]) {
-                    *vi *= ri;
+                let xl = &xe[p * cin..(p + 1) * cin];
+                match &rad {
+                    Some(r) => {
+                        let rl = &r[e * rad_w + l * cin..e * rad_w + (l + 1) * cin];
+                        v.extend(xl.iter().zip(rl).map(|(xi, ri)| xi * ri));
+                    }
+                    None => v.extend_from_slice(xl),
                 }
             }
         }
-        let o = self.fc_m0.forward(&v)?;
-        let w0 = self.fc_m0.out;
-        for e in 0..edges {
-            let oe = &o[e * w0..(e + 1) * w0];
-            extra[e * self.extra..(e + 1) * self.extra].copy_from_slice(&oe[..self.extra]);
-            let ye = &mut y[e * nr * cout..(e + 1) * nr * cout];
-            for l in 0..=lmax {
-                let p = self.map.position(l, 0);
-                ye[p * cout..(p + 1) * cout]
-                    .copy_from_slice(&oe[self.extra + l * cout..self.extra + (l + 1) * cout]);
-            }
-        }
-        drop(o);
+        let o0 = self.fc_m0.forward(&v)?;
+        drop(v);
         // m > 0: rows 2e (the +m half) and 2e+1 (the −m half) of one matrix per m.
+        let mut om = Vec::with_capacity(self.fc_m.len());
         let mut roff = l1 * cin;
         for (mi, fc) in self.fc_m.iter().enumerate() {
             let m = mi + 1;
-            let nl = l1 - m;
-            let width = nl * cin;
-            let mut v = vec![0.0f32; 2 * edges * width];
+            let width = (l1 - m) * cin;
+            let mut v = Vec::with_capacity(2 * edges * width);
             for e in 0..edges {
                 let xe = &x[e * nr * cin..(e + 1) * nr * cin];
-                let (va, vb) = v[2 * e * width..(2 * e + 2) * width].split_at_mut(width);
-                for (li, l) in (m..=lmax).enumerate() {
-                    let pa = self.map.position(l, m as i64);
-                    let pb = self.map.position(l, -(m as i64));
-                    va[li * cin..(li + 1) * cin].copy_from_slice(&xe[pa * cin..(pa + 1) * cin]);
-                    vb[li * cin..(li + 1) * cin].copy_from_slice(&xe[pb * cin..(pb + 1) * cin]);
-                }
-                if let Some(r) = &rad {
-                    let rw = &r[e * rad_w + roff..e * rad_w + roff + width];
-                    for ((a, b), r) in va.iter_mut().zip(vb.iter_mut()).zip(rw) {
-                        *a *= r;
-                        *b *= r;
+                let rw = rad
+                    .as_ref()
+                    .map(|r| &r[e * rad_w + roff..e * rad_w + roff + width]);
+                for sign in [1, -1] {
+                    for (li, l) in (m..=lmax).enumerate() {
+                        let p = self.map.position(l, sign * m as i64);
+                        let xl = &xe[p * cin..(p + 1) * cin];
+                        match rw {
+                            Some(rw) => v.extend(
+                                xl.iter()
+                                    .zip(&rw[li * cin..(li + 1) * cin])
+                                    .map(|(xi, ri)| xi * ri),
+                            ),
+                            None => v.extend_from_slice(xl),
+                        }
                     }
                 }
             }
             roff += width;
-            let o = fc.forward(&v)?;
-            let half = nl * cout;
-            for e in 0..edges {
-                let oa = &o[2 * e * fc.out..(2 * e + 1) * fc.out];
-                let ob = &o[(2 * e + 1) * fc.out..(2 * e + 2) * fc.out];
-                let ye = &mut y[e * nr * cout..(e + 1) * nr * cout];
-                for (li, l) in (m..=lmax).enumerate() {
-                    let pa = self.map.position(l, m as i64);
-                    let pb = self.map.position(l, -(m as i64));
-                    for ch in 0..cout {
-                        let q = li * cout + ch;
-                        // out(+m) = R a - I b, out(-m) = R b + I a.
-                        ye[pa * cout + ch] = oa[q] - ob[half + q];
-                        ye[pb * cout + ch] = ob[q] + oa[half + q];
-                    }
+            om.push(fc.forward(&v)?);
+        }
+        // The outputs in reduced order, edge by edge.
+        let w0 = self.fc_m0.out;
+        let mut y = Vec::with_capacity(edges * nr * cout);
+        let mut extra = Vec::with_capacity(edges * self.extra);
+        for e in 0..edges {
+            let oe = &o0[e * w0..(e + 1) * w0];
+            extra.extend_from_slice(&oe[..self.extra]);
+            for &i in &self.map.reduced {
+                let l = degree_of(i);
+                let m = i as i64 - (l * l + l) as i64;
+                if m == 0 {
+                    y.extend_from_slice(&oe[self.extra + l * cout..self.extra + (l + 1) * cout]);
+                    continue;
+                }
+                let am = m.unsigned_abs() as usize;
+                let (w, o) = (self.fc_m[am - 1].out, &om[am - 1]);
+                let half = (l1 - am) * cout;
+                let oa = &o[2 * e * w..(2 * e + 1) * w];
+                let ob = &o[(2 * e + 1) * w..(2 * e + 2) * w];
+                let q = (l - am) * cout;
+                // out(+m) = R a - I b, out(-m) = R b + I a.
+                if m > 0 {
+                    y.extend((0..cout).map(|ch| oa[q + ch] - ob[half + q + ch]));
+                } else {
+                    y.extend((0..cout).map(|ch| ob[q + ch] + oa[half + q + ch]));
                 }
             }
         }

@@ -356,7 +356,8 @@ fn run_planner(a: PlannerBenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn median(v: &mut [f64]) -> f64 {
+/// The upper median of `v` (sorted in place; NaN for none).
+pub(super) fn median(v: &mut [f64]) -> f64 {
     v.sort_by(f64::total_cmp);
     if v.is_empty() {
         f64::NAN
@@ -386,8 +387,23 @@ fn error_summary(errs: &[[f64; 3]]) -> serde_json::Value {
     })
 }
 
+/// What a prediction answered, exactly (shortest round-trip decimals): a change meant to
+/// make the network faster can be checked to leave every keyframe as it was.
+fn prediction_json(p: &policy::predict::Prediction) -> serde_json::Value {
+    let iso = p.keyframe.base_from_tcp.isometry();
+    let q = iso.rotation.quaternion();
+    serde_json::json!({
+        "position_m": [iso.translation.x, iso.translation.y, iso.translation.z],
+        "rotation_xyzw": [q.i, q.j, q.k, q.w],
+        "open_probability": p.open_probability,
+        "translation_logit": p.translation_logit,
+        "rotation_logit": p.rotation_logit,
+    })
+}
+
 /// Times `a.predictions` predictions of `policy` on one scene: the median of each stage (CPU
-/// seconds of all threads) and of the wall-clock total.
+/// seconds of all threads) and of the wall-clock total, and each prediction's answer
+/// ([`prediction_json`]).
 fn time_predictions(
     policy: &mut policy::predict::Policy,
     a: &PolicyBenchArgs,
@@ -397,7 +413,7 @@ fn time_predictions(
         &policy::predict::GripperPose,
         &policy::predict::InstructionEmbedding,
     ),
-) -> anyhow::Result<(serde_json::Value, f64)> {
+) -> anyhow::Result<(serde_json::Value, f64, Vec<serde_json::Value>)> {
     let mut runs = Vec::new();
     for i in 0..a.predictions.max(1) {
         policy.seed = a.seed + i as u64;
@@ -440,7 +456,7 @@ fn time_predictions(
         "wall_encoder": stage(&|t| t.wall_encoder),
         "wall_translation_head": stage(&|t| t.wall_translation_head),
     });
-    Ok((timings, wall))
+    Ok((timings, wall, runs.iter().map(prediction_json).collect()))
 }
 
 /// A uniformly random rotation (normalised Gaussian quaternion) and a shift within ±0.2 m.
@@ -523,13 +539,17 @@ fn run_policy(a: PolicyBenchArgs) -> anyhow::Result<()> {
         let (mut timings, mut total, mut base_wall) = (serde_json::Value::Null, 0.0, None);
         for &threads in &a.threads {
             policy.set_threads(threads);
-            let (t, wall) =
+            let (t, wall, keyframes) =
                 time_predictions(&mut policy, &a, &name, (&cloud, &gripper, &instruction))?;
             let base = *base_wall.get_or_insert(wall);
             total = t["total"].as_f64().unwrap_or(f64::NAN);
             by_threads.insert(
                 threads.to_string(),
-                serde_json::json!({"stage_timings_s": t, "wall_speedup": base / wall}),
+                serde_json::json!({
+                    "stage_timings_s": t,
+                    "wall_speedup": base / wall,
+                    "predictions": keyframes,
+                }),
             );
             timings = t;
         }
