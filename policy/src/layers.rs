@@ -276,6 +276,15 @@ impl Linear {
         Ok(Self::new(self.inp, keep.len(), w, b))
     }
 
+    /// `rows` copies of the bias (zeros without one), for the products to accumulate onto:
+    /// no zero fill that the bias would overwrite.
+    fn bias_rows(&self, rows: usize) -> Vec<f32> {
+        match &self.b {
+            Some(b) => b.repeat(rows),
+            None => vec![0.0; rows * self.out],
+        }
+    }
+
     /// Applies the layer to compressed rows of `cols` inputs (row r: entries
     /// `ptr[r]..ptr[r + 1]` of `idx`, `val`).
     pub fn forward_sparse(
@@ -294,11 +303,8 @@ impl Linear {
             return Err(bad(cols));
         }
         let rows = ptr.len().saturating_sub(1);
-        let mut y = vec![0.0f32; rows * self.out];
+        let mut y = self.bias_rows(rows);
         for (w, yr) in ptr.windows(2).zip(y.chunks_exact_mut(self.out)) {
-            if let Some(b) = &self.b {
-                yr.copy_from_slice(b);
-            }
             let (Some(ix), Some(vs)) = (idx.get(w[0]..w[1]), val.get(w[0]..w[1])) else {
                 return Err(bad(w[1]));
             };
@@ -359,11 +365,7 @@ impl Linear {
         }
         let rows = x.len() / self.inp;
         if let (Some(wt), true) = (&self.wt, rows >= 2) {
-            // The products accumulate onto the bias rows (no zero fill first).
-            let mut y = match &self.b {
-                Some(b) => b.repeat(rows),
-                None => vec![0.0; rows * self.out],
-            };
+            let mut y = self.bias_rows(rows);
             axpy_rows(x, self.inp, wt, self.out, &mut y)?;
             return Ok(y);
         }
