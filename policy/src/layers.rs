@@ -158,6 +158,9 @@ pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) -
     )
 }
 
+/// Outputs accumulated together by [`Linear::forward_sparse`] (one AVX-512 register).
+const SPARSE_BLOCK: usize = 16;
+
 /// [`axpy_rows`] skipping zero inputs: each row is scanned in blocks of 16 values, blocks of
 /// zeros are passed over, and every non-zero input adds its weight row.
 fn axpy_rows_sparse(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
@@ -303,28 +306,51 @@ impl Linear {
             return Err(bad(cols));
         }
         let rows = ptr.len().saturating_sub(1);
+        // Every offset and column checked once, so the accumulation below runs unchecked
+        // loops the compiler can keep in registers.
+        let nnz = ptr.last().copied().unwrap_or(0);
+        if ptr.windows(2).any(|w| w[0] > w[1]) || nnz > idx.len() || nnz > val.len() {
+            return Err(bad(nnz));
+        }
+        if let Some(&i) = idx[..nnz].iter().find(|&&i| i as usize >= self.inp) {
+            return Err(bad(i as usize));
+        }
         let mut y = self.bias_rows(rows);
-        for (w, yr) in ptr.windows(2).zip(y.chunks_exact_mut(self.out)) {
-            let (Some(ix), Some(vs)) = (idx.get(w[0]..w[1]), val.get(w[0]..w[1])) else {
-                return Err(bad(w[1]));
-            };
-            for (&i, &v) in ix.iter().zip(vs) {
-                let i = i as usize;
-                if i >= self.inp {
-                    return Err(bad(i));
+        let Some(wt) = &self.wt else {
+            for (w, yr) in ptr.windows(2).zip(y.chunks_exact_mut(self.out)) {
+                for (&i, &v) in idx[w[0]..w[1]].iter().zip(&val[w[0]..w[1]]) {
+                    for (o, a) in yr.iter_mut().enumerate() {
+                        *a += v * self.w[o * self.inp + i as usize];
+                    }
                 }
-                match &self.wt {
-                    Some(wt) => {
-                        for (a, b) in yr.iter_mut().zip(&wt[i * self.out..(i + 1) * self.out]) {
+            }
+            return Ok(y);
+        };
+        for (w, yr) in ptr.windows(2).zip(y.chunks_exact_mut(self.out)) {
+            let (ix, vs) = (&idx[w[0]..w[1]], &val[w[0]..w[1]]);
+            // Sixteen outputs at a time held in a local array across the row's entries:
+            // each output still adds its products in entry order, as the plain loop did.
+            let mut o0 = 0;
+            for block in yr.chunks_mut(SPARSE_BLOCK) {
+                if block.len() == SPARSE_BLOCK {
+                    let mut acc = [0.0f32; SPARSE_BLOCK];
+                    acc.copy_from_slice(block);
+                    for (&i, &v) in ix.iter().zip(vs) {
+                        let row = &wt[i as usize * self.out + o0..][..SPARSE_BLOCK];
+                        for (a, b) in acc.iter_mut().zip(row) {
                             *a += v * b;
                         }
                     }
-                    None => {
-                        for (o, a) in yr.iter_mut().enumerate() {
-                            *a += v * self.w[o * self.inp + i];
+                    block.copy_from_slice(&acc);
+                } else {
+                    for (&i, &v) in ix.iter().zip(vs) {
+                        let row = &wt[i as usize * self.out + o0..][..block.len()];
+                        for (a, b) in block.iter_mut().zip(row) {
+                            *a += v * b;
                         }
                     }
                 }
+                o0 += block.len();
             }
         }
         Ok(y)
@@ -597,6 +623,43 @@ impl RmsNormSh {
     }
 }
 
+/// Largest z² of a Gaussian basis evaluated: exp(−85) ≈ 1.2e-37 is still a normal f32, so
+/// the exponential never returns a subnormal.
+pub(crate) const RBF_Z2_MAX: f32 = 170.0;
+
+/// Basis values below this are 0. The radial MLP adds each value times a weight to f32 sums
+/// that start from its bias; a product below 1e-30 · |weight| cannot change such a sum (half
+/// an ulp of even 1e-20 is 5e-28), but a subnormal operand makes an x86 multiply about a
+/// hundred times slower: the field heads' 1024 narrow bases gave about 8 % subnormal values,
+/// which cost more than the rest of the radial layer. Also bounds the exponent: with
+/// z² > 170, weight ≤ 4 and up to 2³² bases (normaliser 2¹⁶) a value is below it anyway.
+pub(crate) const RBF_MIN_VALUE: f32 = 1e-30;
+
+/// One Gaussian basis `weight · exp(−z²/2) · env · normalizer`, z = (u − mean)/std, in the
+/// reference's f32 operation order; 0 beyond [`RBF_Z2_MAX`] and below [`RBF_MIN_VALUE`].
+/// Inference and training both evaluate the basis with it.
+pub(crate) fn rbf_basis_value(
+    u: f32,
+    mean: f32,
+    std: f32,
+    weight: f32,
+    env: f32,
+    normalizer: f32,
+) -> f32 {
+    let z = (u - mean) / std;
+    let z2 = z * z;
+    if z2 > RBF_Z2_MAX {
+        return 0.0;
+    }
+    let v = weight * (-0.5 * z2).exp() * env * normalizer;
+    // A NaN stays NaN (the comparison is false).
+    if v < RBF_MIN_VALUE {
+        0.0
+    } else {
+        v
+    }
+}
+
 /// The radial basis's soft inner cut-off: 0 for u <= 0, 1 for u >= 0.2 (1 − step(s),
 /// s = (1 − u − 0.8)/0.2), in the reference's f32 operation order.
 pub(crate) fn rbf_envelope(u: f32) -> f32 {
@@ -627,9 +690,13 @@ pub struct GaussianRbf {
     std: Vec<f32>,
     weight: Vec<f32>,
     normalizer: f32,
-    /// Basis indices sorted by mean, and those means: the bases a distance can reach.
-    by_mean: Vec<(f32, usize)>,
-    /// Largest |u − mean| with a non-zero value, √210 · max std (infinite: evaluate all).
+    /// The bases sorted by mean, each with its parameters: the bases a distance can reach
+    /// are a run of them, read without gathering from the per-index vectors.
+    by_mean: Vec<SortedBasis>,
+    /// Whether sorting by mean kept the index order (then a row's values need no sort).
+    index_ordered: bool,
+    /// Largest |u − mean| with a non-zero value, √[`RBF_Z2_MAX`] · max std (infinite:
+    /// evaluate all).
     reach: f32,
 }
 
@@ -644,15 +711,23 @@ impl GaussianRbf {
             .into_iter()
             .map(|v| softplus(v) + 1e-5)
             .collect();
-        let weight = s
+        let weight: Vec<f32> = s
             .f32("weight_logit", &[1, k])?
             .into_iter()
             .map(|v| sigmoid(v) * 4.0)
             .collect();
         let offset = 0.01 * cutoff;
         let max_std = std.iter().copied().fold(0.0f32, f32::max);
-        let mut by_mean: Vec<(f32, usize)> = mean.iter().copied().zip(0..).collect();
-        by_mean.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let mut by_mean: Vec<SortedBasis> = (0..k)
+            .map(|i| SortedBasis {
+                mean: mean[i],
+                std: std[i],
+                weight: weight[i],
+                index: i as u32,
+            })
+            .collect();
+        by_mean.sort_by(|a, b| a.mean.total_cmp(&b.mean));
+        let index_ordered = by_mean.windows(2).all(|w| w[0].index < w[1].index);
         let finite = mean.iter().chain(&std).all(|v| v.is_finite());
         Ok(Self {
             num_basis: k,
@@ -663,9 +738,10 @@ impl GaussianRbf {
             weight,
             normalizer: (k as f64).sqrt() as f32,
             by_mean,
-            // A little margin over √210 so rounding in z never hides a non-zero basis.
+            index_ordered,
+            // A little margin so rounding in z never hides a non-zero basis.
             reach: if finite {
-                (210.0f32.sqrt() * 1.01) * max_std
+                (RBF_Z2_MAX.sqrt() * 1.01) * max_std
             } else {
                 f32::INFINITY
             },
@@ -676,9 +752,9 @@ impl GaussianRbf {
     pub fn eval_into(&self, d: f32, out: &mut [f32]) {
         let u = (d - self.offset) / self.span;
         let env = rbf_envelope(u);
-        // Only the bases whose mean lies within `reach` of u can exceed exp(−105), which is
-        // below the smallest f32; all others are exactly 0 (the narrow field-head bases are
-        // sparse, so this skips most of them).
+        // Only the bases whose mean lies within `reach` of u have z² <= RBF_Z2_MAX; all
+        // others are exactly 0 (the narrow field-head bases are sparse, so this skips most
+        // of them).
         let out = &mut out[..self.num_basis];
         if !(self.reach.is_finite() && u.is_finite()) {
             for (i, o) in out.iter_mut().enumerate() {
@@ -687,28 +763,28 @@ impl GaussianRbf {
             return;
         }
         out.iter_mut().for_each(|o| *o = 0.0);
-        for &(_, i) in self.within_reach(u) {
-            out[i] = self.value(i, u, env);
+        for b in self.within_reach(u) {
+            out[b.index as usize] = b.value(u, env, self.normalizer);
         }
     }
 
     /// The bases (mean, index), by mean, whose mean lies within `reach` of the normalised
     /// distance `u`: every other basis is exactly 0 there.
-    fn within_reach(&self, u: f32) -> &[(f32, usize)] {
-        let lo = self.by_mean.partition_point(|(m, _)| *m < u - self.reach);
-        let hi = self.by_mean.partition_point(|(m, _)| *m <= u + self.reach);
+    fn within_reach(&self, u: f32) -> &[SortedBasis] {
+        let lo = self.by_mean.partition_point(|b| b.mean < u - self.reach);
+        let hi = self.by_mean.partition_point(|b| b.mean <= u + self.reach);
         &self.by_mean[lo..hi]
     }
 
     /// Basis `i` at normalised distance `u` with envelope `env`.
     fn value(&self, i: usize, u: f32, env: f32) -> f32 {
-        let z = (u - self.mean[i]) / self.std[i];
-        let z2 = z * z;
-        if z2 > 210.0 {
-            0.0
-        } else {
-            self.weight[i] * (-0.5 * z2).exp() * env * self.normalizer
-        }
+        let basis = SortedBasis {
+            mean: self.mean[i],
+            std: self.std[i],
+            weight: self.weight[i],
+            index: i as u32,
+        };
+        basis.value(u, env, self.normalizer)
     }
 
     /// The basis values of every distance as [`EdgeFeatures`]: compressed rows when the
@@ -716,7 +792,7 @@ impl GaussianRbf {
     pub fn features(&self, d: &[f32]) -> EdgeFeatures {
         let window = self
             .by_mean
-            .partition_point(|(m, _)| *m <= self.by_mean[0].0 + 2.0 * self.reach);
+            .partition_point(|b| b.mean <= self.by_mean[0].mean + 2.0 * self.reach);
         if !self.reach.is_finite() || 4 * window > self.num_basis || self.num_basis == 0 {
             return EdgeFeatures::Dense {
                 cols: self.num_basis,
@@ -736,9 +812,11 @@ impl GaussianRbf {
                 row.extend(
                     self.within_reach(u)
                         .iter()
-                        .map(|&(_, i)| (i as u32, self.value(i, u, env))),
+                        .map(|b| (b.index, b.value(u, env, self.normalizer))),
                 );
-                row.sort_unstable_by_key(|e| e.0);
+                if !self.index_ordered {
+                    row.sort_unstable_by_key(|e| e.0);
+                }
             } else {
                 row.extend((0..self.num_basis).map(|i| (i as u32, self.value(i, u, env))));
             }
@@ -763,6 +841,22 @@ impl GaussianRbf {
             self.eval_into(di, &mut y[i * self.num_basis..(i + 1) * self.num_basis]);
         }
         y
+    }
+}
+
+/// One basis of [`GaussianRbf`] in its mean order, with its parameters.
+#[derive(Debug, Clone, Copy)]
+struct SortedBasis {
+    mean: f32,
+    std: f32,
+    weight: f32,
+    index: u32,
+}
+
+impl SortedBasis {
+    /// The basis at normalised distance `u` with envelope `env`.
+    fn value(&self, u: f32, env: f32, normalizer: f32) -> f32 {
+        rbf_basis_value(u, self.mean, self.std, self.weight, env, normalizer)
     }
 }
 
@@ -1349,5 +1443,95 @@ mod tests {
         assert_eq!(joined.unwrap(), dense);
         // Dense and compressed parts do not mix.
         assert!(EdgeFeatures::concat(vec![dense, sparse]).is_err());
+    }
+
+    #[test]
+    fn cutting_the_basis_below_1e_30_leaves_the_radial_layer_bit_for_bit() {
+        // The field heads' 1024 narrow bases: the values the reference would compute (every
+        // basis, z² up to 210) include subnormal ones; ours stop at RBF_Z2_MAX and
+        // RBF_MIN_VALUE. Both through the radial MLP's first layer: the same bits.
+        let cfg = PolicyConfig::physical();
+        let w = crate::init::random_weights(&cfg.model, &cfg.extra, 5);
+        let rbf = GaussianRbf::load(&w.scope("field_distance_expansion."), 1.98).unwrap();
+        let first = w
+            .keys()
+            .into_iter()
+            .find(|k| k.starts_with("trans_field_layer") && k.ends_with("rad_func.net.0.weight"))
+            .expect("the translation head's radial MLP")
+            .trim_end_matches("weight")
+            .to_string();
+        let lin = Linear::load(&w.scope(&first), true).unwrap();
+        let d: Vec<f32> = (0..3000).map(|i| i as f32 * 6.7e-4 + 0.015).collect();
+        let (mut ptr, mut idx, mut val) = (vec![0], Vec::new(), Vec::new());
+        let mut subnormal = 0;
+        for &di in &d {
+            let u = (di - rbf.offset) / rbf.span;
+            let env = rbf_envelope(u);
+            for i in 0..rbf.num_basis {
+                let z = (u - rbf.mean[i]) / rbf.std[i];
+                let v = if z * z > 210.0 {
+                    0.0
+                } else {
+                    rbf.weight[i] * (-0.5 * z * z).exp() * env * rbf.normalizer
+                };
+                if v != 0.0 {
+                    subnormal += usize::from(!v.is_normal());
+                    idx.push(i as u32);
+                    val.push(v);
+                }
+            }
+            ptr.push(idx.len());
+        }
+        assert!(
+            subnormal > 1000,
+            "the uncut values hold subnormals ({subnormal})"
+        );
+        let EdgeFeatures::Sparse {
+            ptr: p2,
+            idx: i2,
+            val: v2,
+            ..
+        } = rbf.features(&d)
+        else {
+            panic!("narrow bases give compressed rows");
+        };
+        assert!(v2.iter().all(|v| *v >= RBF_MIN_VALUE), "no tiny value kept");
+        assert!(i2.len() < idx.len(), "the cut drops entries");
+        let cut = lin.forward_sparse(rbf.num_basis, &p2, &i2, &v2).unwrap();
+        let uncut = lin.forward_sparse(rbf.num_basis, &ptr, &idx, &val).unwrap();
+        assert_eq!(cut, uncut, "bit for bit");
+    }
+
+    #[test]
+    fn sparse_rows_add_their_entries_in_order_and_bad_rows_are_refused() {
+        // 20 outputs: one block of 16 held in registers and a remainder of 4.
+        let (inp, out) = (40, 20);
+        let w: Vec<f32> = (0..inp * out)
+            .map(|i| ((i * 53 % 97) as f32 - 48.0) / 31.0)
+            .collect();
+        let b: Vec<f32> = (0..out).map(|o| o as f32 * 0.3 - 2.0).collect();
+        let lin = Linear::new(inp, out, w.clone(), Some(b.clone()));
+        let ptr = vec![0, 3, 3, 7];
+        let idx = vec![5, 1, 39, 0, 2, 4, 8];
+        let val = vec![0.5, -1.25, 3.0, 0.1, 7.0, -0.3, 2.5];
+        let y = lin.forward_sparse(inp, &ptr, &idx, &val).unwrap();
+        for r in 0..3 {
+            for o in 0..out {
+                let mut want = b[o];
+                for e in ptr[r]..ptr[r + 1] {
+                    want += val[e] * w[o * inp + idx[e] as usize];
+                }
+                assert_eq!(y[r * out + o], want, "row {r} output {o}");
+            }
+        }
+        // A column past the inputs, offsets going back, offsets past the entries.
+        assert!(lin.forward_sparse(inp, &[0, 1], &[40], &[1.0]).is_err());
+        assert!(lin
+            .forward_sparse(inp, &[0, 2, 1], &[0, 1], &[1.0, 1.0])
+            .is_err());
+        assert!(lin
+            .forward_sparse(inp, &[0, 3], &[0, 1], &[1.0, 1.0])
+            .is_err());
+        assert!(lin.forward_sparse(inp + 1, &[0, 1], &[0], &[1.0]).is_err());
     }
 }

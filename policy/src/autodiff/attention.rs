@@ -9,7 +9,7 @@ use super::{layers, Act, Tape, Var};
 use crate::attention::{AttentionConfig, EdgeSet};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
-use crate::layers::{degree_of, rows_of, sigmoid, softplus};
+use crate::layers::{degree_of, rbf_basis_value, rows_of, sigmoid, softplus};
 use crate::so2_conv::{CoefficientMapping, EdgeWigners};
 use crate::so3::num_coefficients;
 use crate::weights::Scope;
@@ -52,14 +52,7 @@ pub fn gaussian_rbf(t: &mut Tape, s: &Scope<'_>, lengths: &[f32], cutoff: f64) -
         let env = crate::layers::rbf_envelope(u);
         ue.push((u, env));
         for (i, o) in row.iter_mut().enumerate() {
-            let z = (u - mv[i]) / std[i];
-            let z2 = z * z;
-            // Beyond z² = 210 the inference layer (sparse or dense) gives exactly 0.
-            *o = if z2 > 210.0 {
-                0.0
-            } else {
-                weight[i] * (-0.5 * z2).exp() * env * normalizer
-            };
+            *o = rbf_basis_value(u, mv[i], std[i], weight[i], env, normalizer);
         }
     }
     Ok(t.push(
@@ -78,10 +71,12 @@ pub fn gaussian_rbf(t: &mut Tape, s: &Scope<'_>, lengths: &[f32], cutoff: f64) -
             let sg: Vec<f64> = wl.iter().map(|v| f64::from(sigmoid(*v))).collect();
             for (&(u, env), gr_row) in ue.iter().zip(g.chunks_exact(k.max(1))) {
                 for i in 0..k {
-                    let z = (f64::from(u) - f64::from(mv[i])) / sd[i];
-                    if z * z > 210.0 {
+                    // Where the forward value was cut to 0, so is its gradient.
+                    let w32 = sigmoid(wl[i]) * 4.0;
+                    if rbf_basis_value(u, mv[i], sd[i] as f32, w32, env, normalizer) == 0.0 {
                         continue;
                     }
+                    let z = (f64::from(u) - f64::from(mv[i])) / sd[i];
                     let gauss = (-0.5 * z * z).exp();
                     let c = f64::from(gr_row[i]) * f64::from(env) * norm;
                     dw[i] += c * gauss * 4.0 * sg[i] * (1.0 - sg[i]);
