@@ -7,6 +7,8 @@
 //! (lmax, lmax) grid; `SO3_LinearV2`. The first linear is plain, the reference's
 //! hypernetwork iFiLM, or the paper's per-degree scalar iFiLM ([`FilmKind`]).
 
+use std::sync::Arc;
+
 use crate::attention::{AttentionConfig, EdgeSet, GraphAttention};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
@@ -139,7 +141,7 @@ impl FeedForward {
         &self,
         condition: Option<&[f32]>,
         threads: usize,
-    ) -> Result<Option<PreparedFilm>> {
+    ) -> Result<Option<Arc<PreparedFilm>>> {
         match (&self.first, condition) {
             (FirstLinear::Film(f), Some(c)) if c.len() == f.condition_dim() => {
                 Ok(Some(f.prepare(c, threads)?))
@@ -332,7 +334,7 @@ impl TransBlock {
         let film = self.ffn.prepare(condition, self.threads)?;
         crate::parallel::map_rows(&h, row, par, |h| {
             let n = self.norm_2.forward(h)?;
-            let mut y = self.ffn.forward_prepared(&n, condition, film.as_ref())?;
+            let mut y = self.ffn.forward_prepared(&n, condition, film.as_deref())?;
             let shortcut;
             let res = match &self.shortcut {
                 Some(l) => {
