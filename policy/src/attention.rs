@@ -7,6 +7,8 @@
 //! weighted by a softmax over the edges sharing a destination, rotated back, summed at the
 //! destination and projected by an `SO3_LinearV2`.
 
+use std::sync::Arc;
+
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
 use crate::layers::{
@@ -28,8 +30,9 @@ pub struct EdgeSet {
     pub vec: Vec<[f32; 3]>,
     /// Edge lengths.
     pub dist: Vec<f32>,
-    /// Wigner matrices of the edge frames.
-    pub wigners: EdgeWigners,
+    /// Wigner matrices of the edge frames (shared by edge sets of the same edges, see
+    /// [`EdgeSet::with_rbf`]).
+    pub wigners: Arc<EdgeWigners>,
     /// Invariant edge features (radial basis of the length), `[E, num_basis]`.
     pub attr: EdgeFeatures,
 }
@@ -53,6 +56,18 @@ pub fn edge_vectors(
         vec.push([ps[0] - pd[0], ps[1] - pd[1], ps[2] - pd[2]]);
     }
     Ok(vec)
+}
+
+/// The radial basis of every length, split over `threads` threads (the same rows).
+fn rbf_features_threads(rbf: &GaussianRbf, dist: &[f32], threads: usize) -> Result<EdgeFeatures> {
+    let parts = crate::parallel::split_even(dist.len(), threads.min(dist.len() / 256));
+    if parts.len() > 1 {
+        EdgeFeatures::concat(crate::parallel::run_parts(parts, |r| {
+            rbf.features(&dist[r])
+        }))
+    } else {
+        Ok(rbf.features(dist))
+    }
 }
 
 /// Euclidean length of each edge vector.
@@ -97,15 +112,22 @@ impl EdgeSet {
         }
         let vec = edge_vectors(pos_src, pos_dst, &src, &dst)?;
         let dist = edge_lengths(&vec);
-        let parts = crate::parallel::split_even(dist.len(), threads.min(dist.len() / 256));
-        let attr = if parts.len() > 1 {
-            EdgeFeatures::concat(crate::parallel::run_parts(parts, |r| {
-                rbf.features(&dist[r])
-            }))?
-        } else {
-            rbf.features(&dist)
-        };
+        let attr = rbf_features_threads(rbf, &dist, threads)?;
         Self::assemble(calc, lmax, (src, dst), (vec, dist), attr, threads)
+    }
+
+    /// The same edges (and the same frames, shared, not copied) with the radial basis `rbf`
+    /// of their lengths on `threads` threads: a U-net up block runs on its down block's
+    /// nodes and graph, only its radial basis differs.
+    pub fn with_rbf(&self, rbf: &GaussianRbf, threads: usize) -> Result<Self> {
+        Ok(Self {
+            src: self.src.clone(),
+            dst: self.dst.clone(),
+            vec: self.vec.clone(),
+            dist: self.dist.clone(),
+            wigners: Arc::clone(&self.wigners),
+            attr: rbf_features_threads(rbf, &self.dist, threads)?,
+        })
     }
 
     /// Builds an edge set from given edge vectors and features (e.g. a fixture's).
@@ -136,7 +158,7 @@ impl EdgeSet {
         threads: usize,
     ) -> Result<Self> {
         Self::check_attr(&attr, src.len())?;
-        let wigners = EdgeWigners::new_threads(calc, lmax, &vec, threads)?;
+        let wigners = Arc::new(EdgeWigners::new_threads(calc, lmax, &vec, threads)?);
         Ok(Self {
             src,
             dst,
@@ -347,7 +369,7 @@ impl GraphAttention {
                     conv1,
                     (ns, nd),
                     (&edges.src[r.clone()], &edges.dst[r.clone()]),
-                    (&edges.wigners, r.clone()),
+                    (&*edges.wigners, r.clone()),
                     edges.attr.slice(r.clone()),
                     (&mut *agg, d0),
                 )?;
@@ -555,4 +577,50 @@ pub fn grouped_softmax(logit: &[f32], dst: &[usize], nd: usize, heads: usize) ->
         }
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::predict::PolicyConfig;
+
+    #[test]
+    fn an_edge_set_with_another_radial_basis_shares_its_frames() {
+        let cfg = PolicyConfig::tiny();
+        let w = crate::init::random_weights(&cfg.model, &cfg.extra, 4);
+        let mut bases = w
+            .keys()
+            .into_iter()
+            .filter(|k| k.ends_with("distance_expansion.mean") && !k.starts_with("field_"))
+            .map(|k| {
+                let s = w.scope(k.trim_end_matches("mean"));
+                GaussianRbf::load(&s, 0.4).unwrap()
+            });
+        let (first, second) = (bases.next().unwrap(), bases.next().unwrap());
+        let pos: Vec<[f32; 3]> = (0..10)
+            .map(|i| {
+                let t = i as f32;
+                [0.03 * t, (0.7 * t).sin() * 0.1, (1.3 * t).cos() * 0.08]
+            })
+            .collect();
+        let (src, dst): (Vec<usize>, Vec<usize>) = (0..10)
+            .flat_map(|d| (0..10).filter(move |&s| s != d).map(move |s| (s, d)))
+            .unzip();
+        let calc = WignerCalculator::new(cfg.model.lmax).unwrap();
+        let lmax = cfg.model.lmax;
+        let a = EdgeSet::new(&calc, lmax, &pos, &pos, src.clone(), dst.clone(), &first).unwrap();
+        let b = a.with_rbf(&second, 2).unwrap();
+        let fresh = EdgeSet::new(&calc, lmax, &pos, &pos, src, dst, &second).unwrap();
+        assert!(
+            Arc::ptr_eq(&a.wigners, &b.wigners),
+            "frames shared, not copied"
+        );
+        assert_eq!(b.wigners.d, fresh.wigners.d);
+        assert_eq!(
+            (&b.src, &b.dst, &b.vec, &b.dist),
+            (&fresh.src, &fresh.dst, &fresh.vec, &fresh.dist)
+        );
+        assert_eq!(b.attr, fresh.attr, "the second basis's features");
+        assert_ne!(b.attr, a.attr, "two blocks' bases differ");
+    }
 }

@@ -405,6 +405,13 @@ struct UnetBlock {
     block: TransBlock,
 }
 
+/// The edges of one U-net block, kept for the later blocks on the same nodes.
+struct SharedEdges {
+    coord: Vec<[f32; 3]>,
+    k: usize,
+    edges: EdgeSet,
+}
+
 /// The `EquFieldUnet` network.
 #[derive(Debug, Clone)]
 pub struct EquFieldUnet {
@@ -652,12 +659,20 @@ impl EquFieldUnet {
                 .unwrap_or_default()
         };
         let mut blocks = Vec::new();
+        let mut shared = Vec::new();
         let mut coord = inputs.pts.clone();
         let pts = inputs.pts;
         let mut skips: Vec<(Vec<[f32; 3]>, Vec<f32>)> = Vec::new();
         for b in &self.down {
-            let (c2, x2) =
-                self.block_forward(b, &coord, &x, None, &condition, find(&b.name), &mut blocks)?;
+            let (c2, x2) = self.block_forward(
+                b,
+                &coord,
+                &x,
+                None,
+                &condition,
+                find(&b.name),
+                (&mut blocks, &mut shared),
+            )?;
             coord = c2;
             x = x2;
             skips.push((coord.clone(), x.clone()));
@@ -670,7 +685,7 @@ impl EquFieldUnet {
             None,
             &condition,
             find(&self.middle.name),
-            &mut blocks,
+            (&mut blocks, &mut shared),
         )?;
         coord = c2;
         x = x2;
@@ -683,7 +698,7 @@ impl EquFieldUnet {
                 skip.as_ref().map(|s| s.0.as_slice()),
                 &condition,
                 find(&b.name),
-                &mut blocks,
+                (&mut blocks, &mut shared),
             )?;
             if let Some((_, sx)) = &skip {
                 if sx.len() != x2.len() {
@@ -723,7 +738,7 @@ impl EquFieldUnet {
         up_coord: Option<&[[f32; 3]]>,
         condition: &[f32],
         mut idx: BlockIndices,
-        trace: &mut Vec<BlockTrace>,
+        (trace, shared): (&mut Vec<BlockTrace>, &mut Vec<SharedEdges>),
     ) -> Result<(Vec<[f32; 3]>, Vec<f32>)> {
         let t0 = crate::predict::CpuTimer::start();
         let lmax = self.cfg.lmax;
@@ -773,21 +788,45 @@ impl EquFieldUnet {
         } else {
             (coord.to_vec(), x.to_vec())
         };
-        let (src, dst) = match idx.graph.take() {
-            Some(g) => g,
-            None => knn_graph_threads(&coord, b.k, self.threads)?,
+        // An earlier block on the same nodes with the same neighbour count (an up block and
+        // its down block, the middle block and the last down block) has built these edges and
+        // their frames already: only the radial basis is this block's own. A forced graph
+        // (the equivariance report's) must be that block's graph too.
+        let same = shared.iter().find(|g| {
+            g.k == b.k
+                && g.coord == coord
+                && idx
+                    .graph
+                    .as_ref()
+                    .is_none_or(|(s, d)| *s == g.edges.src && *d == g.edges.dst)
+        });
+        let edges = match same {
+            Some(g) => g.edges.with_rbf(&b.rbf, self.threads)?,
+            None => {
+                let (src, dst) = match idx.graph.take() {
+                    Some(g) => g,
+                    None => knn_graph_threads(&coord, b.k, self.threads)?,
+                };
+                EdgeSet::new_threads(
+                    &self.calc,
+                    lmax,
+                    (&coord, &coord),
+                    src,
+                    dst,
+                    &b.rbf,
+                    self.threads,
+                )?
+            }
         };
-        let edges = EdgeSet::new_threads(
-            &self.calc,
-            lmax,
-            (&coord, &coord),
-            src.clone(),
-            dst.clone(),
-            &b.rbf,
-            self.threads,
-        )?;
         let y = b.block.forward(&x, &x, &edges, Some(condition))?;
-        idx.graph = Some((src, dst));
+        idx.graph = Some((edges.src.clone(), edges.dst.clone()));
+        if same.is_none() {
+            shared.push(SharedEdges {
+                coord: coord.clone(),
+                k: b.k,
+                edges,
+            });
+        }
         trace.push(BlockTrace {
             name: b.name.clone(),
             indices: idx,
