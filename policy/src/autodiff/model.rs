@@ -148,7 +148,11 @@ pub fn encode(
     let ffn_grid = cfg.s2_resolution.grid(cfg.lmax, cfg.lmax)?;
     let ns = cfg.n_scales();
     let sc = &cfg.sphere_channels;
+    // As in inference: a block on an earlier block's nodes with its neighbour count (an up
+    // block and its down block) reuses that block's graph and edge frames.
+    let mut shared: Vec<(Vec<[f32; 3]>, usize, EdgeSet)> = Vec::new();
     let block = |t: &mut Tape,
+                 shared: &mut Vec<(Vec<[f32; 3]>, usize, EdgeSet)>,
                  scope: Scope<'_>,
                  i: usize,
                  (cin, cout): (usize, usize),
@@ -156,8 +160,18 @@ pub fn encode(
                  x: Var|
      -> Result<Var> {
         let attn = cfg.block_attention(i, cin);
-        let (src, dst) = knn_graph(coord, cfg.max_neighbors[i])?;
-        let edges = edges_between(&calc, cfg.lmax, coord, coord, src, dst)?;
+        let k = cfg.max_neighbors[i];
+        let pos = shared.iter().position(|(c, kk, _)| *kk == k && c == coord);
+        let pos = match pos {
+            Some(p) => p,
+            None => {
+                let (src, dst) = knn_graph(coord, k)?;
+                let edges = edges_between(&calc, cfg.lmax, coord, coord, src, dst)?;
+                shared.push((coord.to_vec(), k, edges));
+                shared.len() - 1
+            }
+        };
+        let edges = &shared[pos].2;
         let attr = gaussian_rbf(
             t,
             &scope.sub("distance_expansion"),
@@ -176,7 +190,7 @@ pub fn encode(
             (&attn_grid, &ffn_grid),
             x,
             x,
-            &edges,
+            edges,
             attr,
             Some(condition),
         )
@@ -203,7 +217,7 @@ pub fn encode(
     for i in 0..ns {
         let (c2, x2) = pool(t, &coord, x, cfg.pool_ratio[i], sc[i])?;
         let scope = s.sub("down_blocks").sub(&i.to_string()).sub("block");
-        x = block(t, scope, i, (sc[i], sc[i + 1]), &c2, x2)?;
+        x = block(t, &mut shared, scope, i, (sc[i], sc[i + 1]), &c2, x2)?;
         coord = c2;
         skips.push((coord.clone(), x));
     }
@@ -211,6 +225,7 @@ pub fn encode(
     let (c2, x2) = pool(t, &coord, x, cfg.pool_ratio[ns - 1], sc[ns])?;
     x = block(
         t,
+        &mut shared,
         s.sub("middle_block").sub("block"),
         ns - 1,
         (sc[ns], sc[ns]),
@@ -235,7 +250,7 @@ pub fn encode(
             }
             None => (coord.clone(), x),
         };
-        let mut y = block(t, scope, i, (sc[i + 1], cout), &c2, x2)?;
+        let mut y = block(t, &mut shared, scope, i, (sc[i + 1], cout), &c2, x2)?;
         if let Some((_, sx)) = skip {
             y = t.add(y, sx)?;
         }
