@@ -770,8 +770,8 @@ impl GaussianRbf {
         }
     }
 
-    /// The bases (mean, index), by mean, whose mean lies within `reach` of the normalised
-    /// distance `u`: every other basis is exactly 0 there.
+    /// The bases, by mean, whose mean lies within `reach` of the normalised distance `u`:
+    /// every other basis is exactly 0 there.
     fn within_reach(&self, u: f32) -> &[SortedBasis] {
         let lo = self.by_mean.partition_point(|b| b.mean < u - self.reach);
         let hi = self.by_mean.partition_point(|b| b.mean <= u + self.reach);
@@ -792,9 +792,10 @@ impl GaussianRbf {
     /// The basis values of every distance as [`EdgeFeatures`]: compressed rows when the
     /// bases are narrow (at most a quarter of them reach any one distance), else dense.
     pub fn features(&self, d: &[f32]) -> EdgeFeatures {
-        let window = self
-            .by_mean
-            .partition_point(|b| b.mean <= self.by_mean[0].mean + 2.0 * self.reach);
+        let window = self.by_mean.first().map_or(0, |first| {
+            self.by_mean
+                .partition_point(|b| b.mean <= first.mean + 2.0 * self.reach)
+        });
         if !self.reach.is_finite() || 4 * window > self.num_basis || self.num_basis == 0 {
             return EdgeFeatures::Dense {
                 cols: self.num_basis,
@@ -1254,7 +1255,8 @@ impl FilmLinear {
 
     /// The per-degree map of one condition vector, ready for [`FilmLinear::apply`] (the
     /// hypernetwork on `threads` threads): computed once per forward pass, not once per run
-    /// of nodes, and kept for the next pass with the same condition (see [`FilmCache`]).
+    /// of nodes, and kept for the next pass with the same condition (an episode keeps one
+    /// instruction; a different condition computes a new map).
     pub fn prepare(&self, condition: &[f32], threads: usize) -> Result<Arc<PreparedFilm>> {
         let key: Vec<u32> = condition.iter().map(|v| v.to_bits()).collect();
         // A poisoned lock only means another thread panicked mid-update: recompute.
