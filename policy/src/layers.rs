@@ -726,6 +726,7 @@ impl GaussianRbf {
                 std: std[i],
                 weight: weight[i],
                 index: i as u32,
+                reach: Z2_REACH * std[i],
             })
             .collect();
         by_mean.sort_by(|a, b| a.mean.total_cmp(&b.mean));
@@ -741,9 +742,9 @@ impl GaussianRbf {
             normalizer: (k as f64).sqrt() as f32,
             by_mean,
             index_ordered,
-            // A little margin so rounding in z never hides a non-zero basis.
+            // Z2_REACH keeps a margin so rounding in z never hides a non-zero basis.
             reach: if finite {
-                (RBF_Z2_MAX.sqrt() * 1.01) * max_std
+                Z2_REACH * max_std
             } else {
                 f32::INFINITY
             },
@@ -785,6 +786,7 @@ impl GaussianRbf {
             std: self.std[i],
             weight: self.weight[i],
             index: i as u32,
+            reach: f32::INFINITY,
         };
         basis.value(u, env, self.normalizer)
     }
@@ -812,9 +814,12 @@ impl GaussianRbf {
             let env = rbf_envelope(u);
             row.clear();
             if u.is_finite() {
+                // A basis farther than its own reach is 0 (the window is the widest
+                // basis's): skipped before its division and exponential.
                 row.extend(
                     self.within_reach(u)
                         .iter()
+                        .filter(|b| (u - b.mean).abs() <= b.reach)
                         .map(|b| (b.index, b.value(u, env, self.normalizer))),
                 );
                 if !self.index_ordered {
@@ -854,7 +859,14 @@ struct SortedBasis {
     std: f32,
     weight: f32,
     index: u32,
+    /// Largest |u − mean| with z² <= [`RBF_Z2_MAX`], with [`Z2_REACH`]'s margin.
+    reach: f32,
 }
+
+/// √[`RBF_Z2_MAX`] with 1 % to spare: beyond `Z2_REACH · std` the exact z² exceeds
+/// 1.02 · RBF_Z2_MAX, which the f32 rounding of (u − mean)/std cannot bring below it, so
+/// skipping such a basis never hides a non-zero value.
+const Z2_REACH: f32 = 13.17;
 
 impl SortedBasis {
     /// The basis at normalised distance `u` with envelope `env`.
