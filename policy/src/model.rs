@@ -409,6 +409,8 @@ struct UnetBlock {
 struct SharedEdges {
     coord: Vec<[f32; 3]>,
     k: usize,
+    /// Whether the graph is the kNN graph (not a forced one).
+    knn: bool,
     edges: EdgeSet,
 }
 
@@ -791,15 +793,17 @@ impl EquFieldUnet {
         // An earlier block on the same nodes with the same neighbour count (an up block and
         // its down block, the middle block and the last down block) has built these edges and
         // their frames already: only the radial basis is this block's own. A forced graph
-        // (the equivariance report's) must be that block's graph too.
+        // (the equivariance report's) must be that block's graph too, and a block without one
+        // takes only a kNN graph.
         let same = shared.iter().find(|g| {
             g.k == b.k
                 && g.coord == coord
-                && idx
-                    .graph
-                    .as_ref()
-                    .is_none_or(|(s, d)| *s == g.edges.src && *d == g.edges.dst)
+                && match &idx.graph {
+                    Some((s, d)) => *s == g.edges.src && *d == g.edges.dst,
+                    None => g.knn,
+                }
         });
+        let knn = idx.graph.is_none();
         let edges = match same {
             Some(g) => g.edges.with_rbf(&b.rbf, self.threads)?,
             None => {
@@ -824,6 +828,7 @@ impl EquFieldUnet {
             shared.push(SharedEdges {
                 coord: coord.clone(),
                 k: b.k,
+                knn,
                 edges,
             });
         }
