@@ -812,6 +812,20 @@ impl GaussianRbf {
             // the dense row would record, without writing and scanning all of it.
             let u = (di - self.offset) / self.span;
             let env = rbf_envelope(u);
+            if u.is_finite() && self.index_ordered {
+                // Mean order is column order: straight into the compressed row.
+                for b in self.within_reach(u) {
+                    if (u - b.mean).abs() <= b.reach {
+                        let v = b.value(u, env, self.normalizer);
+                        if v != 0.0 {
+                            idx.push(b.index);
+                            val.push(v);
+                        }
+                    }
+                }
+                ptr.push(idx.len());
+                continue;
+            }
             row.clear();
             if u.is_finite() {
                 // A basis farther than its own reach is 0 (the window is the widest
