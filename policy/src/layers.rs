@@ -781,14 +781,14 @@ impl GaussianRbf {
 
     /// Basis `i` at normalised distance `u` with envelope `env`.
     fn value(&self, i: usize, u: f32, env: f32) -> f32 {
-        let basis = SortedBasis {
-            mean: self.mean[i],
-            std: self.std[i],
-            weight: self.weight[i],
-            index: i as u32,
-            reach: f32::INFINITY,
-        };
-        basis.value(u, env, self.normalizer)
+        rbf_basis_value(
+            u,
+            self.mean[i],
+            self.std[i],
+            self.weight[i],
+            env,
+            self.normalizer,
+        )
     }
 
     /// The basis values of every distance as [`EdgeFeatures`]: compressed rows when the
@@ -807,46 +807,38 @@ impl GaussianRbf {
         let (mut ptr, mut idx, mut val) = (vec![0], Vec::new(), Vec::new());
         ptr.reserve(d.len());
         let mut row: Vec<(u32, f32)> = Vec::with_capacity(window);
-        for &di in d {
-            // The non-zero values of the bases within reach, in column order: what scanning
-            // the dense row would record, without writing and scanning all of it.
-            let u = (di - self.offset) / self.span;
-            let env = rbf_envelope(u);
-            if u.is_finite() && self.index_ordered {
-                // Mean order is column order: straight into the compressed row.
-                for b in self.within_reach(u) {
-                    if (u - b.mean).abs() <= b.reach {
-                        let v = b.value(u, env, self.normalizer);
-                        if v != 0.0 {
-                            idx.push(b.index);
-                            val.push(v);
-                        }
-                    }
-                }
-                ptr.push(idx.len());
-                continue;
-            }
-            row.clear();
-            if u.is_finite() {
-                // A basis farther than its own reach is 0 (the window is the widest
-                // basis's): skipped before its division and exponential.
-                row.extend(
-                    self.within_reach(u)
-                        .iter()
-                        .filter(|b| (u - b.mean).abs() <= b.reach)
-                        .map(|b| (b.index, b.value(u, env, self.normalizer))),
-                );
-                if !self.index_ordered {
-                    row.sort_unstable_by_key(|e| e.0);
-                }
-            } else {
-                row.extend((0..self.num_basis).map(|i| (i as u32, self.value(i, u, env))));
-            }
-            for &(i, v) in row.iter().filter(|e| e.1 != 0.0) {
+        // The non-zero values of a row, in column order: what scanning the dense row would
+        // record, without writing and scanning all of it.
+        let mut push_nonzero = |entries: &mut dyn Iterator<Item = (u32, f32)>| {
+            for (i, v) in entries.filter(|e| e.1 != 0.0) {
                 idx.push(i);
                 val.push(v);
             }
             ptr.push(idx.len());
+        };
+        for &di in d {
+            let u = (di - self.offset) / self.span;
+            let env = rbf_envelope(u);
+            if !u.is_finite() {
+                push_nonzero(&mut (0..self.num_basis).map(|i| (i as u32, self.value(i, u, env))));
+                continue;
+            }
+            // A basis farther than its own reach is 0 (the window is the widest basis's):
+            // skipped before its division and exponential.
+            let mut values = self
+                .within_reach(u)
+                .iter()
+                .filter(|b| (u - b.mean).abs() <= b.reach)
+                .map(|b| (b.index, b.value(u, env, self.normalizer)));
+            if self.index_ordered {
+                // Mean order is column order: straight into the compressed row.
+                push_nonzero(&mut values);
+            } else {
+                row.clear();
+                row.extend(values);
+                row.sort_unstable_by_key(|e| e.0);
+                push_nonzero(&mut row.iter().copied());
+            }
         }
         EdgeFeatures::Sparse {
             cols: self.num_basis,
