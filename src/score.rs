@@ -8,7 +8,7 @@ use std::collections::BTreeSet;
 
 use anyhow::Context;
 use cell_types::Keyframe;
-use nalgebra::{Rotation3, Vector3};
+use nalgebra::{Point3, Rotation3, Vector3};
 use policy::predict::Policy;
 use serde::Serialize;
 
@@ -40,7 +40,24 @@ pub struct ScoredStep {
     pub error: KeyframeError,
     /// CPU seconds of the prediction, all of its threads (`policy::predict::StageTimings`).
     pub prediction_cpu_s: f64,
+    /// The translation field's logit at the predicted position.
+    pub predicted_logit: f32,
+    /// The field's logit at the expert's position: above `predicted_logit`, the sampling
+    /// missed a better peak; below, the field itself prefers the wrong place.
+    pub expert_logit: f32,
 }
+
+impl ScoredStep {
+    /// Whether the step is more than [`FAR_M`] off and the field scores the expert's
+    /// position higher than the prediction (a miss of the coarse-to-fine sampling, not of
+    /// the field).
+    pub fn missed_by_sampling(&self) -> bool {
+        self.error.position_m > FAR_M && self.expert_logit > self.predicted_logit
+    }
+}
+
+/// Position error (m) above which a step counts as off for [`ScoreRow::missed_by_sampling`].
+pub const FAR_M: f64 = 0.01;
 
 /// Compares `got` with `want`.
 pub fn keyframe_error(got: &Keyframe, want: &Keyframe) -> KeyframeError {
@@ -77,6 +94,10 @@ pub struct ScoreRow {
     pub rotation_p90_deg: f64,
     /// Share of steps whose open state agrees.
     pub open_agrees: f64,
+    /// Of the steps more than [`FAR_M`] off, the share whose expert position the field
+    /// scores higher than the prediction ([`ScoredStep::missed_by_sampling`]; NaN: none
+    /// off). The others are the field's own error, which only training mends.
+    pub missed_by_sampling: f64,
 }
 
 impl ScoreRow {
@@ -100,6 +121,22 @@ impl ScoreRow {
             rotation_median_deg: quantile(&rot, 0.5),
             rotation_p90_deg: quantile(&rot, 0.9),
             open_agrees: share(&|e| e.open_agrees),
+            missed_by_sampling: f64::NAN,
+        }
+    }
+
+    /// The row of `steps`, with [`ScoreRow::missed_by_sampling`].
+    pub fn of_steps(name: String, steps: &[&ScoredStep]) -> Self {
+        let errors: Vec<KeyframeError> = steps.iter().map(|s| s.error).collect();
+        let far = steps.iter().filter(|s| s.error.position_m > FAR_M).count();
+        let missed = steps.iter().filter(|s| s.missed_by_sampling()).count();
+        Self {
+            missed_by_sampling: if far == 0 {
+                f64::NAN
+            } else {
+                missed as f64 / far as f64
+            },
+            ..Self::new(name, &errors)
         }
     }
 }
@@ -136,11 +173,11 @@ impl ScoreTable {
     /// The rows as a Markdown table.
     pub fn markdown(&self) -> String {
         let mut s = String::from(
-            "| variation | steps | position median / p90 (mm) | within 1 cm | rotation median / p90 (deg) | open agrees |\n|---|---|---|---|---|---|\n",
+            "| variation | steps | position median / p90 (mm) | within 1 cm | rotation median / p90 (deg) | open agrees | off > 1 cm: missed by sampling |\n|---|---|---|---|---|---|---|\n",
         );
         for r in &self.rows {
             s.push_str(&format!(
-                "| {} | {} | {:.1} / {:.1} | {:.0} % | {:.1} / {:.1} | {:.0} % |\n",
+                "| {} | {} | {:.1} / {:.1} | {:.0} % | {:.1} / {:.1} | {:.0} % | {} |\n",
                 r.name,
                 r.steps,
                 r.position_median_m * 1e3,
@@ -148,7 +185,12 @@ impl ScoreTable {
                 r.within_1cm * 100.0,
                 r.rotation_median_deg,
                 r.rotation_p90_deg,
-                r.open_agrees * 100.0
+                r.open_agrees * 100.0,
+                if r.missed_by_sampling.is_nan() {
+                    "none off".to_string()
+                } else {
+                    format!("{:.0} %", r.missed_by_sampling * 100.0)
+                }
             ));
         }
         s
@@ -177,6 +219,15 @@ pub fn score(
                 )
             })?;
         let e = keyframe_error(&got.keyframe, &sample.target);
+        let expert_position = Point3::from(sample.target.base_from_tcp.translation());
+        let expert_logit = policy
+            .translation_logits(&got.scene, &[expert_position])
+            .with_context(|| {
+                format!(
+                    "scoring the expert's position of {variation} seed {} step {}",
+                    demo.seed, demo.step
+                )
+            })?[0];
         progress(&format!(
             "[{}/{}] {variation} seed {} step {}: {:.1} mm, {:.1} deg, open {}",
             i + 1,
@@ -193,22 +244,23 @@ pub fn score(
             step: demo.step,
             error: e,
             prediction_cpu_s: got.timings.total,
+            predicted_logit: got.translation_logit,
+            expert_logit,
         });
     }
-    // The errors of one variation (`None`: of all).
-    let errors_of = |name: Option<&str>| -> Vec<KeyframeError> {
+    // The steps of one variation (`None`: all of them).
+    let steps_of = |name: Option<&str>| -> Vec<&ScoredStep> {
         steps
             .iter()
             .filter(|s| name.is_none_or(|n| s.variation == n))
-            .map(|s| s.error)
             .collect()
     };
     let names: BTreeSet<&str> = steps.iter().map(|s| s.variation.as_str()).collect();
     let mut rows: Vec<ScoreRow> = names
         .into_iter()
-        .map(|n| ScoreRow::new(n.to_string(), &errors_of(Some(n))))
+        .map(|n| ScoreRow::of_steps(n.to_string(), &steps_of(Some(n))))
         .collect();
-    rows.push(ScoreRow::new("all".into(), &errors_of(None)));
+    rows.push(ScoreRow::of_steps("all".into(), &steps_of(None)));
     Ok(ScoreTable { rows, steps })
 }
 
@@ -242,6 +294,43 @@ mod tests {
         // A tilt of the approach axis has no such symmetry.
         let e = keyframe_error(&kf(0.5, 0.0, 30f64.to_radians(), true), &want);
         assert!((e.rotation_deg - 30.0).abs() < 1e-9, "{e:?}");
+    }
+
+    #[test]
+    fn a_far_step_is_a_sampling_miss_only_when_the_field_prefers_the_expert() {
+        let step = |position_m: f64, predicted_logit: f32, expert_logit: f32| ScoredStep {
+            variation: "pick_fruit/plum".into(),
+            seed: 1,
+            step: 0,
+            error: KeyframeError {
+                position_m,
+                rotation_deg: 0.0,
+                open_agrees: true,
+            },
+            prediction_cpu_s: 0.5,
+            predicted_logit,
+            expert_logit,
+        };
+        let missed = step(0.12, 50.0, 55.0);
+        let field_wrong = step(0.12, 55.0, 50.0);
+        let close = step(0.005, 50.0, 55.0);
+        assert!(missed.missed_by_sampling());
+        assert!(!field_wrong.missed_by_sampling());
+        assert!(!close.missed_by_sampling(), "within 1 cm is not off");
+        let r = ScoreRow::of_steps("x".into(), &[&missed, &field_wrong, &close]);
+        assert_eq!(r.steps, 3);
+        assert!((r.missed_by_sampling - 0.5).abs() < 1e-12, "{r:?}");
+        let none_off = ScoreRow::of_steps("y".into(), &[&close]);
+        assert!(none_off.missed_by_sampling.is_nan());
+        let table = ScoreTable {
+            rows: vec![r, none_off],
+            steps: vec![],
+        };
+        let md = table.markdown();
+        assert!(
+            md.contains("| 50 % |") && md.contains("| none off |"),
+            "{md}"
+        );
     }
 
     #[test]

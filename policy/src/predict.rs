@@ -877,6 +877,22 @@ impl Policy {
         })
     }
 
+    /// The translation field's logits at `positions` (base frame) of an encoded scene, for
+    /// diagnostics: how the field ranks the expert's position against the prediction.
+    pub fn translation_logits(
+        &self,
+        scene: &SceneEncoding,
+        positions: &[Point3<f64>],
+    ) -> Result<Vec<f32>> {
+        let queries: Vec<[f32; 3]> = positions
+            .iter()
+            .map(|p| [p.x as f32, p.y as f32, p.z as f32])
+            .collect();
+        self.model
+            .heads()
+            .trans_logits(&scene.embedding, &scene.coord, &queries)
+    }
+
     /// The keyframe at `position` (base frame) of an encoded scene: the rotation head's
     /// argmax on the grid refined by the pattern search, and the open head. A caller whose
     /// planner refuses the best prediction turns the next [`Prediction::candidates`] into

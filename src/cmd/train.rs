@@ -74,6 +74,13 @@ pub struct TrainArgs {
     /// Translation queries per sampling level.
     #[arg(long, default_value_t = 30)]
     pub queries: usize,
+    /// Share of the first sampling level's queries drawn within 2 cm of the observed cloud
+    /// instead of uniform in the gripper box (0, the paper's: all uniform). With few queries
+    /// per level, uniform ones seldom land on the scene's other objects, so the field is
+    /// never taught that the object the instruction does not name is wrong (the second pipe
+    /// link for the first, another flower).
+    #[arg(long, default_value_t = 0.0)]
+    pub cloud_queries: f64,
     /// Sampling levels of the translation loss (the paper's 3: the gripper box, balls of
     /// 12.5 and 3.1 cm). Each further level adds a ball a quarter the size, so the field is
     /// also trained at the scale the inference's finer levels resolve (4 × 333 at inference
@@ -156,6 +163,9 @@ struct RunSettings {
     /// The rate's schedule (runs from before it existed were constant).
     #[serde(default = "constant_schedule")]
     schedule: LrSchedule,
+    /// Share of the first level's queries drawn near the cloud (runs from before: 0).
+    #[serde(default)]
+    cloud_queries: f64,
 }
 
 fn train_levels() -> usize {
@@ -200,6 +210,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         },
         levels: args.levels,
         queries_per_level: args.queries,
+        cloud_query_share: args.cloud_queries,
         top_k: 10.min(args.queries),
         rotation_grid_level: args.rotation_grid_level,
         augment: !args.no_augment,
@@ -221,6 +232,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         init: args.init.clone(),
         levels: cfg.levels,
         schedule: cfg.optim.schedule,
+        cloud_queries: cfg.cloud_query_share,
     };
     let mut trainer = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -399,6 +411,7 @@ mod tests {
         let s: RunSettings = serde_json::from_str(old).unwrap();
         assert_eq!(s.schedule, LrSchedule::Constant);
         assert_eq!(s.levels, 3);
+        assert_eq!(s.cloud_queries, 0.0);
         assert_eq!(s.init, None);
         // The cosine schedule spans the run's iterations; a resume asking for more steps
         // has other settings, so it cannot silently restart the decay.

@@ -77,6 +77,7 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
             (kind.name(), 3, step)
         );
         assert!(s.prediction_cpu_s > 0.0);
+        assert!(s.predicted_logit.is_finite() && s.expert_logit.is_finite());
         assert!(
             e.position_m < BUILTIN_POSITION_M
                 && e.rotation_deg < BUILTIN_ROTATION_DEG
@@ -97,6 +98,8 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
         levels: policy::trainer::TRAIN_LEVELS,
         queries_per_level: 12,
         top_k: 3,
+        // Half the first level's queries near the recorded cloud's objects.
+        cloud_query_share: 0.5,
         rotation_grid_level: 0,
         augment: true,
         batch: 2,
