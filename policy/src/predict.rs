@@ -1252,15 +1252,13 @@ pub fn prepare_input(
         }
     }
     let inv = cfg.base_from_workspace.inverse();
-    let inside =
-        |p: &Point3<f64>, b: &[[f64; 3]; 2]| (0..3).all(|i| p[i] >= b[0][i] && p[i] <= b[1][i]);
     let mut focus_box = cfg.gripper_bounds;
     focus_box[0][2] = cfg.table_height;
     let (mut focused, mut other) = (Vec::new(), Vec::new());
     for (i, p) in raw.iter().enumerate() {
         let w = inv * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));
-        if inside(&w, &cfg.workspace_bounds) {
-            if inside(&w, &focus_box) {
+        if in_box(&w, &cfg.workspace_bounds) {
+            if in_box(&w, &focus_box) {
                 focused.push(i);
             } else {
                 other.push(i);
@@ -1445,6 +1443,11 @@ pub fn top_k(v: &[f32], k: usize) -> Vec<usize> {
     idx.sort_by(|&a, &b| v[b].total_cmp(&v[a]).then(a.cmp(&b)));
     idx.truncate(k);
     idx
+}
+
+/// Whether `p` lies in the box `b` = [min, max] (bounds included).
+pub(crate) fn in_box(p: &Point3<f64>, b: &[[f64; 3]; 2]) -> bool {
+    (0..3).all(|i| p[i] >= b[0][i] && p[i] <= b[1][i])
 }
 
 pub(crate) fn uniform_in_box(rng: &mut ChaCha8Rng, b: &[[f64; 3]; 2]) -> Point3<f64> {

@@ -25,8 +25,8 @@ use crate::grids::{so3_healpix_grid, GridRotation};
 use crate::heads::ROT_LMAX;
 use crate::optim::{AdamW, AdamWConfig};
 use crate::predict::{
-    prepare_input, top_k, uniform_in_ball, uniform_in_box, GripperPose, InstructionEmbedding,
-    PolicyConfig,
+    in_box, prepare_input, top_k, uniform_in_ball, uniform_in_box, GripperPose,
+    InstructionEmbedding, PolicyConfig,
 };
 use crate::rotation_head::RotationHead;
 use crate::so3::WignerCalculator;
@@ -157,6 +157,18 @@ fn object_points(cloud: &PointCloud, pc: &PolicyConfig) -> Vec<Point3<f64>> {
         .collect()
 }
 
+/// Checks a [`TrainConfig::cloud_query_share`]: a share, so in [0, 1].
+fn check_cloud_query_share(share: f64) -> Result<()> {
+    if (0.0..=1.0).contains(&share) {
+        Ok(())
+    } else {
+        Err(PolicyError::BadConfig(format!(
+            "training config: the share of first-level queries drawn near the cloud must be \
+             in [0, 1] (e.g. 0.5), got {share}"
+        )))
+    }
+}
+
 /// The first sampling level's `n` translation queries (workspace frame): `share` of them
 /// (rounded) each uniform in a [`CLOUD_QUERY_RADIUS_M`] ball around a random point of
 /// `cloud` (the scene's object points) inside `bounds`, the rest uniform in `bounds`.
@@ -175,16 +187,9 @@ pub fn first_level_queries(
     n: usize,
     share: f64,
 ) -> Result<Vec<Point3<f64>>> {
-    if !(0.0..=1.0).contains(&share) {
-        return Err(PolicyError::BadConfig(format!(
-            "the share of translation queries drawn near the cloud must be in [0, 1], got {share}"
-        )));
-    }
+    check_cloud_query_share(share)?;
     let inside: Vec<&Point3<f64>> = if share > 0.0 {
-        cloud
-            .iter()
-            .filter(|p| (0..3).all(|i| p[i] >= bounds[0][i] && p[i] <= bounds[1][i]))
-            .collect()
+        cloud.iter().filter(|p| in_box(p, bounds)).collect()
     } else {
         Vec::new()
     };
@@ -257,7 +262,7 @@ pub fn sample_gradients(
     ];
     let ws = pc.base_from_workspace;
     let truth_ws = ws.inverse() * Point3::from(truth_base);
-    let cloud_ws = if cfg.cloud_query_share > 0.0 {
+    let objects_ws = if cfg.cloud_query_share > 0.0 {
         object_points(&cloud, pc)
     } else {
         Vec::new()
@@ -271,7 +276,7 @@ pub fn sample_gradients(
             first_level_queries(
                 rng,
                 &pc.gripper_bounds,
-                &cloud_ws,
+                &objects_ws,
                 cfg.queries_per_level,
                 cfg.cloud_query_share,
             )?
@@ -345,13 +350,7 @@ impl Trainer {
                 cfg.batch, cfg.queries_per_level, cfg.top_k, cfg.levels
             )));
         }
-        if !(0.0..=1.0).contains(&cfg.cloud_query_share) {
-            return Err(PolicyError::BadConfig(format!(
-                "training config: the share of first-level queries drawn near the cloud must \
-                 be in [0, 1] (e.g. 0.5), got {}",
-                cfg.cloud_query_share
-            )));
-        }
+        check_cloud_query_share(cfg.cloud_query_share)?;
         Ok(Self {
             grid: LossGrid::new(cfg.rotation_grid_level)?,
             optim: AdamW::new(cfg.optim),
@@ -583,8 +582,7 @@ mod tests {
         assert_eq!(draw(&cloud[2..], 0.5), uniform);
         let q = draw(&cloud, 0.5);
         assert_eq!(q.len(), 30);
-        let inside = |p: &Point3<f64>| (0..3).all(|i| p[i] >= bounds[0][i] && p[i] <= bounds[1][i]);
-        assert!(q.iter().all(inside));
+        assert!(q.iter().all(|p| in_box(p, &bounds)));
         let near = |p: &Point3<f64>, o: &Point3<f64>| (p - o).norm() < CLOUD_QUERY_RADIUS_M;
         // The first 15 are the uniform ones, the last 15 each near an object, and both
         // objects get some.
