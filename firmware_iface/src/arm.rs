@@ -260,7 +260,7 @@ pub enum ArmError {
         safety_mode: SafetyMode,
     },
     /// RTDE inputs owned by another client.
-    #[error("RTDE inputs {names:?} are IN_USE by another RTDE client or fieldbus; stop that client (e.g. ur_rtde RTDEControlInterface, a PLC/EtherNet-IP adapter) and reconnect")]
+    #[error("RTDE inputs {names:?} are still IN_USE by another RTDE client or fieldbus after waiting 1 s for it to let go; stop that client (e.g. ur_rtde RTDEControlInterface, a PLC/EtherNet-IP adapter) and reconnect")]
     InputsInUse {
         /// The inputs.
         names: Vec<String>,

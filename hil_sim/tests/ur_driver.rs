@@ -399,6 +399,39 @@ fn connect_errors_name_the_problem_and_the_fix() {
 }
 
 #[test]
+fn reconnecting_at_once_finds_the_inputs_free() {
+    // Preflight closes its driver and the run connects a new one straight away: each new
+    // session must get the inputs the previous one has just given back.
+    let h = sim(UrSimConfig::for_tests());
+    for i in 0..10 {
+        let arm = UrArm::connect(config_for(&h), Arc::new(SystemClock::new()))
+            .unwrap_or_else(|e| panic!("connection {i}: {e}"));
+        drop(arm);
+    }
+}
+
+#[test]
+fn inputs_given_back_within_the_grace_are_claimed() {
+    let h = sim(UrSimConfig::for_tests());
+    let first = connect(&h);
+    let leaving = std::thread::spawn(move || {
+        std::thread::sleep(Duration::from_millis(200));
+        drop(first);
+    });
+    let t0 = Instant::now();
+    let second = UrArm::connect(config_for(&h), Arc::new(SystemClock::new()));
+    leaving.join().unwrap();
+    let second = second.unwrap_or_else(|e| panic!("after {:?}: {e}", t0.elapsed()));
+    // It waited for the first driver to leave rather than sharing the inputs with it.
+    assert!(
+        t0.elapsed() >= Duration::from_millis(150),
+        "{:?}",
+        t0.elapsed()
+    );
+    run_to_goal(&h, second);
+}
+
+#[test]
 fn e_series_runs_at_500_hz() {
     let h = sim(UrSimConfig::for_tests().e_series());
     // 12 missing packages are only 24 ms at 500 Hz: allow 100 ms on a shared CI machine.

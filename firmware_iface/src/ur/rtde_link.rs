@@ -7,7 +7,7 @@ use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
 use std::sync::mpsc::SyncSender;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use cell_types::{Clock, JointState, TrajectorySample, JOINT_COUNT};
 
@@ -45,6 +45,14 @@ pub const INPUTS: [&str; 7] = [
     "input_double_register_28",
     "input_double_register_29",
 ];
+
+/// How long input setup keeps asking while inputs are IN_USE: a controller releases a closed
+/// client's inputs only once it notices the close, so an immediate reconnect (preflight, then
+/// the run) can briefly find its own previous session still holding them.
+pub const INPUT_RELEASE_GRACE: Duration = Duration::from_secs(1);
+
+/// Pause between input setup requests within [`INPUT_RELEASE_GRACE`].
+const INPUT_RELEASE_POLL: Duration = Duration::from_millis(20);
 
 fn io(source: std::io::Error) -> ArmError {
     ArmError::Io {
@@ -284,9 +292,23 @@ impl Link {
             m => return Err(unexpected("output setup reply", &m)),
         };
         let out_layout = Layout::new(&out_types);
-        let (in_recipe, in_types) = match c.ask(&HostMessage::SetupInputs {
-            names: INPUTS.iter().map(|s| s.to_string()).collect(),
-        })? {
+        let asked = Instant::now();
+        let setup_reply = loop {
+            let reply = c.ask(&HostMessage::SetupInputs {
+                names: INPUTS.iter().map(|s| s.to_string()).collect(),
+            })?;
+            // A client that has just closed its connection (ours, a moment ago) still owns
+            // its inputs until the controller notices the close: ask again for a moment
+            // before calling them taken.
+            if let RobotMessage::SetupInputs { types, .. } = &reply {
+                if types.contains(&FieldType::InUse) && asked.elapsed() < INPUT_RELEASE_GRACE {
+                    std::thread::sleep(INPUT_RELEASE_POLL);
+                    continue;
+                }
+            }
+            break reply;
+        };
+        let (in_recipe, in_types) = match setup_reply {
             RobotMessage::SetupInputs { recipe_id, types } => {
                 let t = check_types(&INPUTS, &types)?;
                 if recipe_id == 0 {

@@ -287,6 +287,12 @@ impl Shared {
     /// Forgets a closed connection and releases the inputs it owned.
     pub(crate) fn unregister(&self, id: u64) {
         lock(&self.connections).remove(&id);
+        self.release_inputs(id);
+    }
+
+    /// Releases the RTDE inputs a connection owned, so that a client reconnecting at once
+    /// can claim them again.
+    pub(crate) fn release_inputs(&self, id: u64) {
         lock(&self.input_owners).retain(|_, owner| *owner != id);
     }
 

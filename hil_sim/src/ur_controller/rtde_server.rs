@@ -114,6 +114,9 @@ pub(crate) fn serve(shared: Arc<Shared>, stream: TcpStream, id: u64) {
         return;
     }
     let reason = read_loop(&shared, &stream, id, &writer, &session);
+    // Release the inputs before waiting for the writer thread: a client that closes and
+    // reconnects at once (preflight, then the run) must find them free.
+    shared.release_inputs(id);
     shared.log(format!("RTDE connection {id} closed: {reason}"));
     closed.store(true, Ordering::SeqCst);
     let _ = stream.shutdown(Shutdown::Both);
