@@ -161,3 +161,139 @@ pub fn load_samples(
     }
     Ok(out)
 }
+
+/// For each sample, the other samples of the same scene: the same task, seed and step under
+/// the task's other variations (a pipe or flower scene with one seed is the same in every
+/// variation, so these are exact counterfactuals that differ only in the instruction).
+pub fn scene_siblings(samples: &[DemoSample]) -> Vec<Vec<usize>> {
+    let keys: Vec<_> = samples
+        .iter()
+        .map(|s| (s.kind.task_name(), s.seed, s.step))
+        .collect();
+    siblings_by_key(&keys)
+}
+
+/// For each key, the indices of the other entries with the same key.
+fn siblings_by_key<K: Eq + std::hash::Hash>(keys: &[K]) -> Vec<Vec<usize>> {
+    let mut groups: std::collections::HashMap<&K, Vec<usize>> = std::collections::HashMap::new();
+    for (i, k) in keys.iter().enumerate() {
+        groups.entry(k).or_default().push(i);
+    }
+    keys.iter()
+        .enumerate()
+        .map(|(i, k)| groups[k].iter().copied().filter(|&j| j != i).collect())
+        .collect()
+}
+
+/// The sample indices of training step `step`: each epoch walks a fresh permutation of the
+/// `n` samples drawn from `seed` (so a resumed run draws the same batches as an
+/// uninterrupted one), `anchors` per step. With `siblings` ([`scene_siblings`]), each anchor
+/// is followed by one of its siblings drawn from `seed` and the step, so that the step's
+/// gradient holds the same scene under two instructions: what the scene alone explains
+/// cancels, and what is left is how the instruction must change the field.
+pub fn batch_indices(
+    n: usize,
+    anchors: usize,
+    siblings: Option<&[Vec<usize>]>,
+    seed: u64,
+    step: u64,
+) -> Vec<usize> {
+    use rand::seq::{IndexedRandom, SliceRandom};
+    use rand::SeedableRng;
+    let anchors = anchors.max(1);
+    let per_epoch = n.div_ceil(anchors).max(1) as u64;
+    let epoch = step / per_epoch;
+    let mut order: Vec<usize> = (0..n).collect();
+    order.shuffle(&mut rand_chacha::ChaCha8Rng::seed_from_u64(
+        seed ^ (epoch << 20),
+    ));
+    let at = ((step % per_epoch) as usize) * anchors;
+    let picked = &order[at.min(n)..(at + anchors).min(n)];
+    let Some(siblings) = siblings else {
+        return picked.to_vec();
+    };
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(seed ^ step.rotate_left(32) ^ 0x5eed);
+    let mut out = Vec::with_capacity(2 * picked.len());
+    for &i in picked {
+        out.push(i);
+        if let Some(&j) = siblings.get(i).and_then(|s| s.choose(&mut rng)) {
+            out.push(j);
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn siblings_are_the_other_entries_of_the_same_scene() {
+        let keys = [
+            ("pipe", 0u64, 0usize),
+            ("pipe", 0, 0),
+            ("pipe", 1, 0),
+            ("fruit", 0, 0),
+            ("pipe", 0, 0),
+            ("pipe", 0, 1),
+        ];
+        let s = siblings_by_key(&keys);
+        let want: Vec<Vec<usize>> =
+            vec![vec![1, 4], vec![0, 4], vec![], vec![], vec![0, 1], vec![]];
+        assert_eq!(s, want);
+    }
+
+    #[test]
+    fn each_epoch_visits_every_sample_once_and_the_same_step_draws_the_same_batch() {
+        let (n, anchors) = (7, 2);
+        for epoch in 0..3u64 {
+            let mut seen: Vec<usize> = (0..4)
+                .flat_map(|k| batch_indices(n, anchors, None, 9, 4 * epoch + k))
+                .collect();
+            assert_eq!(batch_indices(n, anchors, None, 9, 4 * epoch + 3).len(), 1);
+            seen.sort_unstable();
+            assert_eq!(seen, (0..n).collect::<Vec<_>>(), "epoch {epoch}");
+        }
+        assert_eq!(
+            batch_indices(n, anchors, None, 9, 5),
+            batch_indices(n, anchors, None, 9, 5)
+        );
+        // Epochs differ in order.
+        let first: Vec<_> = (0..4)
+            .flat_map(|k| batch_indices(n, anchors, None, 9, k))
+            .collect();
+        let second: Vec<_> = (4..8)
+            .flat_map(|k| batch_indices(n, anchors, None, 9, k))
+            .collect();
+        assert_ne!(first, second);
+    }
+
+    #[test]
+    fn paired_batches_follow_each_anchor_with_one_of_its_siblings() {
+        // Samples 0, 1, 2 are one scene under three variations; 3 has no counterpart.
+        let siblings = siblings_by_key(&[0, 0, 0, 1]);
+        let mut partners_of_0 = std::collections::BTreeSet::new();
+        for step in 0..40u64 {
+            let b = batch_indices(4, 1, Some(&siblings), 3, step);
+            match b[..] {
+                [3] => {}
+                [a, p] => {
+                    assert!(a < 3 && p < 3 && a != p, "step {step}: {b:?}");
+                    if a == 0 {
+                        partners_of_0.insert(p);
+                    }
+                }
+                _ => panic!("step {step}: {b:?}"),
+            }
+            assert_eq!(b, batch_indices(4, 1, Some(&siblings), 3, step));
+        }
+        // The counterpart is drawn, not fixed.
+        assert_eq!(partners_of_0, [1, 2].into());
+        // The anchors still walk every sample once per epoch.
+        let mut anchors: Vec<usize> = (0..4)
+            .map(|k| batch_indices(4, 1, Some(&siblings), 3, k)[0])
+            .collect();
+        anchors.sort_unstable();
+        assert_eq!(anchors, vec![0, 1, 2, 3]);
+    }
+}

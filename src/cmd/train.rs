@@ -13,13 +13,10 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use equact::train::{load_samples, Instructions};
+use equact::train::{batch_indices, load_samples, scene_siblings, Instructions};
 use policy::init::random_weights;
 use policy::optim::{AdamWConfig, LrSchedule};
 use policy::trainer::{TrainConfig, Trainer, WEIGHTS_FILE};
-use rand::seq::SliceRandom;
-use rand::SeedableRng;
-use rand_chacha::ChaCha8Rng;
 
 use super::policy::{HeadsArg, ModeArg};
 use super::run::NetworkSize;
@@ -81,6 +78,12 @@ pub struct TrainArgs {
     /// link for the first, another flower).
     #[arg(long, default_value_t = 0.0)]
     pub cloud_queries: f64,
+    /// Make each batch pairs of the same scene under two of its task's variations (a pipe
+    /// or flower scene with one seed is the same in every variation): half of `--batch`
+    /// samples drawn as usual, each followed by its counterpart. The network otherwise
+    /// learns what the scene alone explains and leaves the instruction almost unread.
+    #[arg(long)]
+    pub paired: bool,
     /// Sampling levels of the translation loss (the paper's 3: the gripper box, balls of
     /// 12.5 and 3.1 cm). Each further level adds a ball a quarter the size, so the field is
     /// also trained at the scale the inference's finer levels resolve (4 × 333 at inference
@@ -166,6 +169,9 @@ struct RunSettings {
     /// Share of the first level's queries drawn near the cloud (runs from before: 0).
     #[serde(default)]
     cloud_queries: f64,
+    /// Batches of same-scene pairs (runs from before: no).
+    #[serde(default)]
+    paired: bool,
 }
 
 fn train_levels() -> usize {
@@ -182,6 +188,12 @@ fn equivariant_heads() -> String {
 
 /// Runs `equact train`.
 pub fn run(args: TrainArgs) -> anyhow::Result<()> {
+    if args.paired && args.batch < 2 {
+        anyhow::bail!(
+            "--paired needs --batch of at least 2 (a sample and its counterpart), got {}",
+            args.batch
+        );
+    }
     let cell = super::config::load(args.config.as_ref())?;
     let instructions = Instructions::from_flags(
         args.instruction_embeddings.as_deref(),
@@ -233,6 +245,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         levels: cfg.levels,
         schedule: cfg.optim.schedule,
         cloud_queries: cfg.cloud_query_share,
+        paired: args.paired,
     };
     let mut trainer = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -243,24 +256,27 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         .with_context(|| format!("opening {}", args.out.join("log.jsonl").display()))?;
     let started = Instant::now();
     let first = trainer.optim.step;
-    let mut order: Vec<usize> = Vec::new();
+    let siblings = args.paired.then(|| scene_siblings(&samples));
+    if let Some(s) = &siblings {
+        let with = s.iter().filter(|s| !s.is_empty()).count();
+        eprintln!(
+            "paired batches: {with} of {} samples have the same scene under another variation",
+            samples.len()
+        );
+    }
+    let anchors = if args.paired {
+        args.batch / 2
+    } else {
+        args.batch
+    };
     let mut running = None::<f64>;
     while trainer.optim.step < args.iterations && !interrupt.load(Ordering::SeqCst) {
         let step = trainer.optim.step;
-        // Each epoch a fresh permutation from the seed, so a resumed run draws the same
-        // batches as an uninterrupted one.
-        let per_epoch = samples.len().div_ceil(args.batch) as u64;
-        let epoch = step / per_epoch;
-        if order.is_empty() || step % per_epoch == 0 || step == first {
-            order = (0..samples.len()).collect();
-            order.shuffle(&mut ChaCha8Rng::seed_from_u64(args.seed ^ (epoch << 20)));
-        }
-        let at = ((step % per_epoch) as usize) * args.batch;
-        let batch: Vec<&policy::trainer::TrainSample> = order
-            [at..(at + args.batch).min(order.len())]
-            .iter()
-            .map(|&i| &samples[i].sample)
-            .collect();
+        let batch: Vec<&policy::trainer::TrainSample> =
+            batch_indices(samples.len(), anchors, siblings.as_deref(), args.seed, step)
+                .into_iter()
+                .map(|i| &samples[i].sample)
+                .collect();
         let report = trainer
             .step(&batch)
             .with_context(|| format!("training step {}", step + 1))?;
