@@ -25,6 +25,9 @@ pub struct AdamWConfig {
     pub weight_decay: f32,
     /// How the rate changes with the step (`lr` is its peak).
     pub schedule: LrSchedule,
+    /// Factor of the rate for the instruction's path into the field ([`conditions`]: the
+    /// instruction encoder and the FiLM projections); 1 trains every parameter alike.
+    pub conditioning_lr_scale: f32,
 }
 
 /// The learning rate as a function of the optimiser step.
@@ -75,8 +78,23 @@ impl AdamWConfig {
             eps: 1e-8,
             weight_decay: 5e-4,
             schedule: LrSchedule::Constant,
+            conditioning_lr_scale: 1.0,
         }
     }
+}
+
+/// Whether a parameter carries the instruction into the field: the instruction encoder
+/// (`instruction_embedding`, `readout`, `scene_instruction_encoder`) and every FiLM
+/// projection (`….film.…`).
+pub fn conditions(key: &str) -> bool {
+    [
+        "instruction_embedding.",
+        "readout",
+        "scene_instruction_encoder.",
+    ]
+    .iter()
+    .any(|p| key.starts_with(p))
+        || key.contains(".film.")
 }
 
 /// Whether a parameter is weight-decayed: matrices yes; biases, norm affines and the radial
@@ -132,7 +150,13 @@ impl AdamW {
         let t = self.step as i32;
         let bc1 = 1.0 - f64::from(c.beta1).powi(t);
         let bc2 = 1.0 - f64::from(c.beta2).powi(t);
+        let base_lr = lr;
         for (key, g) in grads {
+            let lr = if conditions(key) {
+                base_lr * f64::from(c.conditioning_lr_scale)
+            } else {
+                base_lr
+            };
             let shape = weights.shape_of(key)?;
             let decay = if decays(key, &shape) {
                 (lr * f64::from(c.weight_decay)) as f32
@@ -314,6 +338,43 @@ mod tests {
         opt.update(&mut w, &g).unwrap();
         let moved = 1.0 - w.f32_any("lin.weight").unwrap().1[0];
         assert!((moved - 0.02).abs() < 1e-6, "{moved}");
+    }
+
+    #[test]
+    fn the_conditioning_path_moves_at_its_own_rate() {
+        let one = |v: f32| StoredTensor {
+            shape: vec![1, 1],
+            data: TensorData::F32(vec![v]),
+        };
+        let keys = [
+            "scene_instruction_encoder.layers.0.0.to_qkv.weight",
+            "readout",
+            "down_blocks.0.block.transblock.ffn.so3_linear_1.film.weight",
+            "down_blocks.0.block.transblock.ffn.so3_linear_1.weight",
+            "trans_field_layer.weight",
+        ];
+        let mut w = Weights::from_tensors(
+            "test",
+            keys.iter().map(|k| (k.to_string(), one(1.0))).collect(),
+        );
+        let mut opt = AdamW::new(AdamWConfig {
+            lr: 0.01,
+            weight_decay: 0.0,
+            conditioning_lr_scale: 10.0,
+            ..AdamWConfig::reference()
+        });
+        let g: Vec<(String, Vec<f32>)> = keys.iter().map(|k| (k.to_string(), vec![1.0])).collect();
+        opt.update(&mut w, &g).unwrap();
+        let moved: Vec<f32> = keys
+            .iter()
+            .map(|k| 1.0 - w.f32_any(k).unwrap().1[0])
+            .collect();
+        // Adam's first step moves each parameter by about its rate.
+        for (k, m) in keys.iter().zip(&moved) {
+            let want = if conditions(k) { 0.1 } else { 0.01 };
+            assert!((m - want).abs() < 1e-5, "{k}: moved {m}, want {want}");
+        }
+        assert_eq!(keys.iter().filter(|k| conditions(k)).count(), 3);
     }
 
     #[test]

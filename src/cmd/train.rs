@@ -84,6 +84,11 @@ pub struct TrainArgs {
     /// learns what the scene alone explains and leaves the instruction almost unread.
     #[arg(long)]
     pub paired: bool,
+    /// Factor of the learning rate for the instruction encoder and the FiLM projections
+    /// (1: every parameter alike). Fine-tuned weights whose field ignores the instruction
+    /// keep its path nearly still at the field's rate.
+    #[arg(long, default_value_t = 1.0)]
+    pub conditioning_lr_scale: f32,
     /// Sampling levels of the translation loss (the paper's 3: the gripper box, balls of
     /// 12.5 and 3.1 cm). Each further level adds a ball a quarter the size, so the field is
     /// also trained at the scale the inference's finer levels resolve (4 × 333 at inference
@@ -172,6 +177,13 @@ struct RunSettings {
     /// Batches of same-scene pairs (runs from before: no).
     #[serde(default)]
     paired: bool,
+    /// Rate factor of the instruction's path (runs from before: 1).
+    #[serde(default = "one")]
+    conditioning_lr_scale: f32,
+}
+
+fn one() -> f32 {
+    1.0
 }
 
 fn train_levels() -> usize {
@@ -188,6 +200,12 @@ fn equivariant_heads() -> String {
 
 /// Runs `equact train`.
 pub fn run(args: TrainArgs) -> anyhow::Result<()> {
+    if !(args.conditioning_lr_scale.is_finite() && args.conditioning_lr_scale >= 0.0) {
+        anyhow::bail!(
+            "--conditioning-lr-scale must be a finite factor of at least 0, got {}",
+            args.conditioning_lr_scale
+        );
+    }
     if args.paired && args.batch < 2 {
         anyhow::bail!(
             "--paired needs --batch of at least 2 (a sample and its counterpart), got {}",
@@ -218,6 +236,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         optim: AdamWConfig {
             lr: args.lr,
             schedule: args.schedule.schedule(args.warmup, args.iterations),
+            conditioning_lr_scale: args.conditioning_lr_scale,
             ..AdamWConfig::reference()
         },
         levels: args.levels,
@@ -246,6 +265,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         schedule: cfg.optim.schedule,
         cloud_queries: cfg.cloud_query_share,
         paired: args.paired,
+        conditioning_lr_scale: args.conditioning_lr_scale,
     };
     let mut trainer = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -428,6 +448,8 @@ mod tests {
         assert_eq!(s.schedule, LrSchedule::Constant);
         assert_eq!(s.levels, 3);
         assert_eq!(s.cloud_queries, 0.0);
+        assert!(!s.paired);
+        assert_eq!(s.conditioning_lr_scale, 1.0);
         assert_eq!(s.init, None);
         // The cosine schedule spans the run's iterations; a resume asking for more steps
         // has other settings, so it cannot silently restart the decay.
