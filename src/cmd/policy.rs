@@ -1,7 +1,8 @@
 //! `equact policy ...`: tools around the EquAct network: fixture parity checks, one
-//! prediction from a cloud file, instruction embeddings, and a model's keyframes scored
-//! against recorded demonstrations.
+//! prediction from a cloud file, instruction embeddings, a model's keyframes scored
+//! against recorded demonstrations, and whether its keyframes follow the instruction.
 
+use cell_types::config::CellConfig;
 use cell_types::{Base, Tcp, Transform};
 use clap::{Args, Subcommand, ValueEnum};
 use policy::predict::{GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode};
@@ -48,6 +49,11 @@ pub enum PolicyCommand {
     /// every step's keyframe against the expert's (position, rotation, open state), per
     /// task variation.
     Score(ScoreArgs),
+    /// Ask each recorded pipe and flower scene (the same scene in every variation) under
+    /// each of its task's instructions: does the first keyframe go to the part that
+    /// instruction names? Per task, the share that does and the instruction pairs the
+    /// network does not tell apart.
+    Ground(ScoreArgs),
 }
 
 /// Which network mode to run.
@@ -206,7 +212,7 @@ fn predict(a: PredictArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Arguments of `equact policy score`.
+/// Arguments of `equact policy score` and `equact policy ground`.
 #[derive(Args, Debug)]
 pub struct ScoreArgs {
     /// The demonstrations (`equact demos collect --out DIR`; held-out seeds, e.g. `--seed
@@ -274,7 +280,11 @@ impl SamplingArgs {
     }
 }
 
-fn score(a: ScoreArgs) -> anyhow::Result<()> {
+/// The demonstrations' samples, the network and the cell of `policy score` or `ground`.
+fn load_scoring(
+    a: &ScoreArgs,
+    what: &str,
+) -> anyhow::Result<(Vec<equact::train::DemoSample>, Policy, CellConfig)> {
     let cfg = super::config::load(a.config.as_ref())?;
     let instructions = equact::train::Instructions::from_flags(
         a.instruction_embeddings.as_deref(),
@@ -290,13 +300,18 @@ fn score(a: ScoreArgs) -> anyhow::Result<()> {
     policy.set_threads(a.threads);
     let s = policy.config().sampling;
     eprintln!(
-        "scoring {} on {} steps of {}: {} levels of {} translation queries",
+        "{what} {} on {} steps of {}: {} levels of {} translation queries",
         super::run::describe_weights(a.model.as_deref()),
         samples.len(),
         a.demos.display(),
         s.levels,
         s.per_level
     );
+    Ok((samples, policy, cfg))
+}
+
+fn score(a: ScoreArgs) -> anyhow::Result<()> {
+    let (samples, mut policy, _) = load_scoring(&a, "scoring")?;
     let table = equact::score::score(&mut policy, &samples, a.seed, &mut |l| eprintln!("{l}"))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&table)?);
@@ -311,11 +326,34 @@ fn score(a: ScoreArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn ground(a: ScoreArgs) -> anyhow::Result<()> {
+    let (samples, mut policy, cfg) = load_scoring(&a, "asking")?;
+    let instructions = equact::train::Instructions::from_flags(
+        a.instruction_embeddings.as_deref(),
+        a.minilm.as_deref(),
+    );
+    let table = equact::grounding::ground(
+        &mut policy,
+        &samples,
+        &instructions,
+        cfg.workspace.table_height,
+        a.seed,
+        &mut |l| eprintln!("{l}"),
+    )?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&table)?);
+    } else {
+        print!("{}", table.markdown());
+    }
+    Ok(())
+}
+
 /// Runs `equact policy`.
 pub fn run(args: PolicyArgs) -> anyhow::Result<()> {
     match args.command {
         PolicyCommand::Predict(a) => predict(a),
         PolicyCommand::Score(a) => score(a),
+        PolicyCommand::Ground(a) => ground(a),
         PolicyCommand::Embed { text, minilm, out } => {
             let t = Instant::now();
             let model = policy::minilm::MiniLm::load(&minilm)?;

@@ -1,0 +1,463 @@
+//! Does the instruction reach the keyframe? (`equact policy ground`)
+//!
+//! A pipe or flower scene drawn with one seed is the same under each of its task's
+//! variations; only the instruction says which link or flower to take. So every recorded
+//! scene is an exact counterfactual: the network sees the same observation once per
+//! instruction, and its first keyframe (the approach above the part to grasp) should land
+//! nearest the scripted expert's first keyframe for *that* instruction. `policy score`
+//! cannot show this, as it only asks each demonstration's own instruction: a model that
+//! always takes the first link scores well on a third of the pipe's scenes.
+//!
+//! Scenes whose task draws a different scene per variation (the fruit and the roll differ
+//! in size or colour), or whose variations share one first keyframe, hold no counterfactual
+//! and are skipped.
+
+use std::collections::BTreeSet;
+
+use anyhow::Context;
+use nalgebra::Vector3;
+use policy::predict::Policy;
+use serde::Serialize;
+
+use crate::task::{TaskInstance, TaskKind};
+use crate::train::{DemoSample, Instructions};
+
+/// Two variations' first keyframes closer than this (m) are one target: the instruction
+/// need not tell them apart (the pipe's "all" starts where "first link" does).
+pub const SAME_TARGET_M: f64 = 0.03;
+
+/// Predictions under two instructions closer than this (m) count as the same keyframe.
+pub const SAME_PREDICTION_M: f64 = 0.01;
+
+/// A scene's variations with their expert first keyframes' positions (base frame, m).
+pub type Targets = Vec<(TaskKind, Vector3<f64>)>;
+
+/// One scene's predictions: (predicted position, its instruction's target), per instruction.
+type Made = Vec<(Vector3<f64>, Vector3<f64>)>;
+
+/// One prediction: a scene under one of its task's instructions.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct GroundedPrediction {
+    /// The instruction's `task/variation`.
+    pub variation: String,
+    /// The scene's seed.
+    pub seed: u64,
+    /// Distance from the prediction to this instruction's expert first keyframe (m).
+    pub own_target_m: f64,
+    /// Distance to the nearest expert first keyframe of the scene's other instructions
+    /// with a different target (m).
+    pub other_target_m: f64,
+    /// The predicted TCP position (base frame, m).
+    pub position: [f64; 3],
+}
+
+impl GroundedPrediction {
+    /// Whether the prediction lies nearer its own instruction's target than any other.
+    pub fn grounded(&self) -> bool {
+        self.own_target_m < self.other_target_m
+    }
+}
+
+/// The summary of one task's counterfactual scenes.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct GroundingRow {
+    /// The task, or `all`.
+    pub task: String,
+    /// Scenes probed.
+    pub scenes: usize,
+    /// Predictions made (scenes × instructions with a target of their own).
+    pub predictions: usize,
+    /// Share of predictions nearest their own instruction's target.
+    pub grounded: f64,
+    /// Median distance to the own target (m).
+    pub own_target_median_m: f64,
+    /// Share of instruction pairs with different targets whose predictions are the same
+    /// keyframe ([`SAME_PREDICTION_M`]): the instruction was not heard.
+    pub ignored_pairs: f64,
+}
+
+/// Every prediction and the rows per task (sorted by name), then `all`.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct GroundingTable {
+    /// One row per task with counterfactual scenes, then `all`.
+    pub rows: Vec<GroundingRow>,
+    /// Every prediction, in the order made.
+    pub predictions: Vec<GroundedPrediction>,
+    /// Tasks whose scenes hold no counterfactual (skipped).
+    pub skipped_tasks: Vec<String>,
+}
+
+impl GroundingTable {
+    /// The rows as a Markdown table.
+    pub fn markdown(&self) -> String {
+        let mut s = String::from(
+            "| task | scenes | predictions | nearest own target | own target median (mm) | instruction pairs ignored |\n|---|---|---|---|---|---|\n",
+        );
+        for r in &self.rows {
+            s.push_str(&format!(
+                "| {} | {} | {} | {:.0} % | {:.1} | {:.0} % |\n",
+                r.task,
+                r.scenes,
+                r.predictions,
+                r.grounded * 100.0,
+                r.own_target_median_m * 1e3,
+                r.ignored_pairs * 100.0
+            ));
+        }
+        if !self.skipped_tasks.is_empty() {
+            s.push_str(&format!(
+                "\nno counterfactual scenes (the scene differs by variation, or one target): {}\n",
+                self.skipped_tasks.join(", ")
+            ));
+        }
+        s
+    }
+}
+
+/// The variations of a scene's task that draw the same scene with `seed` and their expert
+/// first keyframes' positions; `None` when fewer than two distinct targets remain.
+pub fn counterfactuals(kind: TaskKind, seed: u64, table_height: f64) -> Option<Targets> {
+    let own = TaskInstance::sample(kind, seed, table_height);
+    let same_scene = |other: &TaskInstance| {
+        other.bodies.len() == own.bodies.len()
+            && other.bodies.iter().zip(&own.bodies).all(|(a, b)| {
+                a.base_from_body == b.base_from_body && a.parts == b.parts && a.grasp == b.grasp
+            })
+    };
+    let variations = TaskKind::variations_of(kind.task_name())?;
+    let targets: Targets = variations
+        .into_iter()
+        .filter_map(|k| {
+            let scene = TaskInstance::sample(k, seed, table_height);
+            let first = scene.expert_keyframes().into_iter().next()?;
+            same_scene(&scene).then(|| (k, first.base_from_tcp.translation()))
+        })
+        .collect();
+    let distinct = targets
+        .iter()
+        .any(|(_, a)| targets.iter().any(|(_, b)| (a - b).norm() > SAME_TARGET_M));
+    distinct.then_some(targets)
+}
+
+/// Predicts the first keyframe of each demonstrated scene (one per task and seed) under each
+/// of its task's instructions that has a target of its own, and measures where it lands
+/// (prediction `i` seeded `seed + i`); `progress` hears one line per prediction.
+pub fn ground(
+    policy: &mut Policy,
+    samples: &[DemoSample],
+    instructions: &Instructions<'_>,
+    table_height: f64,
+    seed: u64,
+    progress: &mut dyn FnMut(&str),
+) -> anyhow::Result<GroundingTable> {
+    let mut seen = BTreeSet::new();
+    let mut scenes: Vec<(&DemoSample, Targets)> = Vec::new();
+    let mut probed_tasks = BTreeSet::new();
+    let mut all_tasks = BTreeSet::new();
+    for s in samples.iter().filter(|s| s.step == 0) {
+        all_tasks.insert(s.kind.task_name());
+        if !seen.insert((s.kind.task_name(), s.seed)) {
+            continue;
+        }
+        if let Some(targets) = counterfactuals(s.kind, s.seed, table_height) {
+            probed_tasks.insert(s.kind.task_name());
+            scenes.push((s, targets));
+        }
+    }
+    if scenes.is_empty() {
+        anyhow::bail!(
+            "the demonstrations hold no counterfactual scene (a pipe or flower episode's first \
+             step); record some with `equact demos collect --task disassemble_pipe` or \
+             `--task pluck_flower`"
+        );
+    }
+    let total: usize = scenes.iter().map(|(_, t)| t.len()).sum();
+    let mut predictions = Vec::with_capacity(total);
+    let mut embeddings = std::collections::HashMap::new();
+    // Per scene, the predictions' positions and targets, for the ignored pairs.
+    let mut per_scene: Vec<(&'static str, Made)> = Vec::new();
+    for (demo, targets) in &scenes {
+        let mut made = Vec::new();
+        for (kind, target) in targets {
+            let other_target_m = targets
+                .iter()
+                .filter(|(_, t)| (t - target).norm() > SAME_TARGET_M)
+                .map(|(_, t)| t);
+            let others: Vec<&Vector3<f64>> = other_target_m.collect();
+            if others.is_empty() {
+                continue;
+            }
+            // Embedded once per variation: a MiniLM source loads its model per call.
+            if !embeddings.contains_key(kind) {
+                embeddings.insert(*kind, instructions.embedding(*kind)?);
+            }
+            let instruction = &embeddings[kind];
+            policy.seed = seed.wrapping_add(predictions.len() as u64);
+            let got = policy
+                .predict_detailed(&demo.sample.cloud, &demo.sample.gripper, instruction)
+                .with_context(|| {
+                    format!(
+                        "predicting the {} scene of seed {} under `{}`",
+                        demo.kind.task_name(),
+                        demo.seed,
+                        kind.instruction()
+                    )
+                })?;
+            let p = got.keyframe.base_from_tcp.translation();
+            let prediction = GroundedPrediction {
+                variation: kind.name(),
+                seed: demo.seed,
+                own_target_m: (p - target).norm(),
+                other_target_m: others
+                    .iter()
+                    .map(|t| (p - *t).norm())
+                    .fold(f64::INFINITY, f64::min),
+                position: [p.x, p.y, p.z],
+            };
+            progress(&format!(
+                "[{}/{total}] seed {} `{}`: {:.1} mm from its target, {:.1} mm from the nearest other ({})",
+                predictions.len() + 1,
+                demo.seed,
+                kind.instruction(),
+                prediction.own_target_m * 1e3,
+                prediction.other_target_m * 1e3,
+                if prediction.grounded() { "grounded" } else { "wrong part" }
+            ));
+            predictions.push(prediction);
+            made.push((p, *target));
+        }
+        per_scene.push((demo.kind.task_name(), made));
+    }
+    let row = |task: Option<&str>| {
+        let mine: Vec<&GroundedPrediction> = predictions
+            .iter()
+            .filter(|p| task.is_none_or(|t| p.variation.split('/').next() == Some(t)))
+            .collect();
+        let pairs: Vec<bool> = per_scene
+            .iter()
+            .filter(|(t, _)| task.is_none_or(|x| *t == x))
+            .flat_map(|(_, made)| {
+                made.iter().enumerate().flat_map(move |(i, a)| {
+                    made[i + 1..]
+                        .iter()
+                        .filter(move |b| (a.1 - b.1).norm() > SAME_TARGET_M)
+                        .map(move |b| (a.0 - b.0).norm() <= SAME_PREDICTION_M)
+                })
+            })
+            .collect();
+        let share = |n: usize, of: usize| {
+            if of == 0 {
+                f64::NAN
+            } else {
+                n as f64 / of as f64
+            }
+        };
+        let own: Vec<f64> = mine.iter().map(|p| p.own_target_m).collect();
+        GroundingRow {
+            task: task.unwrap_or("all").to_string(),
+            scenes: per_scene
+                .iter()
+                .filter(|(t, _)| task.is_none_or(|x| *t == x))
+                .count(),
+            predictions: mine.len(),
+            grounded: share(mine.iter().filter(|p| p.grounded()).count(), mine.len()),
+            own_target_median_m: crate::score::quantile(&own, 0.5),
+            ignored_pairs: share(pairs.iter().filter(|&&b| b).count(), pairs.len()),
+        }
+    };
+    let mut rows: Vec<GroundingRow> = probed_tasks.iter().map(|t| row(Some(t))).collect();
+    rows.push(row(None));
+    Ok(GroundingTable {
+        rows,
+        predictions,
+        skipped_tasks: all_tasks
+            .difference(&probed_tasks)
+            .map(|t| t.to_string())
+            .collect(),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+
+    const TABLE: f64 = -0.06;
+
+    #[test]
+    fn pipe_and_flower_scenes_are_counterfactuals_and_the_others_are_not() {
+        for seed in [0, 7, 1_000_000] {
+            for kind in TaskKind::all() {
+                let c = counterfactuals(kind, seed, TABLE);
+                match kind.task_name() {
+                    "disassemble_pipe" | "pluck_flower" => {
+                        let c = c.unwrap_or_else(|| panic!("{} seed {seed}", kind.name()));
+                        assert_eq!(c.len(), 3, "every variation draws the same scene");
+                        assert!(c.iter().any(|(k, _)| *k == kind));
+                    }
+                    _ => assert!(c.is_none(), "{} seed {seed}", kind.name()),
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn the_pipes_all_starts_at_the_first_link_and_the_flowers_differ() {
+        let c =
+            counterfactuals(TaskKind::parse("disassemble_pipe/all").unwrap(), 3, TABLE).unwrap();
+        let at = |name: &str| c.iter().find(|(k, _)| k.name() == name).unwrap().1;
+        let first = at("disassemble_pipe/first_link");
+        assert!((at("disassemble_pipe/all") - first).norm() <= SAME_TARGET_M);
+        assert!((at("disassemble_pipe/second_link") - first).norm() > SAME_TARGET_M);
+        let f = counterfactuals(TaskKind::parse("pluck_flower/top").unwrap(), 3, TABLE).unwrap();
+        for (i, (_, a)) in f.iter().enumerate() {
+            for (_, b) in &f[i + 1..] {
+                assert!((a - b).norm() > SAME_TARGET_M, "{a} {b}");
+            }
+        }
+    }
+
+    /// A demonstration step of `kind`'s scene with `seed`, with a stand-in cloud.
+    fn demo(kind: TaskKind, seed: u64, step: usize) -> DemoSample {
+        use cell_types::{FrameId, PointCloud, Transform};
+        let scene = TaskInstance::sample(kind, seed, TABLE);
+        let points: Vec<nalgebra::Point3<f32>> = (0..400)
+            .map(|i| {
+                let (a, b) = ((i % 20) as f32, (i / 20) as f32);
+                nalgebra::Point3::new(0.35 + 0.015 * a, -0.15 + 0.015 * b, TABLE as f32 + 0.02)
+            })
+            .collect();
+        DemoSample {
+            kind,
+            seed,
+            step,
+            sample: policy::trainer::TrainSample {
+                cloud: PointCloud {
+                    frame: FrameId::Base,
+                    rgb: Some(vec![[120, 120, 120]; points.len()]),
+                    points,
+                },
+                gripper: policy::predict::GripperPose {
+                    base_from_tcp: Transform::from_parts(
+                        Vector3::new(0.4, 0.0, 0.3),
+                        nalgebra::UnitQuaternion::identity(),
+                    ),
+                    open: true,
+                },
+                instruction: Instructions::Builtin.embedding(kind).unwrap(),
+                target: scene.expert_keyframes()[step],
+            },
+        }
+    }
+
+    #[test]
+    fn each_counterfactual_scene_is_asked_once_under_each_instruction() {
+        let cfg = cell_types::config::CellConfig::simulated().unwrap();
+        let mut net = crate::learned::for_cell(policy::predict::PolicyConfig::tiny(), &cfg);
+        net.extra.token_dim = policy::minilm::HIDDEN;
+        let mut policy = Policy::random(net, 1).unwrap();
+        let kind = |n: &str| TaskKind::parse(n).unwrap();
+        let samples = vec![
+            demo(kind("disassemble_pipe/first_link"), 5, 0),
+            demo(kind("disassemble_pipe/first_link"), 5, 1),
+            // The same scene again under another variation: asked once.
+            demo(kind("disassemble_pipe/all"), 5, 0),
+            demo(kind("pick_fruit/plum"), 5, 0),
+        ];
+        let mut lines = Vec::new();
+        let t = ground(
+            &mut policy,
+            &samples,
+            &Instructions::Builtin,
+            cfg.workspace.table_height,
+            0,
+            &mut |l| lines.push(l.to_string()),
+        )
+        .unwrap();
+        assert_eq!(t.predictions.len(), 3, "{:?}", t.predictions);
+        assert_eq!(lines.len(), 3);
+        let names: Vec<&str> = t.predictions.iter().map(|p| p.variation.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "disassemble_pipe/first_link",
+                "disassemble_pipe/second_link",
+                "disassemble_pipe/all"
+            ]
+        );
+        let targets =
+            counterfactuals(kind("disassemble_pipe/all"), 5, cfg.workspace.table_height).unwrap();
+        for p in &t.predictions {
+            let target = targets
+                .iter()
+                .find(|(k, _)| k.name() == p.variation)
+                .unwrap()
+                .1;
+            let at = Vector3::from(p.position);
+            assert!(
+                ((at - target).norm() - p.own_target_m).abs() < 1e-9,
+                "{p:?}"
+            );
+            assert!(p.other_target_m.is_finite() && p.other_target_m > 0.0);
+        }
+        assert_eq!(t.skipped_tasks, ["pick_fruit"]);
+        assert_eq!(t.rows.len(), 2);
+        assert_eq!(
+            (t.rows[0].task.as_str(), t.rows[0].scenes),
+            ("disassemble_pipe", 1)
+        );
+        let grounded = t.predictions.iter().filter(|p| p.grounded()).count();
+        assert!((t.rows[1].grounded - grounded as f64 / 3.0).abs() < 1e-12);
+        // Two pairs have different targets (first/second, second/all).
+        let r = t.rows[1].ignored_pairs * 2.0;
+        assert!(
+            (r - r.round()).abs() < 1e-12 && (0.0..=2.0).contains(&r),
+            "{r}"
+        );
+
+        let err = ground(
+            &mut policy,
+            &samples[3..],
+            &Instructions::Builtin,
+            cfg.workspace.table_height,
+            0,
+            &mut |_| {},
+        )
+        .unwrap_err()
+        .to_string();
+        assert!(err.contains("no counterfactual scene"), "{err}");
+    }
+
+    #[test]
+    fn a_prediction_is_grounded_only_nearer_its_own_target() {
+        let p = |own: f64, other: f64| GroundedPrediction {
+            variation: "pluck_flower/top".into(),
+            seed: 1,
+            own_target_m: own,
+            other_target_m: other,
+            position: [0.0; 3],
+        };
+        assert!(p(0.01, 0.1).grounded());
+        assert!(!p(0.1, 0.01).grounded());
+        assert!(!p(0.05, 0.05).grounded(), "a tie is not grounded");
+        let table = GroundingTable {
+            rows: vec![GroundingRow {
+                task: "pluck_flower".into(),
+                scenes: 3,
+                predictions: 9,
+                grounded: 5.0 / 9.0,
+                own_target_median_m: 0.0123,
+                ignored_pairs: 0.25,
+            }],
+            predictions: vec![],
+            skipped_tasks: vec!["pick_fruit".into()],
+        };
+        let md = table.markdown();
+        assert!(
+            md.contains("| pluck_flower | 3 | 9 | 56 % | 12.3 | 25 % |")
+                && md.contains("pick_fruit"),
+            "{md}"
+        );
+    }
+}
