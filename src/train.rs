@@ -102,6 +102,16 @@ pub fn load_samples(
     cfg: &CellConfig,
     instructions: &Instructions<'_>,
 ) -> anyhow::Result<Vec<DemoSample>> {
+    // `Index::load` reads a folder without an index as a new, empty dataset (what `demos
+    // collect` starts from); here that is a wrong path, and saying so beats "no demonstration".
+    if !dir.join("index.json").is_file() {
+        anyhow::bail!(
+            "{} is not a demonstrations folder (it has no index.json); record one with \
+             `equact demos collect --out {}`",
+            dir.display(),
+            dir.display()
+        );
+    }
     let index = Index::load(dir)?;
     let model = robot_model(cfg)?;
     let mut embeddings: BTreeMap<String, InstructionEmbedding> = BTreeMap::new();
@@ -226,6 +236,26 @@ pub fn batch_indices(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_folder_without_an_index_is_named_not_read_as_empty() {
+        let cfg = CellConfig::simulated().unwrap_or_else(|e| panic!("{e}"));
+        let dir = std::env::temp_dir().join(format!("equact-no-demos-{}", std::process::id()));
+        for d in [dir.join("missing"), dir.clone()] {
+            if d == dir {
+                std::fs::create_dir_all(&d).unwrap_or_else(|e| panic!("{e}"));
+            }
+            let err = load_samples(&d, &cfg, &Instructions::Builtin)
+                .err()
+                .map(|e| e.to_string())
+                .unwrap_or_default();
+            assert!(
+                err.contains("not a demonstrations folder") && err.contains("demos collect"),
+                "{err}"
+            );
+        }
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 
     #[test]
     fn siblings_are_the_other_entries_of_the_same_scene() {
