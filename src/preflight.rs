@@ -80,8 +80,8 @@ pub fn controller_ip(cfg: &CellConfig) -> Result<IpAddr, String> {
         .ok_or_else(|| format!("robot.host `{}` does not resolve", cfg.robot.host))
 }
 
-/// Driver settings from the configuration: address, ports, limits, tracking bound and stop
-/// deceleration; everything else keeps the driver's real-robot defaults.
+/// Driver settings from the configuration: address, ports, limits, tracking bound, stop
+/// deceleration and lost-cycle watchdog; everything else keeps the driver's real-robot defaults.
 pub fn ur_config(cfg: &CellConfig) -> Result<UrConfig, String> {
     Ok(UrConfig {
         host: controller_ip(cfg)?,
@@ -97,6 +97,7 @@ pub fn ur_config(cfg: &CellConfig) -> Result<UrConfig, String> {
             max: cfg.limits.joint_max,
             max_speed: cfg.limits.max_velocity,
         },
+        lost_cycles: cfg.robot.lost_cycles,
         ..UrConfig::default()
     })
 }
@@ -526,5 +527,21 @@ fn check_workspace(cfg: &CellConfig) -> Check {
             "keyframes there will be refused as unreachable; shrink [workspace] min/max to \
              what the arm reaches if the policy should not aim there",
         )
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn driver_config_takes_the_cells_limits_and_watchdog() {
+        let mut cfg = CellConfig::simulated().unwrap();
+        cfg.robot.lost_cycles = 7;
+        cfg.limits.tracking_error_bound = 0.05;
+        let ur = ur_config(&cfg).unwrap();
+        assert_eq!(ur.lost_cycles, 7);
+        assert_eq!(ur.tracking_bound, 0.05);
+        assert_eq!(ur.limits.max_speed, cfg.limits.max_velocity);
     }
 }

@@ -25,7 +25,7 @@ use crate::task::world::TaskWorld;
 use crate::task::TaskInstance;
 
 /// Control cycles without data before the driver stops a motion, in the simulated cell.
-const SIM_LOST_CYCLES: u32 = 25;
+const SIM_LOST_CYCLES: u32 = cell_types::config::MAX_LOST_CYCLES;
 
 /// The simulated world's truth for the task: the bodies, which one is held, and their
 /// solids in the rendered scene.

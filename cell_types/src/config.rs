@@ -100,6 +100,20 @@ pub struct RobotSection {
     pub controller_rate_hz: f64,
     /// Flange to TCP distance along the flange z axis (m).
     pub tcp_offset_m: f64,
+    /// Control cycles without a state package before the driver stops a motion (backend
+    /// "ur"; the simulated cell sets its own). Keep the default on a real controller.
+    #[serde(default = "default_lost_cycles")]
+    pub lost_cycles: u32,
+}
+
+/// The driver's watchdog on a real controller: 3 cycles (24 ms at 125 Hz).
+pub const DEFAULT_LOST_CYCLES: u32 = 3;
+
+/// The most cycles `robot.lost_cycles` may allow: 200 ms of blind motion at 125 Hz.
+pub const MAX_LOST_CYCLES: u32 = 25;
+
+fn default_lost_cycles() -> u32 {
+    DEFAULT_LOST_CYCLES
 }
 
 /// `[limits]`: joint limits the planner and the driver enforce.
@@ -388,6 +402,17 @@ impl CellConfig {
             );
         }
         positive_finite("robot.tcp_offset_m", r.tcp_offset_m, true)?;
+        if !(1..=MAX_LOST_CYCLES).contains(&r.lost_cycles) {
+            return invalid(
+                "robot.lost_cycles",
+                &r.lost_cycles.to_string(),
+                &format!(
+                    "must be 1 to {MAX_LOST_CYCLES} control cycles; leave it at \
+                     {DEFAULT_LOST_CYCLES} on a real controller and raise it only for a \
+                     simulated controller on a loaded machine"
+                ),
+            );
+        }
 
         let l = &self.limits;
         for (name, arr) in [
@@ -714,6 +739,20 @@ mod tests {
                 assert!(message.contains("tcp_offset_m"), "{message}")
             }
             other => panic!("expected Parse error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn lost_cycles_defaults_to_three_and_is_bounded() {
+        let cfg = CellConfig::from_toml_str(&sim_text(), "test").unwrap();
+        assert_eq!(cfg.robot.lost_cycles, DEFAULT_LOST_CYCLES);
+        let raised = sim_text().replace("[robot]\n", "[robot]\nlost_cycles = 25\n");
+        let cfg = CellConfig::from_toml_str(&raised, "test").unwrap();
+        assert_eq!(cfg.robot.lost_cycles, 25);
+        for bad in ["0", "26"] {
+            let text = sim_text().replace("[robot]\n", &format!("[robot]\nlost_cycles = {bad}\n"));
+            let p = expect_invalid(&text, "robot.lost_cycles");
+            assert!(p.contains("real controller"), "{p}");
         }
     }
 

@@ -148,6 +148,9 @@ pub fn loopback_real_cell_config(
     cfg.robot.rtde_port = ports.rtde;
     cfg.robot.dashboard_port = ports.dashboard;
     cfg.robot.secondary_port = ports.secondary;
+    // The simulated controller shares the test machine's cores with the cameras and the
+    // other tests; a real controller has its own. Tolerate what the simulated cell does.
+    cfg.robot.lost_cycles = cell_types::config::MAX_LOST_CYCLES;
     if let Some(port) = gripper_port {
         cfg.gripper.transport = GripperTransport::Urcap;
         cfg.gripper.host = "127.0.0.1".into();
