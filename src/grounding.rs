@@ -139,6 +139,15 @@ pub fn counterfactuals(kind: TaskKind, seed: u64, table_height: f64) -> Option<T
     distinct.then_some(targets)
 }
 
+/// The targets of a scene's other variations that are a distinct part from `target`.
+fn others(targets: &[(TaskKind, Vector3<f64>)], target: &Vector3<f64>) -> Vec<Vector3<f64>> {
+    targets
+        .iter()
+        .map(|(_, t)| *t)
+        .filter(|t| (t - target).norm() > SAME_TARGET_M)
+        .collect()
+}
+
 /// Predicts the first keyframe of each demonstrated scene (one per task and seed) under each
 /// of its task's instructions that has a target of its own, and measures where it lands
 /// (prediction `i` seeded `seed + i`); `progress` hears one line per prediction.
@@ -171,7 +180,10 @@ pub fn ground(
              `--task pluck_flower`"
         );
     }
-    let total: usize = scenes.iter().map(|(_, t)| t.len()).sum();
+    let total: usize = scenes
+        .iter()
+        .map(|(_, t)| t.iter().filter(|(_, x)| !others(t, x).is_empty()).count())
+        .sum();
     let mut predictions = Vec::with_capacity(total);
     let mut embeddings = std::collections::HashMap::new();
     // Per scene, the predictions' positions and targets, for the ignored pairs.
@@ -179,11 +191,7 @@ pub fn ground(
     for (demo, targets) in &scenes {
         let mut made = Vec::new();
         for (kind, target) in targets {
-            let other_target_m = targets
-                .iter()
-                .filter(|(_, t)| (t - target).norm() > SAME_TARGET_M)
-                .map(|(_, t)| t);
-            let others: Vec<&Vector3<f64>> = other_target_m.collect();
+            let others = others(targets, target);
             if others.is_empty() {
                 continue;
             }
@@ -210,7 +218,7 @@ pub fn ground(
                 own_target_m: (p - target).norm(),
                 other_target_m: others
                     .iter()
-                    .map(|t| (p - *t).norm())
+                    .map(|t| (p - t).norm())
                     .fold(f64::INFINITY, f64::min),
                 position: [p.x, p.y, p.z],
             };

@@ -281,10 +281,15 @@ impl SamplingArgs {
 }
 
 /// The demonstrations' samples, the network and the cell of `policy score` or `ground`.
-fn load_scoring(
-    a: &ScoreArgs,
-    what: &str,
-) -> anyhow::Result<(Vec<equact::train::DemoSample>, Policy, CellConfig)> {
+/// What `policy score` and `policy ground` work on, loaded from their flags.
+struct Scoring<'a> {
+    samples: Vec<equact::train::DemoSample>,
+    policy: Policy,
+    cfg: CellConfig,
+    instructions: equact::train::Instructions<'a>,
+}
+
+fn load_scoring<'a>(a: &'a ScoreArgs, what: &str) -> anyhow::Result<Scoring<'a>> {
     let cfg = super::config::load(a.config.as_ref())?;
     let instructions = equact::train::Instructions::from_flags(
         a.instruction_embeddings.as_deref(),
@@ -307,11 +312,20 @@ fn load_scoring(
         s.levels,
         s.per_level
     );
-    Ok((samples, policy, cfg))
+    Ok(Scoring {
+        samples,
+        policy,
+        cfg,
+        instructions,
+    })
 }
 
 fn score(a: ScoreArgs) -> anyhow::Result<()> {
-    let (samples, mut policy, _) = load_scoring(&a, "scoring")?;
+    let Scoring {
+        samples,
+        mut policy,
+        ..
+    } = load_scoring(&a, "scoring")?;
     let table = equact::score::score(&mut policy, &samples, a.seed, &mut |l| eprintln!("{l}"))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&table)?);
@@ -327,11 +341,12 @@ fn score(a: ScoreArgs) -> anyhow::Result<()> {
 }
 
 fn ground(a: ScoreArgs) -> anyhow::Result<()> {
-    let (samples, mut policy, cfg) = load_scoring(&a, "asking")?;
-    let instructions = equact::train::Instructions::from_flags(
-        a.instruction_embeddings.as_deref(),
-        a.minilm.as_deref(),
-    );
+    let Scoring {
+        samples,
+        mut policy,
+        cfg,
+        instructions,
+    } = load_scoring(&a, "asking")?;
     let table = equact::grounding::ground(
         &mut policy,
         &samples,
