@@ -117,26 +117,69 @@ impl GroundingTable {
 /// The variations of a scene's task that draw the same scene with `seed` and their expert
 /// first keyframes' positions; `None` when fewer than two distinct targets remain.
 pub fn counterfactuals(kind: TaskKind, seed: u64, table_height: f64) -> Option<Targets> {
-    let own = TaskInstance::sample(kind, seed, table_height);
-    let same_scene = |other: &TaskInstance| {
-        other.bodies.len() == own.bodies.len()
-            && other.bodies.iter().zip(&own.bodies).all(|(a, b)| {
-                a.base_from_body == b.base_from_body && a.parts == b.parts && a.grasp == b.grasp
-            })
-    };
     let variations = TaskKind::variations_of(kind.task_name())?;
     let targets: Targets = variations
         .into_iter()
+        .filter(|&k| draws_same_scene(kind, k, seed, table_height))
         .filter_map(|k| {
             let scene = TaskInstance::sample(k, seed, table_height);
             let first = scene.expert_keyframes().into_iter().next()?;
-            same_scene(&scene).then(|| (k, first.base_from_tcp.translation()))
+            Some((k, first.base_from_tcp.translation()))
         })
         .collect();
     let distinct = targets
         .iter()
         .any(|(_, a)| targets.iter().any(|(_, b)| (a - b).norm() > SAME_TARGET_M));
     distinct.then_some(targets)
+}
+
+/// Whether variations `a` and `b` draw the same bodies in the same places from `seed`.
+pub fn draws_same_scene(a: TaskKind, b: TaskKind, seed: u64, table_height: f64) -> bool {
+    let (a, b) = (
+        TaskInstance::sample(a, seed, table_height),
+        TaskInstance::sample(b, seed, table_height),
+    );
+    a.bodies.len() == b.bodies.len()
+        && a.bodies.iter().zip(&b.bodies).all(|(x, y)| {
+            x.base_from_body == y.base_from_body && x.parts == y.parts && x.grasp == y.grasp
+        })
+}
+
+/// Gives each sample, as [`policy::trainer::TrainSample::negatives`], the targets of the same
+/// step of the same scene under its task's other instructions (only tasks whose variations
+/// draw one scene from a seed; targets more than [`SAME_TARGET_M`] from its own), so that
+/// training always shows the field where the instruction must not send it. Returns how
+/// many samples got at least one.
+pub fn add_sibling_negatives(samples: &mut [DemoSample], table_height: f64) -> usize {
+    let siblings = crate::train::scene_siblings(samples);
+    let negatives: Vec<Vec<nalgebra::Point3<f64>>> = siblings
+        .iter()
+        .enumerate()
+        .map(|(i, sib)| {
+            let own = &samples[i];
+            let target = own.sample.target.base_from_tcp.translation();
+            let mut out: Vec<nalgebra::Point3<f64>> = Vec::new();
+            for o in sib.iter().map(|&j| &samples[j]) {
+                let t = o.sample.target.base_from_tcp.translation();
+                // Two instructions going to one place give one negative, not a doubled one.
+                if (t - target).norm() > SAME_TARGET_M
+                    && out
+                        .iter()
+                        .all(|n| (n.coords - t).norm() > SAME_PREDICTION_M)
+                    && draws_same_scene(own.kind, o.kind, own.seed, table_height)
+                {
+                    out.push(t.into());
+                }
+            }
+            out
+        })
+        .collect();
+    let mut with = 0;
+    for (s, n) in samples.iter_mut().zip(negatives) {
+        with += usize::from(!n.is_empty());
+        s.sample.negatives = n;
+    }
+    with
 }
 
 /// The targets of a scene's other variations that are a distinct part from `target`.
@@ -326,6 +369,38 @@ mod tests {
         }
     }
 
+    #[test]
+    fn sibling_negatives_are_the_same_scenes_other_targets() {
+        let kind = |n: &str| TaskKind::parse(n).unwrap();
+        let mut samples = vec![
+            demo(kind("disassemble_pipe/first_link"), 5, 0),
+            demo(kind("disassemble_pipe/second_link"), 5, 0),
+            demo(kind("disassemble_pipe/all"), 5, 0),
+            demo(kind("disassemble_pipe/first_link"), 5, 1),
+            demo(kind("pick_fruit/plum"), 5, 0),
+            demo(kind("pick_fruit/peach"), 5, 0),
+        ];
+        let target = |s: &DemoSample| s.sample.target.base_from_tcp.translation();
+        let (first, second) = (target(&samples[0]), target(&samples[1]));
+        assert_eq!(add_sibling_negatives(&mut samples, TABLE), 3);
+        let negatives = |i: usize| -> Vec<Vector3<f64>> {
+            samples[i]
+                .sample
+                .negatives
+                .iter()
+                .map(|p| p.coords)
+                .collect()
+        };
+        // "all" starts where "first link" does: only the second link is a negative for
+        // them, and the second link's one negative is the first link, given once.
+        assert_eq!(negatives(0), [second]);
+        assert_eq!(negatives(1), [first]);
+        assert_eq!(negatives(2), [second]);
+        // No sibling at step 1; the fruit's variations are different scenes.
+        assert!(negatives(3).is_empty());
+        assert!(negatives(4).is_empty() && negatives(5).is_empty());
+    }
+
     /// A demonstration step of `kind`'s scene with `seed`, with a stand-in cloud.
     fn demo(kind: TaskKind, seed: u64, step: usize) -> DemoSample {
         use cell_types::{FrameId, PointCloud, Transform};
@@ -355,6 +430,7 @@ mod tests {
                 },
                 instruction: Instructions::Builtin.embedding(kind).unwrap(),
                 target: scene.expert_keyframes()[step],
+                negatives: Vec::new(),
             },
         }
     }

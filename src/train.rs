@@ -159,6 +159,7 @@ pub fn load_samples(
                     },
                     instruction: embedding.clone(),
                     target: step.keyframe,
+                    negatives: Vec::new(),
                 },
             });
         }

@@ -80,6 +80,11 @@ pub struct TrainSample {
     pub instruction: InstructionEmbedding,
     /// The expert's keyframe.
     pub target: Keyframe,
+    /// Positions (base frame) the instruction must tell from the target: where the same
+    /// scene's other instructions go at this step. Each one inside the gripper box is added
+    /// to the first sampling level's queries, so the loss always pushes the field down
+    /// there (empty: the paper's loss).
+    pub negatives: Vec<Point3<f64>>,
 }
 
 /// The three loss terms (per sample, or averaged over a batch).
@@ -227,9 +232,13 @@ pub fn sample_gradients(
     let pc = &cfg.policy;
     let (mut cloud, mut gripper, mut target) =
         (sample.cloud.clone(), sample.gripper, sample.target);
+    let mut negatives = sample.negatives.clone();
     if cfg.augment {
         let motion = RotationAugmentation::physical(pc.workspace_bounds).sample(rng);
         move_sample(&motion, &mut cloud, &mut gripper, &mut target);
+        for n in &mut negatives {
+            *n = motion * *n;
+        }
     }
     let prep = prepare_input(pc, &cloud, &gripper, rng)?;
     if sample.instruction.dim() != weights.shape_of("instruction_embedding.weight")?[1] {
@@ -289,6 +298,15 @@ pub fn sample_gradients(
             }
             out
         };
+        if level == 0 {
+            // After the draws, so a sample without negatives draws what it always did.
+            samples.extend(
+                negatives
+                    .iter()
+                    .map(|n| ws.inverse() * n)
+                    .filter(|n| in_box(n, &pc.gripper_bounds)),
+            );
+        }
         samples.push(truth_ws);
         let queries: Vec<[f32; 3]> = samples.iter().map(|q| as_f32(&(ws * q))).collect();
         let logits = trans_logits(&mut t, &s, model, &enc, &queries)?;
@@ -560,7 +578,34 @@ mod tests {
             },
             instruction: InstructionEmbedding::random(seed),
             target: Keyframe::new(target, open, false).unwrap(),
+            negatives: Vec::new(),
         }
+    }
+
+    #[test]
+    fn a_negative_inside_the_gripper_box_is_a_first_level_query() {
+        let mut cfg = config(PolicyMode::Gated);
+        cfg.levels = 1;
+        let weights = random_weights(&cfg.policy.model, &cfg.policy.extra, 5);
+        let grid = LossGrid::new(0).unwrap();
+        let plain = sample(2, pose(0.6, 0.1, 0.1, 0.3), false);
+        let loss = |s: &TrainSample| {
+            let mut rng = ChaCha8Rng::seed_from_u64(4);
+            sample_gradients(&weights, &cfg, &grid, s, &mut rng)
+                .unwrap()
+                .0
+        };
+        let base = loss(&plain);
+        let mut with = plain.clone();
+        with.negatives = vec![Point3::new(0.45, -0.1, 0.15)];
+        let more = loss(&with);
+        // One more query in the softmax: the cross-entropy grows; the other terms do not move.
+        assert!(more.translation > base.translation, "{more:?} vs {base:?}");
+        assert_eq!(more.open, base.open);
+        assert_eq!(more.rotation, base.rotation);
+        // Outside the gripper box, a negative is not a query.
+        with.negatives = vec![Point3::new(5.0, 0.0, 0.0)];
+        assert_eq!(loss(&with), base);
     }
 
     #[test]

@@ -84,6 +84,12 @@ pub struct TrainArgs {
     /// learns what the scene alone explains and leaves the instruction almost unread.
     #[arg(long)]
     pub paired: bool,
+    /// Add, to each sample's first sampling level, where the same scene's other
+    /// instructions go at that step (the other pipe link, the other flowers): the loss then
+    /// always pushes the field down where this instruction must not send it, instead of
+    /// only when a random query happens to land there.
+    #[arg(long)]
+    pub sibling_negatives: bool,
     /// Factor of the learning rate for the instruction encoder and the FiLM projections
     /// (1: every parameter alike). Fine-tuned weights whose field ignores the instruction
     /// keep its path nearly still at the field's rate.
@@ -180,6 +186,9 @@ struct RunSettings {
     /// Rate factor of the instruction's path (runs from before: 1).
     #[serde(default = "one")]
     conditioning_lr_scale: f32,
+    /// The same scene's other targets as first-level queries (runs from before: no).
+    #[serde(default)]
+    sibling_negatives: bool,
 }
 
 fn one() -> f32 {
@@ -218,7 +227,23 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         args.minilm.as_deref(),
     );
     eprintln!("reading demonstrations from {}", args.demos.display());
-    let samples = load_samples(&args.demos, &cell, &instructions)?;
+    let mut samples = load_samples(&args.demos, &cell, &instructions)?;
+    if args.sibling_negatives {
+        let with =
+            equact::grounding::add_sibling_negatives(&mut samples, cell.workspace.table_height);
+        eprintln!(
+            "sibling negatives: {with} of {} samples have another instruction's target in the same scene",
+            samples.len()
+        );
+        if with == 0 {
+            anyhow::bail!(
+                "--sibling-negatives: no sample has a counterpart (the same scene and step under \
+                 another instruction with another target); record pipe or flower \
+                 demonstrations with the same seeds for several variations, e.g. `equact \
+                 demos collect --task disassemble_pipe`"
+            );
+        }
+    }
     let token_dim = samples[0].sample.instruction.dim();
     let mut tasks: Vec<String> = samples.iter().map(|s| s.kind.name()).collect();
     tasks.dedup();
@@ -266,6 +291,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         cloud_queries: cfg.cloud_query_share,
         paired: args.paired,
         conditioning_lr_scale: args.conditioning_lr_scale,
+        sibling_negatives: args.sibling_negatives,
     };
     let mut trainer = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -449,6 +475,7 @@ mod tests {
         assert_eq!(s.levels, 3);
         assert_eq!(s.cloud_queries, 0.0);
         assert!(!s.paired);
+        assert!(!s.sibling_negatives);
         assert_eq!(s.conditioning_lr_scale, 1.0);
         assert_eq!(s.init, None);
         // The cosine schedule spans the run's iterations; a resume asking for more steps
