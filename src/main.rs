@@ -113,3 +113,59 @@ fn dispatch(cli: Cli) -> anyhow::Result<()> {
         Command::Train(args) => cmd::train::run(args),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `run` and `policy predict` name the weights `--weights`, `eval`, `policy score` and
+    /// `policy ground` name them `--model`: each takes the other spelling too.
+    #[test]
+    fn weights_and_model_are_one_flag_everywhere() {
+        let weights = |args: &[&str]| -> Option<std::path::PathBuf> {
+            let cli = Cli::try_parse_from(args).unwrap_or_else(|e| panic!("{args:?}: {e}"));
+            match cli.command {
+                Command::Run(a) => a.weights,
+                Command::Eval(a) => a.model,
+                Command::Policy(p) => match p.command {
+                    cmd::policy::PolicyCommand::Predict(a) => a.weights,
+                    cmd::policy::PolicyCommand::Score(a)
+                    | cmd::policy::PolicyCommand::Ground(a) => a.model,
+                    other => panic!("{other:?}"),
+                },
+                other => panic!("{other:?}"),
+            }
+        };
+        let want = Some(std::path::PathBuf::from("w.safetensors"));
+        for flag in ["--weights", "--model"] {
+            assert_eq!(weights(&["equact", "run", flag, "w.safetensors"]), want);
+            assert_eq!(weights(&["equact", "eval", flag, "w.safetensors"]), want);
+            for sub in ["score", "ground"] {
+                assert_eq!(
+                    weights(&[
+                        "equact",
+                        "policy",
+                        sub,
+                        "--demos",
+                        "d",
+                        flag,
+                        "w.safetensors"
+                    ]),
+                    want
+                );
+            }
+            assert_eq!(
+                weights(&[
+                    "equact",
+                    "policy",
+                    "predict",
+                    "--cloud",
+                    "c.ply",
+                    flag,
+                    "w.safetensors"
+                ]),
+                want
+            );
+        }
+    }
+}

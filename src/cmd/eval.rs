@@ -29,8 +29,9 @@ pub struct EvalArgs {
     #[arg(long, value_enum, default_value_t = PolicyChoice::Learned)]
     pub policy: PolicyChoice,
     /// Network weights (`--policy learned`); the built-in model
-    /// (`policy/weights/cpu_gated.safetensors`, compiled in) when omitted.
-    #[arg(long)]
+    /// (`policy/weights/cpu_gated.safetensors`, compiled in) when omitted. `--weights` is
+    /// the same flag, as `run` spells it.
+    #[arg(long, alias = "weights")]
     pub model: Option<PathBuf>,
     /// Folder of instruction embeddings, one per variation:
     /// `<dir>/<task>/<variation>.safetensors` (53 x 512 F32).

@@ -104,8 +104,8 @@ pub struct PredictArgs {
     #[arg(long)]
     pub cloud: std::path::PathBuf,
     /// Network weights (our safetensors, or a converted reference checkpoint); default:
-    /// seeded random weights (for timing and plumbing only).
-    #[arg(long)]
+    /// seeded random weights (for timing and plumbing only). `--model` is the same flag.
+    #[arg(long, alias = "model")]
     pub weights: Option<std::path::PathBuf>,
     /// Instruction embedding (safetensors, one tensor 53 x 512, CLIP last hidden state);
     /// default: a seeded random embedding.
@@ -219,8 +219,9 @@ pub struct ScoreArgs {
     /// 1000000`, to judge generalisation).
     #[arg(long)]
     pub demos: std::path::PathBuf,
-    /// Network weights; the built-in model when omitted.
-    #[arg(long)]
+    /// Network weights; the built-in model when omitted. `--weights` is the same flag, as
+    /// `run` spells it.
+    #[arg(long, alias = "weights")]
     pub model: Option<std::path::PathBuf>,
     /// Network size the weights were trained with (default: cpu for the built-in model,
     /// physical for `--model`).

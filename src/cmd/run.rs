@@ -27,8 +27,8 @@ use super::policy::HeadsArg;
 /// Which policy drives the episode.
 #[derive(Copy, Clone, Debug, PartialEq, Eq, ValueEnum)]
 pub enum PolicyChoice {
-    /// The EquAct network: the built-in model, or the weights of `--weights` (`equact
-    /// train` makes them).
+    /// The EquAct network: the built-in model, or trained weights (`--weights`, also
+    /// spelled `--model`; `equact train` makes them).
     Learned,
     /// The scripted expert, from the simulator's true object poses.
     Expert,
@@ -60,7 +60,8 @@ pub struct RunArgs {
     pub policy: PolicyChoice,
     /// Network weights for `--policy learned` (safetensors, as `equact policy predict` reads);
     /// the built-in model (`policy/weights/cpu_gated.safetensors`, compiled in) when omitted.
-    #[arg(long)]
+    /// `--model` is the same flag, as `eval` and `policy score` spell it.
+    #[arg(long, alias = "model")]
     pub weights: Option<PathBuf>,
     /// Instruction embedding for `--policy learned` (safetensors, one F32 tensor: tokens x
     /// width, e.g. CLIP's 53 x 512).
