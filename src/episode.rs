@@ -92,6 +92,11 @@ pub trait TaskMonitor {
     /// Whether the task is done: `Some` where a success test exists (simulation), `None` on
     /// a real cell (the operator judges the outcome).
     fn success(&self) -> Option<bool>;
+    /// Why the task can no longer succeed (simulation: a part it must leave in place has
+    /// moved), which ends the episode; `None` while it still can, and always on a real cell.
+    fn lost(&self) -> Option<String> {
+        None
+    }
     /// The arm moved to `q` with the fingers `opening` apart.
     fn update_robot(&mut self, _q: &Joints, _opening: f64) -> anyhow::Result<()> {
         Ok(())
@@ -108,6 +113,9 @@ impl TaskMonitor for SimWorld {
     }
     fn success(&self) -> Option<bool> {
         Some(SimWorld::success(self))
+    }
+    fn lost(&self) -> Option<String> {
+        SimWorld::lost(self)
     }
     fn update_robot(&mut self, q: &Joints, opening: f64) -> anyhow::Result<()> {
         SimWorld::update_robot(self, q, opening)
@@ -170,6 +178,8 @@ pub enum Outcome {
     Success,
     /// The policy finished (or the keyframe limit was hit) without the task being done.
     TaskNotDone,
+    /// The task can no longer succeed (simulation: a part it must leave in place moved).
+    TaskLost,
     /// A keyframe could not be planned; the arm stayed where it was.
     PlanFailed,
     /// The arm stopped during a motion (protective stop, tracking error, lost link, ...).
@@ -190,6 +200,7 @@ impl Outcome {
         match self {
             Outcome::Success => "success",
             Outcome::TaskNotDone => "task_not_done",
+            Outcome::TaskLost => "task_lost",
             Outcome::PlanFailed => "plan_failed",
             Outcome::ArmStopped => "arm_stopped",
             Outcome::GripperFault => "gripper_fault",
@@ -346,7 +357,10 @@ pub fn run_episode(
         Err(e) => (Outcome::Error, format!("{e:#}")),
     };
     // Whatever happened, leave the arm still: a no-op when it already is.
-    if outcome != Outcome::Success && outcome != Outcome::TaskNotDone {
+    if !matches!(
+        outcome,
+        Outcome::Success | Outcome::TaskNotDone | Outcome::TaskLost
+    ) {
         if let Err(e) = cell.arm.stop() {
             let _ = recorder.write(
                 "/log",
@@ -729,6 +743,13 @@ fn episode_steps(
             return Ok((
                 Outcome::Success,
                 format!("task done after {} keyframes", step + 1),
+            ));
+        }
+        // Keyframes after this could not change the outcome; on a real cell `lost` is None.
+        if let Some(why) = cell.task.lost() {
+            return Ok((
+                Outcome::TaskLost,
+                format!("task lost after {} keyframes: {why}", step + 1),
             ));
         }
     }

@@ -73,6 +73,11 @@ impl SimWorld {
         self.truth.success()
     }
 
+    /// Why the task can no longer succeed in the world's state, if it cannot.
+    pub fn lost(&self) -> Option<String> {
+        self.truth.lost()
+    }
+
     fn tcp(&self, q: &Joints) -> Isometry3<f64> {
         let flange = *planner::kinematics::UR5.forward(q).isometry();
         flange * Isometry3::translation(0.0, 0.0, self.tcp_offset)

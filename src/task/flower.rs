@@ -13,8 +13,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::{
-    grasp_rotation, keyframe, keyframe_through, lying_on_table, pedestal, sample_fixture, Body,
-    BodyPart, GraspSite, TaskInstance, TaskKind,
+    grasp_rotation, keyframe, keyframe_through, lying_on_table, moved, moved_from_place, pedestal,
+    sample_fixture, Body, BodyPart, GraspSite, TaskInstance, TaskKind,
 };
 
 /// Radius of a flower's head (m).
@@ -166,14 +166,25 @@ pub(crate) fn expert(task: &TaskInstance, level: FlowerLevel) -> Vec<Keyframe> {
 /// planted) and the others are still in place.
 pub(crate) fn success(task: &TaskInstance, level: FlowerLevel, poses: &[Isometry3<f64>]) -> bool {
     (1..=3).all(|i| {
-        let moved =
-            (poses[i].translation.vector - task.bodies[i].base_from_body.translation.vector).norm();
+        let moved = moved(task, poses, i);
         if i == level.body() {
             moved >= PLUCKED_DISTANCE
         } else {
             moved < IN_PLACE_DISTANCE
         }
     })
+}
+
+/// Why the task can no longer succeed: another flower has come out of its place (a
+/// released flower falls to the table, so it cannot be put back).
+pub(crate) fn lost(
+    task: &TaskInstance,
+    level: FlowerLevel,
+    poses: &[Isometry3<f64>],
+) -> Option<String> {
+    (1..=3)
+        .filter(|&i| i != level.body())
+        .find_map(|i| moved_from_place(task, poses, i, IN_PLACE_DISTANCE))
 }
 
 /// A released flower falls and lies on the table.
@@ -184,6 +195,18 @@ pub(crate) fn released(task: &TaskInstance, pose: &Isometry3<f64>) -> Isometry3<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn plucking_another_flower_loses_the_task() {
+        let t = TaskInstance::sample(TaskKind::PluckFlower(FlowerLevel::Middle), 2, -0.06);
+        let mut poses: Vec<_> = t.bodies.iter().map(|b| b.base_from_body).collect();
+        assert_eq!(t.lost(&poses), None);
+        poses[FlowerLevel::Middle.body()].translation.vector.x -= 0.1;
+        assert_eq!(t.lost(&poses), None);
+        poses[FlowerLevel::Top.body()].translation.vector.x -= 0.03;
+        let why = t.lost(&poses).unwrap();
+        assert!(why.contains("top flower"), "{why}");
+    }
 
     #[test]
     fn success_needs_the_named_flower_out_and_the_others_in() {

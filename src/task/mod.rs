@@ -252,6 +252,20 @@ impl TaskInstance {
         }
     }
 
+    /// Why the task can no longer succeed in this state (a part it must leave in place has
+    /// moved); `None` while it still can. A task that can always be retried (pick again,
+    /// re-grasp a fallen roll) is never lost.
+    pub fn lost(&self, poses: &[Isometry3<f64>]) -> Option<String> {
+        if poses.len() != self.bodies.len() {
+            return None;
+        }
+        match self.kind {
+            TaskKind::DisassemblePipe(p) => pipe::lost(self, p, poses),
+            TaskKind::PluckFlower(l) => flower::lost(self, l, poses),
+            TaskKind::PickFruit(_) | TaskKind::InstallToiletRoll(_) => None,
+        }
+    }
+
     /// Where body `index`, released by the gripper at `pose`, comes to rest.
     pub fn released_pose(&self, index: usize, pose: &Isometry3<f64>) -> Isometry3<f64> {
         match self.kind {
@@ -261,6 +275,28 @@ impl TaskInstance {
             TaskKind::InstallToiletRoll(s) => toilet_roll::released(self, s, index, pose),
         }
     }
+}
+
+/// How far body `i` is from where the task placed it (m).
+pub(crate) fn moved(task: &TaskInstance, poses: &[Isometry3<f64>], i: usize) -> f64 {
+    (poses[i].translation.vector - task.bodies[i].base_from_body.translation.vector).norm()
+}
+
+/// "the X moved N cm; the task needs it in place" when body `i` moved `limit` or more.
+pub(crate) fn moved_from_place(
+    task: &TaskInstance,
+    poses: &[Isometry3<f64>],
+    i: usize,
+    limit: f64,
+) -> Option<String> {
+    let d = moved(task, poses, i);
+    (d >= limit).then(|| {
+        format!(
+            "the {} moved {:.1} cm from its place; the task needs it left in place",
+            task.bodies[i].name,
+            d * 100.0
+        )
+    })
 }
 
 /// Samples the SE(3) fixture transform of the non-planar tasks: position in the given x and

@@ -14,8 +14,8 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
 use super::{
-    grasp_rotation, keyframe, keyframe_through, lying_on_table, pedestal, sample_fixture, Body,
-    BodyPart, GraspSite, TaskInstance, TaskKind,
+    grasp_rotation, keyframe, keyframe_through, lying_on_table, moved, moved_from_place, pedestal,
+    sample_fixture, Body, BodyPart, GraspSite, TaskInstance, TaskKind,
 };
 
 /// Radius of a pipe link (m).
@@ -197,14 +197,25 @@ pub(crate) fn expert(task: &TaskInstance, part: PipePart) -> Vec<Keyframe> {
 /// plugged in) and the other link is still in place.
 pub(crate) fn success(task: &TaskInstance, part: PipePart, poses: &[Isometry3<f64>]) -> bool {
     (1..=2).all(|i| {
-        let moved =
-            (poses[i].translation.vector - task.bodies[i].base_from_body.translation.vector).norm();
+        let moved = moved(task, poses, i);
         if part.targets().contains(&i) {
             moved >= REMOVED_DISTANCE
         } else {
             moved < IN_PLACE_DISTANCE
         }
     })
+}
+
+/// Why the task can no longer succeed: a link it must leave in place has moved (a
+/// released link falls to the table, so it cannot be put back).
+pub(crate) fn lost(
+    task: &TaskInstance,
+    part: PipePart,
+    poses: &[Isometry3<f64>],
+) -> Option<String> {
+    (1..=2)
+        .filter(|i| !part.targets().contains(i))
+        .find_map(|i| moved_from_place(task, poses, i, IN_PLACE_DISTANCE))
 }
 
 /// A released link falls and lies on the table.
@@ -215,6 +226,25 @@ pub(crate) fn released(task: &TaskInstance, pose: &Isometry3<f64>) -> Isometry3<
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn moving_the_link_to_leave_loses_the_task_and_the_named_one_does_not() {
+        let t = TaskInstance::sample(TaskKind::DisassemblePipe(PipePart::FirstLink), 3, -0.06);
+        let mut poses: Vec<_> = t.bodies.iter().map(|b| b.base_from_body).collect();
+        assert_eq!(t.lost(&poses), None);
+        poses[1].translation.vector.z += 0.2;
+        assert_eq!(t.lost(&poses), None, "the first link is the one to take");
+        poses[2].translation.vector.x += 0.005;
+        assert_eq!(t.lost(&poses), None, "5 mm is still in place");
+        poses[2].translation.vector.x += 0.01;
+        let why = t.lost(&poses).unwrap();
+        assert!(
+            why.contains(&t.bodies[2].name) && why.contains("1.5 cm"),
+            "{why}"
+        );
+        let all = TaskInstance::sample(TaskKind::DisassemblePipe(PipePart::All), 3, -0.06);
+        assert_eq!(all.lost(&poses), None, "both links are to be taken");
+    }
 
     #[test]
     fn success_needs_the_named_link_off_and_the_other_in_place() {

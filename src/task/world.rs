@@ -48,6 +48,11 @@ impl TaskWorld {
         self.task.success(&self.poses, self.held())
     }
 
+    /// Why the task can no longer succeed ([`TaskInstance::lost`]).
+    pub fn lost(&self) -> Option<String> {
+        self.task.lost(&self.poses)
+    }
+
     /// Before the fingers close with the TCP at `base_from_tcp`: the width of the graspable
     /// body between them (the nearest grasp site within [`GRASP_RADIUS`]), or `None`.
     pub fn before_close(&mut self, base_from_tcp: &Isometry3<f64>) -> Option<f64> {

@@ -55,14 +55,27 @@ fn run_episode_with(
     source: impl FnOnce(&TaskInstance) -> Box<dyn KeyframeSource>,
     setup: impl FnOnce(&mut SimCell),
 ) -> Run {
+    run_task_episode(
+        TaskKind::PickFruit(Fruit::Strawberry),
+        name,
+        seed,
+        source,
+        setup,
+    )
+}
+
+/// An episode of `kind`'s scene with `seed`, driven by `source`.
+fn run_task_episode(
+    kind: TaskKind,
+    name: &str,
+    seed: u64,
+    source: impl FnOnce(&TaskInstance) -> Box<dyn KeyframeSource>,
+    setup: impl FnOnce(&mut SimCell),
+) -> Run {
     let _guard = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let cfg = CellConfig::simulated().unwrap();
     let clock = Arc::new(SystemClock::new());
-    let task = TaskInstance::sample(
-        TaskKind::PickFruit(Fruit::Strawberry),
-        seed,
-        cfg.workspace.table_height,
-    );
+    let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
     let mut cell = SimCell::start(&cfg, task.clone(), seed, clock.clone()).unwrap();
     setup(&mut cell);
     let dir = std::env::temp_dir().join(format!("equact-episodes-{}", std::process::id()));
@@ -468,3 +481,35 @@ fn learned_policy_drives_the_loop_and_the_recording_checks_out() {
 /// Keep the unused-import lint honest for helpers shared across tests.
 #[allow(dead_code)]
 fn _uses(_: PathBuf, _: &dyn KeyframeSource) {}
+
+/// Taking the second pipe link when the first was asked for cannot be undone (a released
+/// link falls to the table): the episode ends `task_lost` at the keyframe that pulled it,
+/// instead of running on to the keyframe limit, and says which part moved.
+#[test]
+fn pulling_the_wrong_link_ends_the_episode_as_lost() {
+    let first = TaskKind::parse("disassemble_pipe/first_link").unwrap();
+    let second = TaskKind::parse("disassemble_pipe/second_link").unwrap();
+    let seed = 3;
+    let run = run_task_episode(
+        first,
+        "lost",
+        seed,
+        |task| {
+            // The same scene under the other instruction: the second link's expert.
+            let other = TaskInstance::sample(second, seed, task.table_height);
+            Box::new(ScriptedExpert::new(other.expert_keyframes()))
+        },
+        |_| {},
+    );
+    let r = &run.report;
+    assert_eq!(r.outcome, Outcome::TaskLost, "{}", r.detail);
+    // Above the link, around it, pulled off: lost there, before the expert's last keyframe.
+    assert_eq!(r.steps, 3, "{}", r.detail);
+    assert!(
+        r.detail.contains("second") && r.detail.contains("in place"),
+        "{}",
+        r.detail
+    );
+    assert!(run.still);
+    check_recording(r);
+}
