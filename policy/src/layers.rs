@@ -86,6 +86,11 @@ pub fn gelu(x: f32) -> f32 {
 /// fraction with ~1e-15 accuracy).
 pub fn erf(x: f64) -> f64 {
     let ax = x.abs();
+    // Zero is its own value; the series below would add zero terms forever (every term 0,
+    // so none is ever below 1e-17 of the sum), hanging a forward pass on an exact 0.
+    if ax == 0.0 {
+        return x;
+    }
     let v = if ax < 2.5 {
         // Taylor series: erf x = 2/√π Σ (−1)ⁿ x^(2n+1) / (n! (2n+1)).
         let mut sum = 0.0;
@@ -1444,6 +1449,29 @@ pub fn separable_s2_activation(
 mod tests {
     use super::*;
     use crate::predict::PolicyConfig;
+
+    /// erf at zero, at both signs of zero and at NaN returns at once (an exact 0 once hung a
+    /// training run in the instruction encoder's GELU); elsewhere it matches tabulated values.
+    #[test]
+    fn erf_is_defined_everywhere_and_exact_at_zero() {
+        assert_eq!(erf(0.0), 0.0);
+        assert!(erf(-0.0) == 0.0 && erf(-0.0).is_sign_negative());
+        assert!(erf(f64::NAN).is_nan());
+        assert_eq!(erf(f64::INFINITY), 1.0);
+        assert_eq!(erf(f64::NEG_INFINITY), -1.0);
+        assert_eq!(gelu(0.0), 0.0);
+        // Abramowitz & Stegun table 7.1, and erf(3).
+        for (x, want) in [
+            (1e-300, 2.0 / std::f64::consts::PI.sqrt() * 1e-300),
+            (0.5, 0.520_499_877_8),
+            (1.0, 0.842_700_792_9),
+            (2.0, 0.995_322_265_0),
+            (3.0, 0.999_977_909_5),
+        ] {
+            assert!((erf(x) - want).abs() < 1e-9, "erf({x}) = {}", erf(x));
+            assert_eq!(erf(-x), -erf(x));
+        }
+    }
 
     #[test]
     fn a_row_split_over_threads_equals_the_one_thread_row() {
