@@ -282,7 +282,8 @@ pub(crate) fn moved(task: &TaskInstance, poses: &[Isometry3<f64>], i: usize) -> 
     (poses[i].translation.vector - task.bodies[i].base_from_body.translation.vector).norm()
 }
 
-/// "the X moved N cm; the task needs it in place" when body `i` moved `limit` or more.
+/// Why body `i` is no longer in place ("the X moved N cm from its place; ..."), when it
+/// moved `limit` or more.
 pub(crate) fn moved_from_place(
     task: &TaskInstance,
     poses: &[Isometry3<f64>],
