@@ -295,11 +295,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     };
     let mut trainer = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
-    let mut log = std::fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(args.out.join("log.jsonl"))
-        .with_context(|| format!("opening {}", args.out.join("log.jsonl").display()))?;
+    let mut log = open_log(&args.out.join("log.jsonl"), trainer.optim.step)?;
     let started = Instant::now();
     let first = trainer.optim.step;
     let siblings = args.paired.then(|| scene_siblings(&samples));
@@ -376,6 +372,36 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
 }
 
 /// Resumes the run in `out` (checking it was made with the same settings) or starts one.
+/// Opens a run's `log.jsonl` to append the steps after `step` (the checkpoint's). Lines of
+/// later steps (run before an interruption, and run again from the checkpoint now) and a
+/// torn last line are dropped first, so the log holds each step once.
+fn open_log(path: &Path, step: u64) -> anyhow::Result<std::fs::File> {
+    if let Ok(text) = std::fs::read_to_string(path) {
+        let complete = text.rfind('\n').map_or("", |i| &text[..=i]);
+        let kept: String = complete
+            .lines()
+            .filter(|l| {
+                serde_json::from_str::<serde_json::Value>(l)
+                    .ok()
+                    .and_then(|v| v["step"].as_u64())
+                    .is_none_or(|s| s <= step)
+            })
+            .map(|l| format!("{l}\n"))
+            .collect();
+        if kept.len() != text.len() {
+            let tmp = path.with_extension("jsonl.tmp");
+            std::fs::write(&tmp, kept)
+                .and_then(|()| std::fs::rename(&tmp, path))
+                .with_context(|| format!("rewriting {}", path.display()))?;
+        }
+    }
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .with_context(|| format!("opening {}", path.display()))
+}
+
 fn open_run(out: &Path, cfg: TrainConfig, settings: &RunSettings) -> anyhow::Result<Trainer> {
     let settings_path = out.join("train.json");
     if out.join(WEIGHTS_FILE).exists() {
@@ -507,6 +533,30 @@ mod tests {
             ScheduleArg::Constant.schedule(100, 2400),
             LrSchedule::Constant
         );
+    }
+
+    #[test]
+    fn a_resumed_log_holds_each_step_once() {
+        let dir = std::env::temp_dir().join(format!("equact-train-log-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("log.jsonl");
+        let line = |s: u64| format!("{{\"step\":{s},\"loss\":1.0}}\n");
+        // Steps 1-5 were logged, the checkpoint is at 3, and the last write was torn.
+        let before: String = (1..=5).map(line).collect::<String>() + "{\"step\":6,\"lo";
+        std::fs::write(&path, before).unwrap();
+        let mut log = open_log(&path, 3).unwrap();
+        writeln!(log, "{{\"step\":4,\"loss\":0.5}}").unwrap();
+        drop(log);
+        let after = std::fs::read_to_string(&path).unwrap();
+        assert_eq!(
+            after,
+            (1..=3).map(line).collect::<String>() + "{\"step\":4,\"loss\":0.5}\n"
+        );
+        // A fresh run's log is created empty.
+        let fresh = dir.join("fresh.jsonl");
+        open_log(&fresh, 0).unwrap();
+        assert_eq!(std::fs::read_to_string(&fresh).unwrap(), "");
+        let _ = std::fs::remove_dir_all(&dir);
     }
 
     #[test]
