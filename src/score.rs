@@ -19,6 +19,9 @@ use crate::train::DemoSample;
 pub struct KeyframeError {
     /// Distance between the TCP positions (m).
     pub position_m: f64,
+    /// The predicted TCP position minus the expert's (m, base frame): a bias shared by the
+    /// steps of one stage shows in it, noise does not.
+    pub offset_m: [f64; 3],
     /// Angle between the TCP orientations (degrees), the smaller of the angle to the
     /// expert's and to the expert's turned half a turn about the approach axis: the
     /// parallel gripper's two fingers are alike.
@@ -63,13 +66,14 @@ pub const FAR_M: f64 = 0.01;
 pub fn keyframe_error(got: &Keyframe, want: &Keyframe) -> KeyframeError {
     let g = got.base_from_tcp.isometry();
     let w = want.base_from_tcp.isometry();
-    let position_m = (g.translation.vector - w.translation.vector).norm();
+    let offset = g.translation.vector - w.translation.vector;
     let flip = Rotation3::from_axis_angle(&Vector3::z_axis(), std::f64::consts::PI);
     let rg = g.rotation.to_rotation_matrix();
     let rw = w.rotation.to_rotation_matrix();
     let rotation = rg.angle_to(&rw).min(rg.angle_to(&(rw * flip)));
     KeyframeError {
-        position_m,
+        position_m: offset.norm(),
+        offset_m: offset.into(),
         rotation_deg: rotation.to_degrees(),
         open_agrees: got.gripper_open == want.gripper_open,
     }
@@ -286,6 +290,8 @@ mod tests {
         let want = kf(0.5, 0.0, 0.0, true);
         let e = keyframe_error(&kf(0.53, 0.0, 0.0, true), &want);
         assert!((e.position_m - 0.03).abs() < 1e-12 && e.rotation_deg < 1e-9 && e.open_agrees);
+        // The offset is predicted minus expert, in the base frame.
+        assert!((e.offset_m[0] - 0.03).abs() < 1e-12 && e.offset_m[1..] == [0.0, 0.0]);
         // 20 degrees about the approach axis is 20 degrees; 180 is none (the fingers swap).
         let e = keyframe_error(&kf(0.5, 20f64.to_radians(), 0.0, false), &want);
         assert!((e.rotation_deg - 20.0).abs() < 1e-9 && !e.open_agrees);
@@ -304,6 +310,7 @@ mod tests {
             step: 0,
             error: KeyframeError {
                 position_m,
+                offset_m: [position_m, 0.0, 0.0],
                 rotation_deg: 0.0,
                 open_agrees: true,
             },
@@ -338,6 +345,7 @@ mod tests {
         let errors: Vec<KeyframeError> = (1..=10)
             .map(|i| KeyframeError {
                 position_m: f64::from(i) * 0.002,
+                offset_m: [0.0, 0.0, f64::from(i) * 0.002],
                 rotation_deg: f64::from(i),
                 open_agrees: i != 3,
             })

@@ -12,10 +12,7 @@
 //! running on the old wording's embedding. The test suite checks every entry against the
 //! MiniLM encoder (`tests/tests/minilm.rs`).
 
-use std::path::Path;
-
 use crate::error::{PolicyError, Result};
-use crate::fixtures::parse_safetensors;
 use crate::predict::{InstructionEmbedding, Policy, PolicyConfig};
 use crate::weights::Weights;
 
@@ -84,14 +81,6 @@ pub fn instruction(text: &str) -> Result<InstructionEmbedding> {
         });
     };
     InstructionEmbedding::new(values, tokens, dim)
-}
-
-impl Weights {
-    /// Parses safetensors bytes already in memory; `source` names them in error messages.
-    pub fn from_bytes(source: &str, bytes: &[u8]) -> Result<Self> {
-        let tensors = parse_safetensors(bytes, Path::new(source))?;
-        Ok(Self::from_tensors(source, tensors))
-    }
 }
 
 #[cfg(test)]

@@ -292,6 +292,9 @@ impl RotationSearch {
     }
 }
 
+/// The most cloud points a configuration may feed the network.
+pub const MAX_POINTS: usize = 16_384;
+
 /// Everything the policy needs besides the weights.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PolicyConfig {
@@ -445,6 +448,18 @@ impl PolicyConfig {
         .with_mode(PolicyMode::Gated)
     }
 
+    /// The same configuration fed `n` cloud points (gripper points included), a quarter of
+    /// them at most from outside the focus box, as in every built-in configuration. The
+    /// weights do not depend on the count, but a network sees the scene as densely as it
+    /// was trained to. In the simulated cell's scenes a point's nearest neighbour is a
+    /// median 26 mm away with 512 points, 18 mm with 1024 and 13 mm with 2048, against the
+    /// toilet-roll spindle's 8 mm of play.
+    pub fn with_points(mut self, n: usize) -> Self {
+        self.n_points = n;
+        self.n_outside_focus = n / 4;
+        self
+    }
+
     /// The same configuration in another mode (sets the network's S2 grids and up-sampling
     /// distance).
     pub fn with_mode(mut self, mode: PolicyMode) -> Self {
@@ -466,7 +481,8 @@ impl PolicyConfig {
         self
     }
 
-    fn check(&self) -> Result<()> {
+    /// Checks the sampling, the point count and the boxes (each error says what to change).
+    pub fn check(&self) -> Result<()> {
         let s = &self.sampling;
         if s.levels == 0 {
             return Err(PolicyError::BadConfig(
@@ -482,9 +498,11 @@ impl PolicyConfig {
                 (s.per_level / s.top_k.max(1)).max(1) * s.top_k.max(1)
             )));
         }
-        if self.n_points <= self.model.n_gripper_pos {
+        if self.n_points <= self.model.n_gripper_pos || self.n_points > MAX_POINTS {
             return Err(PolicyError::BadConfig(format!(
-                "n_points is {}: the network needs more points than the {} gripper points",
+                "n_points is {}: the network needs more points than the {} gripper points \
+                 and at most {MAX_POINTS} (the physical network's 2048 take seconds per \
+                 keyframe on a CPU already)",
                 self.n_points, self.model.n_gripper_pos
             )));
         }

@@ -369,6 +369,13 @@ impl Trainer {
             )));
         }
         check_cloud_query_share(cfg.cloud_query_share)?;
+        cfg.policy.check()?;
+        // The inference commands read the point count from the file (see `N_POINTS_KEY`).
+        let mut weights = weights;
+        weights.set_metadata(
+            crate::weights::N_POINTS_KEY,
+            cfg.policy.n_points.to_string(),
+        );
         Ok(Self {
             grid: LossGrid::new(cfg.rotation_grid_level)?,
             optim: AdamW::new(cfg.optim),
@@ -905,8 +912,18 @@ mod tests {
         let dir = std::env::temp_dir().join(format!("equact_trainer_{}", std::process::id()));
         trainer.step(&batch).unwrap();
         trainer.save(&dir).unwrap();
+        let n_points = cfg.policy.n_points;
         let back = Trainer::resume(cfg, &dir).unwrap();
         assert_eq!(back.optim.step, trainer.optim.step);
+        // The checkpoint says how many cloud points the network was trained with.
+        assert_eq!(
+            crate::weights::trained_points(&dir.join(WEIGHTS_FILE)).unwrap(),
+            Some(n_points)
+        );
+        assert_eq!(
+            back.weights.metadata(crate::weights::N_POINTS_KEY),
+            Some(n_points.to_string().as_str())
+        );
         for key in trainer.weights.keys() {
             assert_eq!(
                 back.weights.f32_any(key).unwrap().1,

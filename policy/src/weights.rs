@@ -6,17 +6,73 @@
 //! scope of its module and the same code serves a fixture (`param.` prefix), a converted
 //! checkpoint (no prefix) or a sub-module of the whole model.
 
-use std::collections::HashMap;
+use std::collections::{BTreeMap, HashMap};
+use std::io::Read;
 use std::path::Path;
 
 use crate::error::{PolicyError, Result};
-use crate::fixtures::{read_safetensors, StoredTensor, TensorData};
+use crate::fixtures::{parse_safetensors, StoredTensor, TensorData};
 
-/// All tensors of one weights file, by full key.
+/// Metadata key of the number of cloud points a network was trained with: the weights do
+/// not depend on it, but a network fed another count sees sparser or denser clouds than it
+/// learned from, so the inference commands take it from the file.
+pub const N_POINTS_KEY: &str = "equact.n_points";
+
+/// All tensors of one weights file, by full key, and the file's metadata.
 #[derive(Debug, Clone)]
 pub struct Weights {
     source: String,
     tensors: HashMap<String, StoredTensor>,
+    metadata: BTreeMap<String, String>,
+}
+
+/// The number of cloud points the weights in `path` were trained with ([`N_POINTS_KEY`]),
+/// read from the safetensors header alone (a physical network's file is hundreds of
+/// megabytes); `None` when the file does not record it (weights from before it was, or a
+/// converted reference checkpoint).
+pub fn trained_points(path: &Path) -> Result<Option<usize>> {
+    let bad = |message: String| PolicyError::Safetensors {
+        path: path.to_path_buf(),
+        message,
+    };
+    let io = |source| PolicyError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let mut file = std::fs::File::open(path).map_err(io)?;
+    let mut len = [0u8; 8];
+    file.read_exact(&mut len).map_err(io)?;
+    let len = u64::from_le_bytes(len);
+    // The safetensors format's own bound on the header.
+    if len > 100_000_000 {
+        return Err(bad(format!(
+            "the header claims {len} bytes: not a safetensors file"
+        )));
+    }
+    let mut header = vec![0u8; len as usize];
+    file.read_exact(&mut header).map_err(io)?;
+    let header: serde_json::Value =
+        serde_json::from_slice(&header).map_err(|e| bad(format!("header: {e}")))?;
+    let value = header
+        .get("__metadata__")
+        .and_then(|m| m.get(N_POINTS_KEY))
+        .map(|v| {
+            v.as_str()
+                .ok_or_else(|| bad(format!("{N_POINTS_KEY} is not a string")))
+        })
+        .transpose()?;
+    parse_points(value).map_err(bad)
+}
+
+/// Parses a [`N_POINTS_KEY`] value.
+fn parse_points(value: Option<&str>) -> std::result::Result<Option<usize>, String> {
+    value
+        .map(|v| {
+            v.parse::<usize>().map_err(|_| {
+                format!("{N_POINTS_KEY} is {v:?}: expected a count of points, e.g. \"512\"")
+            })
+        })
+        .transpose()
 }
 
 /// A view of a [`Weights`] store under a key prefix (a module path).
@@ -27,20 +83,54 @@ pub struct Scope<'a> {
 }
 
 impl Weights {
-    /// Reads every tensor of a safetensors file.
+    /// Reads every tensor of a safetensors file, and its metadata.
     pub fn from_file(path: &Path) -> Result<Self> {
+        let bytes = std::fs::read(path).map_err(|source| PolicyError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::from_bytes(&path.display().to_string(), &bytes)
+    }
+
+    /// Parses safetensors bytes already in memory (tensors and metadata); `source` names
+    /// them in error messages.
+    pub fn from_bytes(source: &str, bytes: &[u8]) -> Result<Self> {
+        let tensors = parse_safetensors(bytes, Path::new(source))?;
+        let (_, header) = safetensors::SafeTensors::read_metadata(bytes).map_err(|e| {
+            PolicyError::Safetensors {
+                path: source.into(),
+                message: e.to_string(),
+            }
+        })?;
         Ok(Self {
-            source: path.display().to_string(),
-            tensors: read_safetensors(path)?,
+            source: source.to_string(),
+            tensors,
+            metadata: header
+                .metadata()
+                .clone()
+                .unwrap_or_default()
+                .into_iter()
+                .collect(),
         })
     }
 
-    /// Wraps tensors already in memory; `source` names them in error messages.
+    /// Wraps tensors already in memory (no metadata); `source` names them in error messages.
     pub fn from_tensors(source: &str, tensors: HashMap<String, StoredTensor>) -> Self {
         Self {
             source: source.to_string(),
             tensors,
+            metadata: BTreeMap::new(),
         }
+    }
+
+    /// A metadata value (the safetensors header's `__metadata__`).
+    pub fn metadata(&self, key: &str) -> Option<&str> {
+        self.metadata.get(key).map(String::as_str)
+    }
+
+    /// Sets a metadata value, written by [`Weights::save`].
+    pub fn set_metadata(&mut self, key: &str, value: String) {
+        self.metadata.insert(key.to_string(), value);
     }
 
     /// Number of tensors.
@@ -98,7 +188,13 @@ impl Weights {
                 .map_err(|e| bad(format!("{k}: {e}")))?;
             views.push((*k, v));
         }
-        safetensors::serialize_to_file(views, None, path).map_err(|e| bad(e.to_string()))
+        let metadata = (!self.metadata.is_empty()).then(|| {
+            self.metadata
+                .iter()
+                .map(|(k, v)| (k.clone(), v.clone()))
+                .collect()
+        });
+        safetensors::serialize_to_file(views, metadata, path).map_err(|e| bad(e.to_string()))
     }
 
     /// Where the tensors came from (for error messages).
@@ -233,5 +329,50 @@ impl<'a> Scope<'a> {
     /// The shape of a parameter, checked to have `rank` axes.
     pub fn shape(&self, name: &str, rank: usize) -> Result<Vec<usize>> {
         self.weights.shape(&self.key(name), rank)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)]
+
+    use super::*;
+    use crate::init::random_weights;
+    use crate::predict::PolicyConfig;
+
+    #[test]
+    fn metadata_round_trips_and_the_point_count_reads_from_the_header() {
+        let dir = std::env::temp_dir().join(format!("equact_weights_meta_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let cfg = PolicyConfig::tiny();
+        let mut w = random_weights(&cfg.model, &cfg.extra, 3);
+        let file = dir.join("w.safetensors");
+        // Without metadata: no count (weights from before it was recorded).
+        w.save(&file).unwrap();
+        assert_eq!(trained_points(&file).unwrap(), None);
+        assert_eq!(
+            Weights::from_file(&file).unwrap().metadata(N_POINTS_KEY),
+            None
+        );
+        w.set_metadata(N_POINTS_KEY, "1024".into());
+        w.save(&file).unwrap();
+        assert_eq!(trained_points(&file).unwrap(), Some(1024));
+        let back = Weights::from_file(&file).unwrap();
+        assert_eq!(back.metadata(N_POINTS_KEY), Some("1024"));
+        assert_eq!(back.num_values(), w.num_values());
+        // A malformed count and a file that is not safetensors are named, not guessed.
+        w.set_metadata(N_POINTS_KEY, "many".into());
+        w.save(&file).unwrap();
+        let err = trained_points(&file).unwrap_err().to_string();
+        assert!(
+            err.contains("\"many\"") && err.contains("w.safetensors"),
+            "{err}"
+        );
+        std::fs::write(&file, b"\xff\xff\xff\xff\xff\xff\xff\xffjunk").unwrap();
+        let err = trained_points(&file).unwrap_err().to_string();
+        assert!(err.contains("not a safetensors file"), "{err}");
+        std::fs::write(&file, b"\x04\x00").unwrap();
+        assert!(trained_points(&file).is_err());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -254,10 +254,16 @@ pub struct ScoreArgs {
     pub json: bool,
 }
 
-/// Overrides of the network's coarse-to-fine translation sampling at inference (training
-/// has its own `--queries`).
+/// Overrides of the network's sampling at inference: the cloud points it is fed and its
+/// coarse-to-fine translation queries (training has its own `--points` and `--queries`).
 #[derive(Args, Debug, Clone, Copy, Default)]
 pub struct SamplingArgs {
+    /// Cloud points fed to the network (a quarter at most from outside the focus box);
+    /// default: what the weights file says the network was trained with, else the network
+    /// size's (cpu 512, physical 2048). Another count than the trained one blurs the
+    /// keyframes.
+    #[arg(long)]
+    pub points: Option<usize>,
     /// Translation queries per sampling level (a multiple of 3, the anchors kept per level);
     /// default: the network configuration's.
     #[arg(long)]
@@ -271,6 +277,15 @@ pub struct SamplingArgs {
 impl SamplingArgs {
     /// `cfg` with these overrides (checked when the policy is built).
     pub fn apply(self, mut cfg: PolicyConfig) -> PolicyConfig {
+        if let Some(n) = self.points.filter(|&n| n != cfg.n_points) {
+            eprintln!(
+                "note: --points {n} overrides the {} cloud points this network is configured \
+                 for (the count its weights file records, or its size's default): a network \
+                 fed another density than it was trained on places keyframes less precisely",
+                cfg.n_points
+            );
+            cfg = cfg.with_points(n);
+        }
         if let Some(q) = self.queries {
             cfg.sampling.per_level = q;
         }
@@ -306,10 +321,11 @@ fn load_scoring<'a>(a: &'a ScoreArgs, what: &str) -> anyhow::Result<Scoring<'a>>
     policy.set_threads(a.threads);
     let s = policy.config().sampling;
     eprintln!(
-        "{what} {} on {} steps of {}: {} levels of {} translation queries",
+        "{what} {} on {} steps of {}: {} cloud points, {} levels of {} translation queries",
         super::run::describe_weights(a.model.as_deref()),
         samples.len(),
         a.demos.display(),
+        policy.config().n_points,
         s.levels,
         s.per_level
     );
@@ -440,16 +456,29 @@ mod tests {
         let cfg = PolicyConfig::tiny();
         let same = SamplingArgs::default().apply(cfg.clone());
         assert_eq!(same.sampling, cfg.sampling);
+        assert_eq!(same.n_points, cfg.n_points);
         let finer = SamplingArgs {
+            points: Some(256),
             queries: Some(90),
             levels: Some(4),
         }
         .apply(cfg.clone());
         assert_eq!((finer.sampling.per_level, finer.sampling.levels), (90, 4));
+        assert_eq!((finer.n_points, finer.n_outside_focus), (256, 64));
         assert!(Policy::random(finer, 1).is_ok());
+        let too_many = SamplingArgs {
+            points: Some(1_000_000),
+            ..SamplingArgs::default()
+        }
+        .apply(cfg.clone());
+        let err = Policy::random(too_many, 1).unwrap_err().to_string();
+        assert!(
+            err.contains("n_points is 1000000") && err.contains("at most 16384"),
+            "{err}"
+        );
         let odd = SamplingArgs {
             queries: Some(100),
-            levels: None,
+            ..SamplingArgs::default()
         }
         .apply(cfg.clone());
         let err = Policy::random(odd, 1).unwrap_err().to_string();
@@ -460,8 +489,8 @@ mod tests {
             "{err}"
         );
         let none = SamplingArgs {
-            queries: None,
             levels: Some(0),
+            ..SamplingArgs::default()
         }
         .apply(cfg);
         let err = Policy::random(none, 1).unwrap_err().to_string();

@@ -139,6 +139,15 @@ pub fn network_config(
     }
     let mut cfg = network.unwrap_or(NetworkSize::Physical).config();
     cfg.model.heads = heads.kind();
+    if let Some(path) = weights {
+        // A network trained on another point count than its size's default says so in its
+        // file; feeding it the default would blur what it learned.
+        let trained = policy::weights::trained_points(path)
+            .with_context(|| format!("reading the weights file {}", path.display()))?;
+        if let Some(n) = trained {
+            cfg = cfg.with_points(n);
+        }
+    }
     Ok(cfg)
 }
 
@@ -506,11 +515,34 @@ mod tests {
             assert!(err.contains("needs its weights file"), "{err}");
         }
         // A weights file keeps the documented default size, and takes the heads asked for.
-        let file = Path::new("runs/plain/model.safetensors");
-        let physical = network_config(Some(file), None, HeadsArg::Plain).unwrap();
+        let dir =
+            std::env::temp_dir().join(format!("equact_network_config_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("model.safetensors");
+        let mut weights = policy::init::random_weights(
+            &PolicyConfig::tiny().model,
+            &PolicyConfig::tiny().extra,
+            1,
+        );
+        weights.save(&file).unwrap();
+        let physical = network_config(Some(&file), None, HeadsArg::Plain).unwrap();
         assert_eq!(physical.n_points, PolicyConfig::physical().n_points);
         assert_eq!(physical.model.heads, policy::model::HeadKind::Plain);
         assert!(describe_weights(None).contains(policy::builtin::WEIGHTS_PATH));
-        assert_eq!(describe_weights(Some(file)), "runs/plain/model.safetensors");
+        assert_eq!(describe_weights(Some(&file)), file.display().to_string());
+        // ... unless the file says how many points the network was trained with.
+        weights.set_metadata(policy::weights::N_POINTS_KEY, "1024".into());
+        weights.save(&file).unwrap();
+        let cpu =
+            network_config(Some(&file), Some(NetworkSize::Cpu), HeadsArg::Equivariant).unwrap();
+        assert_eq!((cpu.n_points, cpu.n_outside_focus), (1024, 256));
+        // A file that cannot be read is named.
+        let missing = dir.join("missing.safetensors");
+        let err = format!(
+            "{:#}",
+            network_config(Some(&missing), None, HeadsArg::Equivariant).unwrap_err()
+        );
+        assert!(err.contains("missing.safetensors"), "{err}");
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -68,6 +68,10 @@ pub struct TrainArgs {
     /// Warm-up steps of `--schedule cosine`.
     #[arg(long, default_value_t = 100)]
     pub warmup: u64,
+    /// Cloud points fed to the network (default: the network size's, cpu 512). The count
+    /// is written into the weights file, which `run`, `eval` and `policy` read.
+    #[arg(long)]
+    pub points: Option<usize>,
     /// Translation queries per sampling level.
     #[arg(long, default_value_t = 30)]
     pub queries: usize,
@@ -189,6 +193,9 @@ struct RunSettings {
     /// The same scene's other targets as first-level queries (runs from before: no).
     #[serde(default)]
     sibling_negatives: bool,
+    /// Cloud points (`None`: the network size's; runs from before the flag).
+    #[serde(default)]
+    points: Option<usize>,
 }
 
 fn one() -> f32 {
@@ -256,6 +263,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         .with_mode(args.mode.mode(args.s2_grid));
     policy_cfg.extra.token_dim = token_dim;
     policy_cfg.model.heads = args.heads.kind();
+    if let Some(n) = args.points {
+        policy_cfg = policy_cfg.with_points(n);
+    }
     let cfg = TrainConfig {
         policy: policy_cfg,
         optim: AdamWConfig {
@@ -292,6 +302,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         paired: args.paired,
         conditioning_lr_scale: args.conditioning_lr_scale,
         sibling_negatives: args.sibling_negatives,
+        points: args.points,
     };
     let mut trainer = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -502,6 +513,7 @@ mod tests {
         assert_eq!(s.cloud_queries, 0.0);
         assert!(!s.paired);
         assert!(!s.sibling_negatives);
+        assert_eq!(s.points, None);
         assert_eq!(s.conditioning_lr_scale, 1.0);
         assert_eq!(s.init, None);
         // The cosine schedule spans the run's iterations; a resume asking for more steps
