@@ -1,11 +1,11 @@
 //! The model that ships with the repository, compiled into the binary so that `equact run`
 //! needs no model file: the CPU-configuration network trained on the simulated cell's expert
-//! demonstrations (`weights/cpu_gated.safetensors`: [`PolicyConfig::cpu`], gated mode,
-//! equivariant heads; how it was trained and how well it does is in the README's Training
-//! section), and the all-MiniLM-L6-v2 per-token states of the simulated tasks' instructions
-//! (`weights/minilm_instructions.safetensors`, one `[tokens, 384]` tensor keyed by the
-//! instruction's text), so the instructions need neither the Python package of the sentence
-//! model nor its files.
+//! demonstrations (`weights/cpu_gated.safetensors`: [`PolicyConfig::cpu`] fed [`POINTS`]
+//! cloud points, gated mode, equivariant heads; how it was trained and how well it does is
+//! in the README's Training section), and the all-MiniLM-L6-v2 per-token states of the
+//! simulated tasks' instructions (`weights/minilm_instructions.safetensors`, one
+//! `[tokens, 384]` tensor keyed by the instruction's text), so the instructions need neither
+//! the Python package of the sentence model nor its files.
 //!
 //! The embeddings are looked up by text, not by task name: an instruction whose wording
 //! changed has no entry and is refused with the known texts listed, instead of silently
@@ -25,10 +25,14 @@ pub const INSTRUCTIONS_PATH: &str = "policy/weights/minilm_instructions.safetens
 const WEIGHTS: &[u8] = include_bytes!("../weights/cpu_gated.safetensors");
 const INSTRUCTIONS: &[u8] = include_bytes!("../weights/minilm_instructions.safetensors");
 
+/// Cloud points the built-in network was trained with (twice [`PolicyConfig::cpu`]'s
+/// default: its last 900 training steps were at this density; the weights file records it).
+pub const POINTS: usize = 1024;
+
 /// The network configuration the built-in weights were trained with (before it is adapted
 /// to a cell's workspace).
 pub fn config() -> PolicyConfig {
-    PolicyConfig::cpu()
+    PolicyConfig::cpu().with_points(POINTS)
 }
 
 /// The built-in weights as a parameter store.
@@ -95,7 +99,12 @@ mod tests {
         // Every parameter of the cpu network is present with its shape (a missing or
         // misshapen one is an error naming it), and nothing else is in the file.
         let policy = policy(config()).unwrap();
-        assert_eq!(policy.config().n_points, 512);
+        assert_eq!(policy.config().n_points, POINTS);
+        // The file says so too, as a trained model's file does for `--model`.
+        assert_eq!(
+            w.metadata(crate::weights::N_POINTS_KEY),
+            Some(POINTS.to_string().as_str())
+        );
         let cfg = config();
         let fresh = crate::init::random_weights(&cfg.model, &cfg.extra, 0);
         assert_eq!(w.keys(), fresh.keys());
