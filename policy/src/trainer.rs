@@ -360,7 +360,7 @@ pub const OPTIMIZER_FILE: &str = "optimizer.safetensors";
 
 impl Trainer {
     /// Starts from `weights` (random or pre-trained).
-    pub fn new(cfg: TrainConfig, weights: Weights) -> Result<Self> {
+    pub fn new(cfg: TrainConfig, mut weights: Weights) -> Result<Self> {
         if cfg.batch == 0 || cfg.queries_per_level == 0 || cfg.top_k == 0 || cfg.levels == 0 {
             return Err(PolicyError::BadConfig(format!(
                 "training config: batch ({}), queries per level ({}), anchors per level ({}) and \
@@ -371,7 +371,6 @@ impl Trainer {
         check_cloud_query_share(cfg.cloud_query_share)?;
         cfg.policy.check()?;
         // The inference commands read the point count from the file (see `N_POINTS_KEY`).
-        let mut weights = weights;
         weights.set_metadata(
             crate::weights::N_POINTS_KEY,
             cfg.policy.n_points.to_string(),
