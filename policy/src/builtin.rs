@@ -26,7 +26,8 @@ const WEIGHTS: &[u8] = include_bytes!("../weights/cpu_gated.safetensors");
 const INSTRUCTIONS: &[u8] = include_bytes!("../weights/minilm_instructions.safetensors");
 
 /// Cloud points the built-in network was trained with (twice [`PolicyConfig::cpu`]'s
-/// default: its last 900 training steps were at this density; the weights file records it).
+/// default: its last 1900 training steps were at this density, the final 1000 with a fourth
+/// translation-loss level; the weights file records the count).
 pub const POINTS: usize = 1024;
 
 /// The network configuration the built-in weights were trained with (before it is adapted
