@@ -106,6 +106,16 @@ mod tests {
             w.metadata(crate::weights::N_POINTS_KEY),
             Some(POINTS.to_string().as_str())
         );
+        // And how it was trained: four runs, the last 1000 steps at these points with a
+        // fourth translation-loss level (the README's reproduction chain).
+        let runs = w.training_history().unwrap();
+        let steps: Vec<_> = runs.iter().map(|r| r["steps"].as_u64()).collect();
+        assert_eq!(steps, [Some(6124), Some(2400), Some(900), Some(1000)]);
+        let last = &runs[3];
+        assert_eq!(
+            (last["points"].as_u64(), last["levels"].as_u64()),
+            (Some(POINTS as u64), Some(4))
+        );
         let cfg = config();
         let fresh = crate::init::random_weights(&cfg.model, &cfg.extra, 0);
         assert_eq!(w.keys(), fresh.keys());

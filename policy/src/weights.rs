@@ -18,6 +18,13 @@ use crate::fixtures::{parse_safetensors, StoredTensor, TensorData};
 /// learned from, so the inference commands take it from the file.
 pub const N_POINTS_KEY: &str = "equact.n_points";
 
+/// Metadata key of how trained weights came to be: a JSON array with one object per
+/// training run that led to them, oldest first, each that run's settings (its `train.json`)
+/// and `steps`, the optimiser steps it had taken when the file was written. `equact train`
+/// writes it (a fine-tune appends its run to its initial weights' history) and `equact
+/// policy info` prints it, so a weights file says what it is without the run folder.
+pub const TRAINING_KEY: &str = "equact.training";
+
 /// All tensors of one weights file, by full key, and the file's metadata.
 #[derive(Debug, Clone)]
 pub struct Weights {
@@ -131,6 +138,27 @@ impl Weights {
     /// Sets a metadata value, written by [`Weights::save`].
     pub fn set_metadata(&mut self, key: &str, value: String) {
         self.metadata.insert(key.to_string(), value);
+    }
+
+    /// The training runs that led to these weights ([`TRAINING_KEY`], oldest first); empty
+    /// when the file does not record them (random weights, files from before the key, a
+    /// converted reference checkpoint).
+    pub fn training_history(&self) -> Result<Vec<serde_json::Value>> {
+        let Some(text) = self.metadata(TRAINING_KEY) else {
+            return Ok(Vec::new());
+        };
+        let bad = |why: String| PolicyError::Safetensors {
+            path: self.source.clone().into(),
+            message: format!(
+                "metadata {TRAINING_KEY} {why}; rewrite the file without it or with a JSON \
+                 array of training runs"
+            ),
+        };
+        match serde_json::from_str(text) {
+            Ok(serde_json::Value::Array(runs)) if runs.iter().all(|r| r.is_object()) => Ok(runs),
+            Ok(_) => Err(bad("is not a JSON array of objects".into())),
+            Err(e) => Err(bad(format!("is not JSON ({e})"))),
+        }
     }
 
     /// Number of tensors.

@@ -54,6 +54,13 @@ pub enum PolicyCommand {
     /// instruction names? Per task, the share that does and the instruction pairs the
     /// network does not tell apart.
     Ground(ScoreArgs),
+    /// Say what a weights file is: its parameters, the cloud points it was trained with and
+    /// the training runs that led to it (`equact train` records them in the file).
+    Info {
+        /// The weights file; the built-in model when omitted.
+        #[arg(long, alias = "weights")]
+        model: Option<std::path::PathBuf>,
+    },
 }
 
 /// Which network mode to run.
@@ -380,12 +387,59 @@ fn ground(a: ScoreArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// What `equact policy info` prints about `weights`: size, trained cloud points and one
+/// line per training run (steps, initial weights, then the run's other settings).
+pub(crate) fn describe_weights(weights: &policy::weights::Weights) -> anyhow::Result<String> {
+    let mut s = format!(
+        "{}: {} tensors, {} parameters\n",
+        weights.source(),
+        weights.len(),
+        weights.num_values()
+    );
+    s.push_str(&match weights.metadata(policy::weights::N_POINTS_KEY) {
+        Some(n) => format!("trained with {n} cloud points\n"),
+        None => "trained cloud points not recorded (the network size's default applies)\n".into(),
+    });
+    let runs = weights.training_history()?;
+    if runs.is_empty() {
+        s.push_str("training history not recorded\n");
+    }
+    for (i, run) in runs.iter().enumerate() {
+        let steps = run.get("steps").map_or("?".to_string(), |v| v.to_string());
+        let init = match run.get("init").and_then(|v| v.as_str()) {
+            Some(init) => format!("from {init}"),
+            None => "from random weights".into(),
+        };
+        let rest: Vec<String> = run
+            .as_object()
+            .into_iter()
+            .flatten()
+            .filter(|(k, _)| *k != "steps" && *k != "init")
+            .map(|(k, v)| format!("{k}={v}"))
+            .collect();
+        s.push_str(&format!(
+            "run {}: {steps} steps {init}; {}\n",
+            i + 1,
+            rest.join(" ")
+        ));
+    }
+    Ok(s)
+}
+
 /// Runs `equact policy`.
 pub fn run(args: PolicyArgs) -> anyhow::Result<()> {
     match args.command {
         PolicyCommand::Predict(a) => predict(a),
         PolicyCommand::Score(a) => score(a),
         PolicyCommand::Ground(a) => ground(a),
+        PolicyCommand::Info { model } => {
+            let weights = match &model {
+                Some(path) => policy::weights::Weights::from_file(path)?,
+                None => policy::builtin::weights()?,
+            };
+            print!("{}", describe_weights(&weights)?);
+            Ok(())
+        }
         PolicyCommand::Embed { text, minilm, out } => {
             let t = Instant::now();
             let model = policy::minilm::MiniLm::load(&minilm)?;

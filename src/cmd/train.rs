@@ -17,6 +17,7 @@ use equact::train::{batch_indices, load_samples, scene_siblings, Instructions};
 use policy::init::random_weights;
 use policy::optim::{AdamWConfig, LrSchedule};
 use policy::trainer::{TrainConfig, Trainer, WEIGHTS_FILE};
+use policy::weights::TRAINING_KEY;
 
 use super::policy::{HeadsArg, ModeArg};
 use super::run::NetworkSize;
@@ -304,7 +305,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         sibling_negatives: args.sibling_negatives,
         points: args.points,
     };
-    let mut trainer = open_run(&args.out, cfg, &settings)?;
+    let (mut trainer, before) = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
     let mut log = open_log(&args.out.join("log.jsonl"), trainer.optim.step)?;
     let started = Instant::now();
@@ -366,10 +367,10 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
             );
         }
         if report.step % args.checkpoint_every == 0 {
-            trainer.save(&args.out)?;
+            save(&mut trainer, &args.out, &before, &settings)?;
         }
     }
-    trainer.save(&args.out)?;
+    save(&mut trainer, &args.out, &before, &settings)?;
     eprintln!(
         "checkpoint at step {} in {} ({})",
         trainer.optim.step,
@@ -382,7 +383,83 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Resumes the run in `out` (checking it was made with the same settings) or starts one.
+/// Writes a checkpoint whose weights record their history ([`TRAINING_KEY`]): the
+/// initial weights' runs, then this one with its steps so far.
+fn save(
+    trainer: &mut Trainer,
+    out: &Path,
+    before: &[serde_json::Value],
+    settings: &RunSettings,
+) -> anyhow::Result<()> {
+    let history = training_history(before, settings, trainer.optim.step)?;
+    trainer.weights.set_metadata(TRAINING_KEY, history);
+    Ok(trainer.save(out)?)
+}
+
+/// The [`TRAINING_KEY`] value of weights trained by a run with `settings` for `steps` steps
+/// from weights whose history was `before`.
+fn training_history(
+    before: &[serde_json::Value],
+    settings: &RunSettings,
+    steps: u64,
+) -> anyhow::Result<String> {
+    let mut run = settings_value(settings)?;
+    if let serde_json::Value::Object(fields) = &mut run {
+        fields.insert("steps".into(), steps.into());
+    }
+    let mut runs = before.to_vec();
+    runs.push(run);
+    Ok(serde_json::to_string(&runs)?)
+}
+
+/// `settings` as JSON, as `train.json` has them (through text: a rate of 1.5e-4 stays that,
+/// not the f32's 1.4999999e-4 widened to f64).
+fn settings_value(settings: &RunSettings) -> anyhow::Result<serde_json::Value> {
+    Ok(serde_json::from_str(&serde_json::to_string(settings)?)?)
+}
+
+/// The runs before a resumed one: its checkpoint's history without its own last entry
+/// (`--init builtin` may name other weights by now), or for a checkpoint written before
+/// histories were, the initial weights' history.
+fn resumed_history(t: &Trainer, settings: &RunSettings) -> anyhow::Result<Vec<serde_json::Value>> {
+    let history = t
+        .weights
+        .training_history()
+        .context("reading the checkpoint's training history")?;
+    let Some((last, before)) = history.split_last() else {
+        return init_history(settings.init.as_deref());
+    };
+    let mut own = last.clone();
+    if let serde_json::Value::Object(fields) = &mut own {
+        fields.remove("steps");
+    }
+    Ok(if own == settings_value(settings)? {
+        before.to_vec()
+    } else {
+        history
+    })
+}
+
+/// The history of the initial weights `init` (`None`: random weights, no history); a file
+/// gone since the run started is reported and left out.
+fn init_history(init: Option<&str>) -> anyhow::Result<Vec<serde_json::Value>> {
+    let weights = match init {
+        None => return Ok(Vec::new()),
+        Some("builtin") => policy::builtin::weights()?,
+        Some(path) => match policy::weights::Weights::from_file(Path::new(path)) {
+            Ok(w) => w,
+            Err(e) => {
+                eprintln!(
+                    "note: the initial weights {path} cannot be read ({e}); the checkpoints \
+                     record this run without the runs before it"
+                );
+                return Ok(Vec::new());
+            }
+        },
+    };
+    Ok(weights.training_history()?)
+}
+
 /// Opens a run's `log.jsonl` to append the steps after `step` (the checkpoint's). Lines of
 /// later steps (run before an interruption, and run again from the checkpoint now) and a
 /// torn last line are dropped first, so the log holds each step once.
@@ -413,7 +490,13 @@ fn open_log(path: &Path, step: u64) -> anyhow::Result<std::fs::File> {
         .with_context(|| format!("opening {}", path.display()))
 }
 
-fn open_run(out: &Path, cfg: TrainConfig, settings: &RunSettings) -> anyhow::Result<Trainer> {
+/// Resumes the run in `out` (checking it was made with the same settings) or starts one;
+/// also returns the initial weights' training history.
+fn open_run(
+    out: &Path,
+    cfg: TrainConfig,
+    settings: &RunSettings,
+) -> anyhow::Result<(Trainer, Vec<serde_json::Value>)> {
     let settings_path = out.join("train.json");
     if out.join(WEIGHTS_FILE).exists() {
         let text = std::fs::read_to_string(&settings_path)
@@ -429,11 +512,13 @@ fn open_run(out: &Path, cfg: TrainConfig, settings: &RunSettings) -> anyhow::Res
         let t = Trainer::resume(cfg, out)
             .with_context(|| format!("resuming the checkpoint in {}", out.display()))?;
         eprintln!("resuming at step {} from {}", t.optim.step, out.display());
-        return Ok(t);
+        let before = resumed_history(&t, settings)?;
+        return Ok((t, before));
     }
     // The initial weights are checked before the run directory is written: a wrong
     // `--init` leaves nothing behind.
     let fresh = random_weights(&cfg.policy.model, &cfg.policy.extra, cfg.seed);
+    let mut before = Vec::new();
     let weights = match settings.init.as_deref() {
         None => fresh,
         Some(init) => {
@@ -448,6 +533,9 @@ fn open_run(out: &Path, cfg: TrainConfig, settings: &RunSettings) -> anyhow::Res
                     "--init {init} does not fit the network being trained (--network, --heads, \
                      --mode and the instruction width must be those the weights were made with)"
                 )
+            })?;
+            before = w.training_history().with_context(|| {
+                format!("reading the training history of the initial weights {init}")
             })?;
             w
         }
@@ -466,7 +554,7 @@ fn open_run(out: &Path, cfg: TrainConfig, settings: &RunSettings) -> anyhow::Res
                 "initial weights from {i}"
             ))
     );
-    Ok(Trainer::new(cfg, weights)?)
+    Ok((Trainer::new(cfg, weights)?, before))
 }
 
 /// Checks that `w` holds exactly the parameters of `want` (same names, same shapes).
@@ -545,6 +633,107 @@ mod tests {
             ScheduleArg::Constant.schedule(100, 2400),
             LrSchedule::Constant
         );
+    }
+
+    #[test]
+    fn checkpoints_record_the_runs_that_led_to_them() {
+        let root = std::env::temp_dir().join(format!("equact-history-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&root);
+        let net = policy::predict::PolicyConfig::tiny();
+        let cfg = || TrainConfig {
+            policy: net.clone(),
+            optim: AdamWConfig::reference(),
+            levels: 3,
+            queries_per_level: 6,
+            top_k: 3,
+            cloud_query_share: 0.0,
+            rotation_grid_level: 0,
+            augment: false,
+            batch: 1,
+            seed: 0,
+            threads: 1,
+        };
+        let settings = |init: Option<String>, lr: f32| RunSettings {
+            network: "Tiny".into(),
+            mode: "parity".into(),
+            heads: "Equivariant".into(),
+            token_dim: net.extra.token_dim,
+            batch: 1,
+            queries: 6,
+            rotation_grid_level: 0,
+            augment: false,
+            seed: 0,
+            lr,
+            init,
+            levels: 3,
+            schedule: LrSchedule::Constant,
+            cloud_queries: 0.0,
+            paired: false,
+            conditioning_lr_scale: 1.0,
+            sibling_negatives: false,
+            points: None,
+        };
+        let history = |dir: &Path| {
+            policy::weights::Weights::from_file(&dir.join(WEIGHTS_FILE))
+                .unwrap()
+                .training_history()
+                .unwrap()
+        };
+        // A run from random weights: one entry, its settings and steps.
+        let first = root.join("first");
+        let s1 = settings(None, 1e-3);
+        let (mut t, before) = open_run(&first, cfg(), &s1).unwrap();
+        assert!(before.is_empty());
+        t.optim.step = 7;
+        save(&mut t, &first, &before, &s1).unwrap();
+        let h = history(&first);
+        assert_eq!(h.len(), 1);
+        assert_eq!(
+            (h[0]["steps"].as_u64(), h[0]["lr"].as_f64()),
+            (Some(7), Some(1e-3))
+        );
+        assert_eq!(h[0]["lr"].to_string(), "0.001");
+        assert!(h[0]["init"].is_null());
+        // A fine-tune of it appends its own run.
+        let second = root.join("second");
+        let init = first.join(WEIGHTS_FILE).display().to_string();
+        let s2 = settings(Some(init.clone()), 2e-4);
+        let (mut t, before) = open_run(&second, cfg(), &s2).unwrap();
+        assert_eq!(before, h);
+        t.optim.step = 3;
+        save(&mut t, &second, &before, &s2).unwrap();
+        // Resumed and saved again, it updates its entry instead of adding one, and keeps the
+        // history it started from even though its initial weights trained on since.
+        let (mut t1, b1) = open_run(&first, cfg(), &s1).unwrap();
+        t1.optim.step = 9;
+        save(&mut t1, &first, &b1, &s1).unwrap();
+        let (mut t, before) = open_run(&second, cfg(), &s2).unwrap();
+        assert_eq!(before, h);
+        t.optim.step = 5;
+        save(&mut t, &second, &before, &s2).unwrap();
+        let h2 = history(&second);
+        assert_eq!(h2.len(), 2);
+        assert_eq!(h2[0], h[0]);
+        assert_eq!(h2[1]["steps"].as_u64(), Some(5));
+        assert_eq!(h2[1]["init"].as_str(), Some(init.as_str()));
+        // `equact policy info` says it in words.
+        let w = policy::weights::Weights::from_file(&second.join(WEIGHTS_FILE)).unwrap();
+        let text = super::super::policy::describe_weights(&w).unwrap();
+        assert!(
+            text.contains("run 1: 7 steps from random weights;"),
+            "{text}"
+        );
+        assert!(
+            text.contains(&format!("run 2: 5 steps from {init};")),
+            "{text}"
+        );
+        assert!(text.contains("trained with 128 cloud points"), "{text}");
+        // A malformed history is refused with the key named, not read as empty.
+        let mut bad = w.clone();
+        bad.set_metadata(TRAINING_KEY, "[1, 2]".into());
+        let err = bad.training_history().unwrap_err().to_string();
+        assert!(err.contains(TRAINING_KEY) && err.contains("array"), "{err}");
+        let _ = std::fs::remove_dir_all(&root);
     }
 
     #[test]
