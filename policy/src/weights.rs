@@ -140,6 +140,15 @@ impl Weights {
         self.metadata.insert(key.to_string(), value);
     }
 
+    /// The number of cloud points these weights were trained with ([`N_POINTS_KEY`]), as
+    /// [`trained_points`] reads it from a file's header; `None` when not recorded.
+    pub fn trained_points(&self) -> Result<Option<usize>> {
+        parse_points(self.metadata(N_POINTS_KEY)).map_err(|message| PolicyError::Safetensors {
+            path: self.source.clone().into(),
+            message,
+        })
+    }
+
     /// The training runs that led to these weights ([`TRAINING_KEY`], oldest first); empty
     /// when the file does not record them (random weights, files from before the key, a
     /// converted reference checkpoint).
@@ -396,6 +405,8 @@ mod tests {
             err.contains("\"many\"") && err.contains("w.safetensors"),
             "{err}"
         );
+        let loaded = Weights::from_file(&file).unwrap().trained_points();
+        assert_eq!(loaded.unwrap_err().to_string(), err);
         std::fs::write(&file, b"\xff\xff\xff\xff\xff\xff\xff\xffjunk").unwrap();
         let err = trained_points(&file).unwrap_err().to_string();
         assert!(err.contains("not a safetensors file"), "{err}");

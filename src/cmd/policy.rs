@@ -389,14 +389,14 @@ fn ground(a: ScoreArgs) -> anyhow::Result<()> {
 
 /// What `equact policy info` prints about `weights`: size, trained cloud points and one
 /// line per training run (steps, initial weights, then the run's other settings).
-pub(crate) fn describe_weights(weights: &policy::weights::Weights) -> anyhow::Result<String> {
+pub(crate) fn weights_info(weights: &policy::weights::Weights) -> anyhow::Result<String> {
     let mut s = format!(
         "{}: {} tensors, {} parameters\n",
         weights.source(),
         weights.len(),
         weights.num_values()
     );
-    s.push_str(&match weights.metadata(policy::weights::N_POINTS_KEY) {
+    s.push_str(&match weights.trained_points()? {
         Some(n) => format!("trained with {n} cloud points\n"),
         None => "trained cloud points not recorded (the network size's default applies)\n".into(),
     });
@@ -437,7 +437,7 @@ pub fn run(args: PolicyArgs) -> anyhow::Result<()> {
                 Some(path) => policy::weights::Weights::from_file(path)?,
                 None => policy::builtin::weights()?,
             };
-            print!("{}", describe_weights(&weights)?);
+            print!("{}", weights_info(&weights)?);
             Ok(())
         }
         PolicyCommand::Embed { text, minilm, out } => {

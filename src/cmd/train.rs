@@ -443,21 +443,26 @@ fn resumed_history(t: &Trainer, settings: &RunSettings) -> anyhow::Result<Vec<se
 /// The history of the initial weights `init` (`None`: random weights, no history); a file
 /// gone since the run started is reported and left out.
 fn init_history(init: Option<&str>) -> anyhow::Result<Vec<serde_json::Value>> {
-    let weights = match init {
-        None => return Ok(Vec::new()),
-        Some("builtin") => policy::builtin::weights()?,
-        Some(path) => match policy::weights::Weights::from_file(Path::new(path)) {
-            Ok(w) => w,
-            Err(e) => {
-                eprintln!(
-                    "note: the initial weights {path} cannot be read ({e}); the checkpoints \
-                     record this run without the runs before it"
-                );
-                return Ok(Vec::new());
-            }
-        },
+    let Some(init) = init else {
+        return Ok(Vec::new());
     };
-    Ok(weights.training_history()?)
+    match initial_weights(init) {
+        Ok(weights) => Ok(weights.training_history()?),
+        Err(e) => {
+            eprintln!("note: {e:#}; the checkpoints record this run without the runs before it");
+            Ok(Vec::new())
+        }
+    }
+}
+
+/// The weights `--init` names: `builtin` (the model compiled into the binary) or a file.
+fn initial_weights(init: &str) -> anyhow::Result<policy::weights::Weights> {
+    if init == "builtin" {
+        Ok(policy::builtin::weights()?)
+    } else {
+        policy::weights::Weights::from_file(Path::new(init))
+            .with_context(|| format!("reading the initial weights {init}"))
+    }
 }
 
 /// Opens a run's `log.jsonl` to append the steps after `step` (the checkpoint's). Lines of
@@ -522,12 +527,7 @@ fn open_run(
     let weights = match settings.init.as_deref() {
         None => fresh,
         Some(init) => {
-            let w = if init == "builtin" {
-                policy::builtin::weights()?
-            } else {
-                policy::weights::Weights::from_file(Path::new(init))
-                    .with_context(|| format!("reading the initial weights {init}"))?
-            };
+            let w = initial_weights(init)?;
             check_same_parameters(&w, &fresh).with_context(|| {
                 format!(
                     "--init {init} does not fit the network being trained (--network, --heads, \
@@ -718,7 +718,7 @@ mod tests {
         assert_eq!(h2[1]["init"].as_str(), Some(init.as_str()));
         // `equact policy info` says it in words.
         let w = policy::weights::Weights::from_file(&second.join(WEIGHTS_FILE)).unwrap();
-        let text = super::super::policy::describe_weights(&w).unwrap();
+        let text = super::super::policy::weights_info(&w).unwrap();
         assert!(
             text.contains("run 1: 7 steps from random weights;"),
             "{text}"
