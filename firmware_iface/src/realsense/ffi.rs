@@ -682,20 +682,32 @@ impl Drop for Pipeline {
     fn drop(&mut self) {
         let api = self.api;
         let _lifecycle = LIFECYCLE.lock().unwrap_or_else(|p| p.into_inner());
-        if self._owned.is_some() {
-            // A recording: pause its reader before the stop, which otherwise raced with a
-            // frame in flight and crashed librealsense 2.59 now and then.
-            let paused = call!(api, pipeline_profile_get_device(self.profile)).and_then(|d| {
-                let dev = Owned(d, api.delete_device);
-                call!(api, playback_device_pause(dev.0))
-            });
-            if let Err(e) = paused {
-                log::warn!("pausing the RealSense playback: {e}");
-            }
-        }
+        // A recording's playback device, when this pipeline plays one.
+        let playback = match self._owned {
+            Some(_) => match call!(api, pipeline_profile_get_device(self.profile)) {
+                Ok(d) => Some(Owned(d, api.delete_device)),
+                Err(e) => {
+                    log::warn!("finding the RealSense playback device: {e}");
+                    None
+                }
+            },
+            None => None,
+        };
         if let Err(e) = call!(api, pipeline_stop(self.raw)) {
             log::warn!("stopping the RealSense pipeline: {e}");
         }
+        // The stop hands the playback's own stop (which reopens the file) to the
+        // recording's reader thread without waiting for it, and deleting the device under
+        // it corrupted the heap now and then (valgrind: ros2_reader_base::reset after
+        // ~playback_device). Pausing runs on that thread and waits for it, so it is the
+        // barrier. (Not before the stop: with the pipeline's queue full and nobody taking
+        // frames, the pause waits on a reader that waits on the queue, until timeouts.)
+        if let Some(dev) = &playback {
+            if let Err(e) = call!(api, playback_device_pause(dev.0)) {
+                log::warn!("waiting for the RealSense playback to stop: {e}");
+            }
+        }
+        drop(playback);
         // SAFETY: the profile came from rs2_pipeline_start_with_config; deleted once.
         unsafe { (api.delete_pipeline_profile)(self.profile) };
         // SAFETY: the pipeline came from rs2_create_pipeline; deleted once, after stop.

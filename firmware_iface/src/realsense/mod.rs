@@ -22,8 +22,11 @@
 //! The streaming threads stop when the pipeline stops ([`RealSenseCamera`]'s drop). The
 //! process keeps one librealsense context for live devices, created on first use and never
 //! deleted, so its device watcher runs until the process exits, and the library stays
-//! loaded; a recording plays in a context of its own, deleted with its camera. One recording plays at a time: librealsense 2.59
-//! crashed (SIGSEGV, "pure virtual method called") playing two at once in one process.
+//! loaded; a recording plays in a context of its own, deleted with its camera. Closing a
+//! recording waits for its reader thread after the stop (librealsense hands
+//! the playback's own stop to that thread without waiting, and deleting the device under
+//! it corrupted the heap). One recording plays at a time: librealsense 2.59 crashed
+//! (SIGSEGV, "pure virtual method called") playing two at once in one process.
 //!
 //! # Frames
 //!
