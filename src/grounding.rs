@@ -145,6 +145,32 @@ pub fn draws_same_scene(a: TaskKind, b: TaskKind, seed: u64, table_height: f64) 
         })
 }
 
+/// For each sample, its [`scene_siblings`](crate::train::scene_siblings) whose keyframe goes
+/// elsewhere (more than [`SAME_TARGET_M`] from its own), or all of them where none does:
+/// the partners of `equact train --paired`. A pair whose two instructions go to one place
+/// teaches nothing about the instruction, and on the pipe's first step ("first link" and
+/// "all" both start at the first link) narrowing also evens the two targets out: every
+/// pair holds both, where uniform partners put the first link in two samples of three.
+pub fn contrasting_siblings(samples: &[DemoSample]) -> Vec<Vec<usize>> {
+    let target = |i: usize| samples[i].sample.target.base_from_tcp.translation();
+    crate::train::scene_siblings(samples)
+        .into_iter()
+        .enumerate()
+        .map(|(i, sib)| {
+            let elsewhere: Vec<usize> = sib
+                .iter()
+                .copied()
+                .filter(|&j| (target(j) - target(i)).norm() > SAME_TARGET_M)
+                .collect();
+            if elsewhere.is_empty() {
+                sib
+            } else {
+                elsewhere
+            }
+        })
+        .collect()
+}
+
 /// Gives each sample, as [`policy::trainer::TrainSample::negatives`], the targets of the same
 /// step of the same scene under its task's other instructions (only tasks whose variations
 /// draw one scene from a seed; targets more than [`SAME_TARGET_M`] from its own), so that
@@ -399,6 +425,34 @@ mod tests {
         // No sibling at step 1; the fruit's variations are different scenes.
         assert!(negatives(3).is_empty());
         assert!(negatives(4).is_empty() && negatives(5).is_empty());
+    }
+
+    #[test]
+    fn paired_partners_go_elsewhere_where_any_does() {
+        let kind = |n: &str| TaskKind::parse(n).unwrap();
+        let samples = vec![
+            demo(kind("disassemble_pipe/first_link"), 5, 0),
+            demo(kind("disassemble_pipe/second_link"), 5, 0),
+            demo(kind("disassemble_pipe/all"), 5, 0),
+            demo(kind("pluck_flower/top"), 2, 0),
+            demo(kind("pluck_flower/middle"), 2, 0),
+            demo(kind("disassemble_pipe/first_link"), 5, 1),
+            demo(kind("disassemble_pipe/all"), 5, 1),
+        ];
+        let partners = contrasting_siblings(&samples);
+        // "first link" and "all" start at one place: each is paired with the second link
+        // only, and the second link with both.
+        assert_eq!(partners[0], [1]);
+        assert_eq!(partners[2], [1]);
+        assert_eq!(partners[1], [0, 2]);
+        assert_eq!(partners[3], [4]);
+        assert_eq!(partners[4], [3]);
+        // The second step of "first link" and "all" (pulling the first link) goes to one
+        // place too: with no sibling elsewhere, the one there is stays the partner.
+        let t = |i: usize| samples[i].sample.target.base_from_tcp.translation();
+        assert!((t(5) - t(6)).norm() <= SAME_TARGET_M);
+        assert_eq!(partners[5], [6]);
+        assert_eq!(partners[6], [5]);
     }
 
     /// A demonstration step of `kind`'s scene with `seed`, with a stand-in cloud.

@@ -13,7 +13,7 @@ use std::time::Instant;
 
 use anyhow::Context;
 use clap::Args;
-use equact::train::{batch_indices, load_samples, scene_siblings, Instructions};
+use equact::train::{batch_indices, load_samples, Instructions};
 use policy::init::random_weights;
 use policy::optim::{AdamWConfig, LrSchedule};
 use policy::trainer::{TrainConfig, Trainer, WEIGHTS_FILE};
@@ -85,8 +85,10 @@ pub struct TrainArgs {
     pub cloud_queries: f64,
     /// Make each batch pairs of the same scene under two of its task's variations (a pipe
     /// or flower scene with one seed is the same in every variation): half of `--batch`
-    /// samples drawn as usual, each followed by its counterpart. The network otherwise
-    /// learns what the scene alone explains and leaves the instruction almost unread.
+    /// samples drawn as usual, each followed by its counterpart, one whose keyframe goes
+    /// elsewhere where the scene has one (`equact::grounding::contrasting_siblings`). The
+    /// network otherwise learns what the scene alone explains and leaves the instruction
+    /// almost unread.
     #[arg(long)]
     pub paired: bool,
     /// Add, to each sample's first sampling level, where the same scene's other
@@ -310,7 +312,9 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     let mut log = open_log(&args.out.join("log.jsonl"), trainer.optim.step)?;
     let started = Instant::now();
     let first = trainer.optim.step;
-    let siblings = args.paired.then(|| scene_siblings(&samples));
+    let siblings = args
+        .paired
+        .then(|| equact::grounding::contrasting_siblings(&samples));
     if let Some(s) = &siblings {
         let with = s.iter().filter(|s| !s.is_empty()).count();
         eprintln!(
