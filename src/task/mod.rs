@@ -266,6 +266,18 @@ impl TaskInstance {
         }
     }
 
+    /// Whether body `index` at `pose` stands free on the table, so that closing fingers
+    /// slide it to the middle of the jaws (a fruit, a roll standing on the table) rather than
+    /// closing on it where it is (pipe links held by the junction, stems in the foam, a roll
+    /// on the spindle).
+    pub fn stands_free(&self, index: usize, pose: &Isometry3<f64>) -> bool {
+        match self.kind {
+            TaskKind::PickFruit(_) => true,
+            TaskKind::InstallToiletRoll(s) => toilet_roll::on_table(self, s, index, pose),
+            TaskKind::DisassemblePipe(_) | TaskKind::PluckFlower(_) => false,
+        }
+    }
+
     /// Where body `index`, released by the gripper at `pose`, comes to rest.
     pub fn released_pose(&self, index: usize, pose: &Isometry3<f64>) -> Isometry3<f64> {
         match self.kind {

@@ -192,6 +192,17 @@ pub(crate) fn success(
         && angle_between(&(p.rotation * Vector3::z()), &fz) < 10f64.to_radians()
 }
 
+/// Whether body `index` is the roll standing on the table (not on the spindle, not held up).
+pub(crate) fn on_table(
+    task: &TaskInstance,
+    size: RollSize,
+    index: usize,
+    pose: &Isometry3<f64>,
+) -> bool {
+    index == 1
+        && (pose.translation.vector.z - (task.table_height + size.half_height())).abs() < 1e-3
+}
+
 /// A released roll whose hole is around the spindle (axis within 15°, centre within the
 /// hole's play, bottom between the seat and the spindle's top) slides down onto the seat;
 /// anywhere else it falls onto the table, upright.

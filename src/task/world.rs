@@ -3,9 +3,9 @@
 //! ([`crate::sim_cell::SimWorld`]) renders it; the kinematic check ([`super::check`]) uses
 //! it without rendering.
 
-use nalgebra::Isometry3;
+use nalgebra::{Isometry3, Point3, Translation3, Vector3};
 
-use super::TaskInstance;
+use super::{GraspSite, TaskInstance};
 
 /// Grasp distance: a body is caught when its grasp site is this close to the TCP as the
 /// fingers close (m).
@@ -63,7 +63,7 @@ impl TaskWorld {
             if self.held() == Some(i) {
                 continue;
             }
-            let p = self.poses[i] * nalgebra::Point3::from(site.point);
+            let p = self.poses[i] * Point3::from(site.point);
             let d = (p.coords - tcp).norm();
             if d <= GRASP_RADIUS && best.is_none_or(|b| d < b.1) {
                 best = Some((i, d, site.width));
@@ -79,6 +79,11 @@ impl TaskWorld {
     pub fn after_gripper(&mut self, base_from_tcp: &Isometry3<f64>, holding: bool) {
         if holding && self.held.is_none() {
             if let Some(i) = self.between_fingers.take() {
+                if let Some(site) = self.task.bodies[i].grasp {
+                    if self.task.stands_free(i, &self.poses[i]) {
+                        self.poses[i] = slid_between_jaws(base_from_tcp, &self.poses[i], &site);
+                    }
+                }
                 self.held = Some((i, base_from_tcp.inverse() * self.poses[i]));
             }
         } else if !holding {
@@ -97,10 +102,99 @@ impl TaskWorld {
     }
 }
 
+/// Where a body standing free on the table ends when parallel jaws close on it off-centre:
+/// the first finger to touch pushes it over the table until its grasp site lies midway
+/// between the jaws along the closing axis (TCP x), as a real 2F-85 does with a fruit or a
+/// roll; across the pads and in height it stays where it was. Jaws closing more steeply than
+/// 45° push into the table instead, and leave the body where it is.
+fn slid_between_jaws(
+    base_from_tcp: &Isometry3<f64>,
+    pose: &Isometry3<f64>,
+    site: &GraspSite,
+) -> Isometry3<f64> {
+    let across = base_from_tcp.rotation * Vector3::x();
+    let flat = Vector3::new(across.x, across.y, 0.0);
+    // flat · across = |flat|²: moving by −off/|flat|² along `flat` cancels the offset along
+    // `across`.
+    let level = flat.norm_squared();
+    if level < 0.5 {
+        return *pose;
+    }
+    let site_in_base = pose * Point3::from(site.point);
+    let off = (site_in_base.coords - base_from_tcp.translation.vector).dot(&across);
+    Isometry3::from_parts(
+        Translation3::from(pose.translation.vector - flat * (off / level)),
+        pose.rotation,
+    )
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::task::{Fruit, TaskKind};
+    use crate::task::{Fruit, PipePart, RollSize, TaskKind};
+
+    /// The grasp site of body `i` in the TCP frame at `base_from_tcp`.
+    fn site_in_tcp(w: &TaskWorld, i: usize, base_from_tcp: &Isometry3<f64>) -> Vector3<f64> {
+        let site = w.task.bodies[i].grasp.unwrap().point;
+        (base_from_tcp.inverse() * w.poses()[i] * Point3::from(site)).coords
+    }
+
+    /// The expert's first closing keyframe of `task`, moved by `offset` in its TCP frame.
+    fn off_centre_grasp(task: &TaskInstance, offset: Vector3<f64>) -> Isometry3<f64> {
+        let grasp = task
+            .expert_keyframes()
+            .into_iter()
+            .find(|k| !k.gripper_open)
+            .unwrap();
+        grasp.base_from_tcp.isometry() * Isometry3::translation(offset.x, offset.y, offset.z)
+    }
+
+    #[test]
+    fn closing_jaws_centre_a_standing_roll_along_their_axis_only() {
+        let task = TaskInstance::sample(TaskKind::InstallToiletRoll(RollSize::Small), 7, -0.06);
+        let at = off_centre_grasp(&task, Vector3::new(0.008, 0.005, 0.002));
+        let mut w = TaskWorld::new(task.clone());
+        let before = site_in_tcp(&w, 1, &at);
+        assert!((before - Vector3::new(-0.008, -0.005, -0.002)).norm() < 1e-9);
+        assert!(w.before_close(&at).is_some());
+        w.after_gripper(&at, true);
+        assert_eq!(w.held(), Some(1));
+        // Centred across the jaws; the offset along the pads and in height stays.
+        let after = site_in_tcp(&w, 1, &at);
+        assert!(after.x.abs() < 1e-9, "{after}");
+        assert!(
+            (after.yz() - before.yz()).norm() < 1e-9,
+            "{after} vs {before}"
+        );
+        // Slid over the table, not lifted or turned.
+        let (was, now) = (task.bodies[1].base_from_body, w.poses()[1]);
+        assert!((now.translation.z - was.translation.z).abs() < 1e-12);
+        assert!(now.rotation.angle_to(&was.rotation) < 1e-12);
+        assert!(((now.translation.vector - was.translation.vector).norm() - 0.008).abs() < 1e-9);
+        // Carried with the centred offset.
+        let up = Isometry3::translation(0.0, 0.0, 0.1) * at;
+        w.carry(&up);
+        assert!((site_in_tcp(&w, 1, &up) - after).norm() < 1e-9);
+    }
+
+    #[test]
+    fn closing_jaws_leave_held_in_parts_and_seated_rolls_where_they_are() {
+        let task = TaskInstance::sample(TaskKind::DisassemblePipe(PipePart::FirstLink), 3, -0.06);
+        let at = off_centre_grasp(&task, Vector3::new(0.008, 0.0, 0.0));
+        let mut w = TaskWorld::new(task.clone());
+        let i = task.bodies.iter().position(|b| b.grasp.is_some()).unwrap();
+        assert!(w.before_close(&at).is_some());
+        w.after_gripper(&at, true);
+        assert_eq!(w.held(), Some(i));
+        assert_eq!(w.poses()[i], task.bodies[i].base_from_body);
+
+        let task = TaskInstance::sample(TaskKind::InstallToiletRoll(RollSize::Large), 5, -0.06);
+        let h = RollSize::Large.half_height();
+        let seated = task.base_from_fixture * Isometry3::translation(0.0, 0.0, h);
+        assert!(!task.stands_free(1, &seated));
+        assert!(task.stands_free(1, &task.bodies[1].base_from_body));
+        assert!(!task.stands_free(0, &task.bodies[0].base_from_body));
+    }
 
     #[test]
     fn a_closed_gripper_carries_and_opening_drops_the_fruit() {
