@@ -152,16 +152,11 @@ pub fn draws_same_scene(a: TaskKind, b: TaskKind, seed: u64, table_height: f64) 
 /// "all" both start at the first link) narrowing also evens the two targets out: every
 /// pair holds both, where uniform partners put the first link in two samples of three.
 pub fn contrasting_siblings(samples: &[DemoSample]) -> Vec<Vec<usize>> {
-    let target = |i: usize| samples[i].sample.target.base_from_tcp.translation();
     crate::train::scene_siblings(samples)
         .into_iter()
         .enumerate()
         .map(|(i, sib)| {
-            let elsewhere: Vec<usize> = sib
-                .iter()
-                .copied()
-                .filter(|&j| (target(j) - target(i)).norm() > SAME_TARGET_M)
-                .collect();
+            let elsewhere: Vec<usize> = going_elsewhere(samples, i, &sib).collect();
             if elsewhere.is_empty() {
                 sib
             } else {
@@ -169,6 +164,20 @@ pub fn contrasting_siblings(samples: &[DemoSample]) -> Vec<Vec<usize>> {
             }
         })
         .collect()
+}
+
+/// The siblings `sib` of sample `i` whose keyframe is more than [`SAME_TARGET_M`] from its
+/// own.
+fn going_elsewhere<'a>(
+    samples: &'a [DemoSample],
+    i: usize,
+    sib: &'a [usize],
+) -> impl Iterator<Item = usize> + 'a {
+    let target = |j: usize| samples[j].sample.target.base_from_tcp.translation();
+    let own = target(i);
+    sib.iter()
+        .copied()
+        .filter(move |&j| (target(j) - own).norm() > SAME_TARGET_M)
 }
 
 /// Gives each sample, as [`policy::trainer::TrainSample::negatives`], the targets of the same
@@ -183,15 +192,13 @@ pub fn add_sibling_negatives(samples: &mut [DemoSample], table_height: f64) -> u
         .enumerate()
         .map(|(i, sib)| {
             let own = &samples[i];
-            let target = own.sample.target.base_from_tcp.translation();
             let mut out: Vec<nalgebra::Point3<f64>> = Vec::new();
-            for o in sib.iter().map(|&j| &samples[j]) {
+            for o in going_elsewhere(samples, i, sib).map(|j| &samples[j]) {
                 let t = o.sample.target.base_from_tcp.translation();
                 // Two instructions going to one place give one negative, not a doubled one.
-                if (t - target).norm() > SAME_TARGET_M
-                    && out
-                        .iter()
-                        .all(|n| (n.coords - t).norm() > SAME_PREDICTION_M)
+                if out
+                    .iter()
+                    .all(|n| (n.coords - t).norm() > SAME_PREDICTION_M)
                     && draws_same_scene(own.kind, o.kind, own.seed, table_height)
                 {
                     out.push(t.into());
