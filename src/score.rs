@@ -201,6 +201,20 @@ impl ScoreTable {
     }
 }
 
+/// For a step more than [`FAR_M`] off, which of sampling and field is to blame, with the
+/// translation logits that say so; empty otherwise.
+fn why_off(step: &ScoredStep) -> String {
+    if step.error.position_m <= FAR_M {
+        return String::new();
+    }
+    let (expert, predicted) = (step.expert_logit, step.predicted_logit);
+    if step.missed_by_sampling() {
+        format!("; sampling missed the expert's position (logit {expert:.2} > {predicted:.2})")
+    } else {
+        format!("; the field prefers the prediction (logit {predicted:.2} ≥ {expert:.2} at the expert's)")
+    }
+}
+
 /// Predicts every sample's keyframe with `policy` (prediction `i` seeded `seed + i`, so a
 /// score is reproducible) and compares it with the sample's expert keyframe; `progress`
 /// hears one line per step.
@@ -232,17 +246,7 @@ pub fn score(
                     demo.seed, demo.step
                 )
             })?[0];
-        progress(&format!(
-            "[{}/{}] {variation} seed {} step {}: {:.1} mm, {:.1} deg, open {}",
-            i + 1,
-            samples.len(),
-            demo.seed,
-            demo.step,
-            e.position_m * 1e3,
-            e.rotation_deg,
-            if e.open_agrees { "agrees" } else { "differs" }
-        ));
-        steps.push(ScoredStep {
+        let step = ScoredStep {
             variation,
             seed: demo.seed,
             step: demo.step,
@@ -250,7 +254,20 @@ pub fn score(
             prediction_cpu_s: got.timings.total,
             predicted_logit: got.translation_logit,
             expert_logit,
-        });
+        };
+        progress(&format!(
+            "[{}/{}] {} seed {} step {}: {:.1} mm, {:.1} deg, open {}{}",
+            i + 1,
+            samples.len(),
+            step.variation,
+            demo.seed,
+            demo.step,
+            e.position_m * 1e3,
+            e.rotation_deg,
+            if e.open_agrees { "agrees" } else { "differs" },
+            why_off(&step)
+        ));
+        steps.push(step);
     }
     // The steps of one variation (`None`: all of them).
     let steps_of = |name: Option<&str>| -> Vec<&ScoredStep> {
@@ -324,6 +341,10 @@ mod tests {
         assert!(missed.missed_by_sampling());
         assert!(!field_wrong.missed_by_sampling());
         assert!(!close.missed_by_sampling(), "within 1 cm is not off");
+        // Each off step's progress line says which one to blame.
+        assert!(why_off(&missed).contains("sampling missed"), "{}", why_off(&missed));
+        assert!(why_off(&field_wrong).contains("field prefers the prediction"));
+        assert_eq!(why_off(&close), "");
         let r = ScoreRow::of_steps("x".into(), &[&missed, &field_wrong, &close]);
         assert_eq!(r.steps, 3);
         assert!((r.missed_by_sampling - 0.5).abs() < 1e-12, "{r:?}");
