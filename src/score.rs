@@ -342,7 +342,11 @@ mod tests {
         assert!(!field_wrong.missed_by_sampling());
         assert!(!close.missed_by_sampling(), "within 1 cm is not off");
         // Each off step's progress line says which one to blame.
-        assert!(why_off(&missed).contains("sampling missed"), "{}", why_off(&missed));
+        assert!(
+            why_off(&missed).contains("sampling missed"),
+            "{}",
+            why_off(&missed)
+        );
         assert!(why_off(&field_wrong).contains("field prefers the prediction"));
         assert_eq!(why_off(&close), "");
         let r = ScoreRow::of_steps("x".into(), &[&missed, &field_wrong, &close]);

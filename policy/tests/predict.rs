@@ -239,9 +239,14 @@ fn transform_cloud(c: &PointCloud, m: &Isometry3<f64>) -> PointCloud {
 /// translation error (m) and rotation error (rad) of the moved keyframe against the moved
 /// original keyframe.
 fn moved_keyframe_error(mode: PolicyMode, motion: Isometry3<f64>) -> (f64, f64) {
+    moved_keyframe_error_with(PolicyConfig::tiny().with_mode(mode), motion)
+}
+
+/// [`moved_keyframe_error`] of the network `cfg` with random weights (seed 7).
+fn moved_keyframe_error_with(cfg: PolicyConfig, motion: Isometry3<f64>) -> (f64, f64) {
     let cloud = scene(2);
     let instr = InstructionEmbedding::random(4);
-    let mut p = tiny(mode);
+    let mut p = Policy::random(cfg, 7).unwrap();
     p.seed = 5;
     let a = p.predict(&cloud, &gripper(), &instr).unwrap();
     let mut cfg = p.config().clone();
@@ -263,6 +268,55 @@ fn moved_keyframe_error(mode: PolicyMode, motion: Isometry3<f64>) -> (f64, f64) 
     let dr = expected.rotation.angle_to(&got.rotation);
     assert_eq!(a.gripper_open, b.gripper_open);
     (dt, dr)
+}
+
+#[test]
+fn level_zero_also_samples_around_the_gripper_and_moves_with_it() {
+    let instr = InstructionEmbedding::random(3);
+    let cloud = scene(2);
+    let with = |near: usize| {
+        let mut cfg = PolicyConfig::tiny().with_mode(PolicyMode::Gated);
+        cfg.sampling.near_gripper = near;
+        let mut p = Policy::random(cfg, 7).unwrap();
+        p.seed = 5;
+        p
+    };
+    let per_level = PolicyConfig::tiny().sampling.per_level;
+    let plain = with(0)
+        .predict_detailed(&cloud, &gripper(), &instr)
+        .unwrap();
+    let near = with(30)
+        .predict_detailed(&cloud, &gripper(), &instr)
+        .unwrap();
+    let (q0, _) = &near.levels[0];
+    assert_eq!(q0.len(), per_level + 30);
+    // The box samples are the reference's; the extra ones lie in the ball around the TCP.
+    assert_eq!(q0[..per_level], plain.levels[0].0[..]);
+    let tcp = gripper().base_from_tcp.translation();
+    for q in &q0[per_level..] {
+        let d = Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2])) - tcp;
+        assert!(
+            d.norm() < policy::predict::NEAR_GRIPPER_RADIUS_M + 1e-6,
+            "{q:?}"
+        );
+    }
+    // A gripper parked above the gripper bounds adds none, and still predicts.
+    let parked = GripperPose {
+        base_from_tcp: Transform::from_xyz_rpy([0.5, 0.02, 0.9], [3.0, 0.1, 0.4]),
+        open: true,
+    };
+    let high = with(30).predict_detailed(&cloud, &parked, &instr).unwrap();
+    assert_eq!(high.levels[0].0.len(), per_level);
+    // The ball is drawn in the workspace frame around the moved gripper: the keyframe still
+    // moves with the scene to rounding.
+    let mut cfg = PolicyConfig::tiny().with_mode(PolicyMode::Gated);
+    cfg.sampling.near_gripper = 30;
+    let motion = Isometry3::from_parts(
+        Translation3::new(0.05, -0.1, 0.2),
+        UnitQuaternion::from_euler_angles(0.7, -0.4, 1.9),
+    );
+    let (dt, _) = moved_keyframe_error_with(cfg, motion);
+    assert!(dt < 1e-5, "translation error {dt} m");
 }
 
 #[test]

@@ -279,6 +279,10 @@ pub struct SamplingArgs {
     /// its best three); default: the network configuration's.
     #[arg(long)]
     pub levels: Option<usize>,
+    /// Extra first-level queries in a 15 cm ball around the gripper (0: the reference's
+    /// first level, the whole gripper box alone); default: the network configuration's.
+    #[arg(long)]
+    pub near_gripper: Option<usize>,
 }
 
 impl SamplingArgs {
@@ -298,6 +302,9 @@ impl SamplingArgs {
         }
         if let Some(l) = self.levels {
             cfg.sampling.levels = l;
+        }
+        if let Some(n) = self.near_gripper {
+            cfg.sampling.near_gripper = n;
         }
         cfg
     }
@@ -515,9 +522,11 @@ mod tests {
             points: Some(256),
             queries: Some(90),
             levels: Some(4),
+            near_gripper: Some(30),
         }
         .apply(cfg.clone());
         assert_eq!((finer.sampling.per_level, finer.sampling.levels), (90, 4));
+        assert_eq!(finer.sampling.near_gripper, 30);
         assert_eq!((finer.n_points, finer.n_outside_focus), (256, 64));
         assert!(Policy::random(finer, 1).is_ok());
         let too_many = SamplingArgs {
