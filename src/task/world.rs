@@ -103,10 +103,11 @@ impl TaskWorld {
 }
 
 /// Where a body standing free on the table ends when parallel jaws close on it off-centre:
-/// the first finger to touch pushes it over the table until its grasp site lies midway
-/// between the jaws along the closing axis (TCP x), as a real 2F-85 does with a fruit or a
-/// roll; across the pads and in height it stays where it was. Jaws closing more steeply than
-/// 45° push into the table instead, and leave the body where it is.
+/// the first finger to touch slides it horizontally over the table until its grasp site
+/// lies midway between the jaws along the closing axis (TCP x), as a real 2F-85 does with a
+/// fruit or a roll; with level jaws its offset along the pads and in height stays as it was.
+/// Jaws closing more steeply than 45° push into the table instead, and leave the body where
+/// it is.
 fn slid_between_jaws(
     base_from_tcp: &Isometry3<f64>,
     pose: &Isometry3<f64>,
