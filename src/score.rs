@@ -51,11 +51,16 @@ pub struct ScoredStep {
 }
 
 impl ScoredStep {
-    /// Whether the step is more than [`FAR_M`] off and the field scores the expert's
+    /// Whether the prediction is more than [`FAR_M`] from the expert's position.
+    pub fn is_off(&self) -> bool {
+        self.error.position_m > FAR_M
+    }
+
+    /// Whether the step is off ([`ScoredStep::is_off`]) and the field scores the expert's
     /// position higher than the prediction (a miss of the coarse-to-fine sampling, not of
     /// the field).
     pub fn missed_by_sampling(&self) -> bool {
-        self.error.position_m > FAR_M && self.expert_logit > self.predicted_logit
+        self.is_off() && self.expert_logit > self.predicted_logit
     }
 }
 
@@ -132,7 +137,7 @@ impl ScoreRow {
     /// The row of `steps`, with [`ScoreRow::missed_by_sampling`].
     pub fn of_steps(name: String, steps: &[&ScoredStep]) -> Self {
         let errors: Vec<KeyframeError> = steps.iter().map(|s| s.error).collect();
-        let far = steps.iter().filter(|s| s.error.position_m > FAR_M).count();
+        let far = steps.iter().filter(|s| s.is_off()).count();
         let missed = steps.iter().filter(|s| s.missed_by_sampling()).count();
         Self {
             missed_by_sampling: if far == 0 {
@@ -204,7 +209,7 @@ impl ScoreTable {
 /// For a step more than [`FAR_M`] off, which of sampling and field is to blame, with the
 /// translation logits that say so; empty otherwise.
 fn why_off(step: &ScoredStep) -> String {
-    if step.error.position_m <= FAR_M {
+    if !step.is_off() {
         return String::new();
     }
     let (expert, predicted) = (step.expert_logit, step.predicted_logit);

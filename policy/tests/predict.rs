@@ -235,6 +235,15 @@ fn transform_cloud(c: &PointCloud, m: &Isometry3<f64>) -> PointCloud {
     PointCloud::new(FrameId::Base, pts, c.rgb.clone()).unwrap()
 }
 
+/// The rigid motion the equivariance tests move the scene by: a few centimetres and a
+/// turn about no particular axis.
+fn generic_motion() -> Isometry3<f64> {
+    Isometry3::from_parts(
+        Translation3::new(0.05, -0.1, 0.2),
+        UnitQuaternion::from_euler_angles(0.7, -0.4, 1.9),
+    )
+}
+
 /// Moves the cloud, the gripper and the workspace frame by one rigid motion; returns the
 /// translation error (m) and rotation error (rad) of the moved keyframe against the moved
 /// original keyframe.
@@ -274,10 +283,13 @@ fn moved_keyframe_error_with(cfg: PolicyConfig, motion: Isometry3<f64>) -> (f64,
 fn level_zero_also_samples_around_the_gripper_and_moves_with_it() {
     let instr = InstructionEmbedding::random(3);
     let cloud = scene(2);
-    let with = |near: usize| {
+    let config = |near: usize| {
         let mut cfg = PolicyConfig::tiny().with_mode(PolicyMode::Gated);
         cfg.sampling.near_gripper = near;
-        let mut p = Policy::random(cfg, 7).unwrap();
+        cfg
+    };
+    let with = |near: usize| {
+        let mut p = Policy::random(config(near), 7).unwrap();
         p.seed = 5;
         p
     };
@@ -309,22 +321,13 @@ fn level_zero_also_samples_around_the_gripper_and_moves_with_it() {
     assert_eq!(high.levels[0].0.len(), per_level);
     // The ball is drawn in the workspace frame around the moved gripper: the keyframe still
     // moves with the scene to rounding.
-    let mut cfg = PolicyConfig::tiny().with_mode(PolicyMode::Gated);
-    cfg.sampling.near_gripper = 30;
-    let motion = Isometry3::from_parts(
-        Translation3::new(0.05, -0.1, 0.2),
-        UnitQuaternion::from_euler_angles(0.7, -0.4, 1.9),
-    );
-    let (dt, _) = moved_keyframe_error_with(cfg, motion);
+    let (dt, _) = moved_keyframe_error_with(config(30), generic_motion());
     assert!(dt < 1e-5, "translation error {dt} m");
 }
 
 #[test]
 fn moving_the_scene_moves_the_keyframe_in_equivariant_mode() {
-    let motion = Isometry3::from_parts(
-        Translation3::new(0.05, -0.1, 0.2),
-        UnitQuaternion::from_euler_angles(0.7, -0.4, 1.9),
-    );
+    let motion = generic_motion();
     let mode = PolicyMode::Equivariant { s2_grid: 16 };
     let (dt, dr) = moved_keyframe_error(mode, motion);
     // The network's own equivariance error on this scene (logits), which bounds the rest.
@@ -604,10 +607,7 @@ fn plain_heads_predict_a_keyframe_end_to_end() {
 fn plain_heads_are_not_equivariant() {
     // Same U-net, same scene and motion: the gated equivariant heads move with the scene to
     // rounding, the plain heads (raw offsets and query positions) do not.
-    let motion = Isometry3::from_parts(
-        Translation3::new(0.05, -0.1, 0.2),
-        UnitQuaternion::from_euler_angles(0.7, -0.4, 1.9),
-    );
+    let motion = generic_motion();
     let errors = |p: &Policy| {
         let mut rng = ChaCha8Rng::seed_from_u64(5);
         let (prep, queries) = prepared_with_queries(p, &mut rng);

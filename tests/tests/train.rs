@@ -22,9 +22,9 @@ use policy::trainer::{TrainConfig, Trainer, WEIGHTS_FILE};
 
 /// How close the built-in model's keyframe must come to the expert's on a training scene
 /// (measured with 4 × 333 translation queries, before the 111 near-gripper ones were added
-/// to the first level: 8 mm, 7 mm and 11 mm for reach, grasp and
-/// lift; the 1024-point model before it 5, 8 and 10 mm; the first built-in model, at 512
-/// points, 3 mm, 5 mm and 18 mm; the bound is about the peach's radius, 3.4 cm).
+/// to the first level: 8 mm, 7 mm and 11 mm for reach, grasp and lift; the 1024-point model
+/// before it 5, 8 and 10 mm; the first built-in model, at 512 points, 3 mm, 5 mm and 18 mm;
+/// the bound is about the peach's radius, 3.4 cm).
 const BUILTIN_POSITION_M: f64 = 0.03;
 /// How far apart their orientations may be (degrees; the fingers' half-turn symmetry
 /// aside; measured 14.6°, 3.2° and 1.6° (before it 13.3°, 4.0° and 1.4°), the first
