@@ -14,7 +14,6 @@ use std::path::{Path, PathBuf};
 
 use cell_types::{Keyframe, PointCloud};
 use nalgebra::{Matrix3, Point3};
-use rand::Rng;
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 
@@ -25,8 +24,8 @@ use crate::grids::{so3_healpix_grid, GridRotation};
 use crate::heads::ROT_LMAX;
 use crate::optim::{AdamW, AdamWConfig};
 use crate::predict::{
-    in_box, prepare_input, top_k, uniform_in_ball, uniform_in_box, GripperPose,
-    InstructionEmbedding, PolicyConfig,
+    check_cloud_query_share, first_level_queries, in_box, object_points, prepare_input, top_k,
+    uniform_in_ball, GripperPose, InstructionEmbedding, PolicyConfig,
 };
 use crate::rotation_head::RotationHead;
 use crate::so3::WignerCalculator;
@@ -141,80 +140,6 @@ impl LossGrid {
     pub fn is_empty(&self) -> bool {
         self.rotations.is_empty()
     }
-}
-
-/// Radius (m) of the ball around a cloud point that a cloud-drawn query is uniform in.
-pub const CLOUD_QUERY_RADIUS_M: f64 = 0.02;
-
-/// Height above the table (m) below which a cloud point counts as the table's, not an
-/// object's, when queries are drawn near the cloud.
-const TABLE_BAND_M: f64 = 0.01;
-
-/// The cloud's points more than [`TABLE_BAND_M`] above the table, in the workspace frame:
-/// the scene's objects, where the informative negatives are.
-fn object_points(cloud: &PointCloud, pc: &PolicyConfig) -> Vec<Point3<f64>> {
-    let inv = pc.base_from_workspace.inverse();
-    cloud
-        .points
-        .iter()
-        .map(|p| inv * Point3::new(f64::from(p.x), f64::from(p.y), f64::from(p.z)))
-        .filter(|p| p.z > pc.table_height + TABLE_BAND_M)
-        .collect()
-}
-
-/// Checks a [`TrainConfig::cloud_query_share`]: a share, so in [0, 1].
-fn check_cloud_query_share(share: f64) -> Result<()> {
-    if (0.0..=1.0).contains(&share) {
-        Ok(())
-    } else {
-        Err(PolicyError::BadConfig(format!(
-            "training config: the share of first-level queries drawn near the cloud must be \
-             in [0, 1] (e.g. 0.5), got {share}"
-        )))
-    }
-}
-
-/// The first sampling level's `n` translation queries (workspace frame): `share` of them
-/// (rounded) each uniform in a [`CLOUD_QUERY_RADIUS_M`] ball around a random point of
-/// `cloud` (the scene's object points) inside `bounds`, the rest uniform in `bounds`.
-///
-/// Why: the loss only pushes the field down where a query lands. The reference draws a
-/// third of 1000 queries per level; with the CPU configuration's 30, uniform queries in the
-/// gripper box almost never land on the other objects of the scene (the second pipe link
-/// when the first is asked for, the other flowers), so nothing teaches the field, or the
-/// instruction encoder, to tell them from the one the instruction names. Queries drawn
-/// near the cloud put negatives on every object. With `share` 0 no draw differs from the
-/// paper's sampling; with no cloud point in `bounds` every query is uniform.
-pub fn first_level_queries(
-    rng: &mut ChaCha8Rng,
-    bounds: &[[f64; 3]; 2],
-    cloud: &[Point3<f64>],
-    n: usize,
-    share: f64,
-) -> Result<Vec<Point3<f64>>> {
-    check_cloud_query_share(share)?;
-    let inside: Vec<&Point3<f64>> = if share > 0.0 {
-        cloud.iter().filter(|p| in_box(p, bounds)).collect()
-    } else {
-        Vec::new()
-    };
-    let near = if inside.is_empty() {
-        0
-    } else {
-        ((share * n as f64).round() as usize).min(n)
-    };
-    let mut out: Vec<Point3<f64>> = (0..n - near).map(|_| uniform_in_box(rng, bounds)).collect();
-    for _ in 0..near {
-        let centre = inside[rng.random_range(0..inside.len())];
-        out.extend(uniform_in_ball(
-            rng,
-            centre,
-            CLOUD_QUERY_RADIUS_M,
-            bounds,
-            1,
-        )?);
-    }
-    Ok(out)
 }
 
 fn as_f32(p: &Point3<f64>) -> [f32; 3] {
@@ -540,7 +465,7 @@ mod tests {
     use super::*;
     use crate::init::random_weights;
     use crate::model::{EquFieldUnet, HeadKind};
-    use crate::predict::{synthetic_scene, PolicyMode};
+    use crate::predict::{synthetic_scene, uniform_in_box, PolicyMode, CLOUD_QUERY_RADIUS_M};
     use cell_types::{Base, Tcp, Transform};
     use nalgebra::{Translation3, UnitQuaternion, Vector3};
 

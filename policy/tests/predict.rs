@@ -9,7 +9,9 @@ use cell_types::{Base, FrameId, PointCloud, Tcp, Transform};
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use policy::init::random_weights;
 use policy::model::HeadKind;
-use policy::predict::{GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode};
+use policy::predict::{
+    GripperPose, InstructionEmbedding, Policy, PolicyConfig, PolicyMode, SamplingConfig,
+};
 use policy::transblock::FilmKind;
 use policy::weights::Weights;
 use policy::PolicyError;
@@ -57,6 +59,20 @@ fn gripper() -> GripperPose {
 
 fn tiny(mode: PolicyMode) -> Policy {
     Policy::random(PolicyConfig::tiny().with_mode(mode), 7).unwrap()
+}
+
+/// The tiny gated configuration with its sampling changed by `edit`.
+fn gated_tiny_sampling(edit: impl FnOnce(&mut SamplingConfig)) -> PolicyConfig {
+    let mut cfg = PolicyConfig::tiny().with_mode(PolicyMode::Gated);
+    edit(&mut cfg.sampling);
+    cfg
+}
+
+/// A network of `cfg` with random weights (seed 7) sampling with `seed`.
+fn seeded(cfg: PolicyConfig, seed: u64) -> Policy {
+    let mut p = Policy::random(cfg, 7).unwrap();
+    p.seed = seed;
+    p
 }
 
 #[test]
@@ -283,16 +299,8 @@ fn moved_keyframe_error_with(cfg: PolicyConfig, motion: Isometry3<f64>) -> (f64,
 fn level_zero_also_samples_around_the_gripper_and_moves_with_it() {
     let instr = InstructionEmbedding::random(3);
     let cloud = scene(2);
-    let config = |near: usize| {
-        let mut cfg = PolicyConfig::tiny().with_mode(PolicyMode::Gated);
-        cfg.sampling.near_gripper = near;
-        cfg
-    };
-    let with = |near: usize| {
-        let mut p = Policy::random(config(near), 7).unwrap();
-        p.seed = 5;
-        p
-    };
+    let config = |near: usize| gated_tiny_sampling(|s| s.near_gripper = near);
+    let with = |near: usize| seeded(config(near), 5);
     let per_level = PolicyConfig::tiny().sampling.per_level;
     let plain = with(0)
         .predict_detailed(&cloud, &gripper(), &instr)
@@ -322,6 +330,123 @@ fn level_zero_also_samples_around_the_gripper_and_moves_with_it() {
     // The ball is drawn in the workspace frame around the moved gripper: the keyframe still
     // moves with the scene to rounding.
     let (dt, _) = moved_keyframe_error_with(config(30), generic_motion());
+    assert!(dt < 1e-5, "translation error {dt} m");
+}
+
+#[test]
+fn level_zero_also_samples_near_the_objects_and_moves_with_them() {
+    let instr = InstructionEmbedding::random(3);
+    let cloud = scene(2);
+    let config = |near: usize| gated_tiny_sampling(|s| s.near_cloud = near);
+    let predict = |near: usize, cloud: &PointCloud| {
+        seeded(config(near), 5)
+            .predict_detailed(cloud, &gripper(), &instr)
+            .unwrap()
+    };
+    let per_level = PolicyConfig::tiny().sampling.per_level;
+    let plain = predict(0, &cloud);
+    let near = predict(40, &cloud);
+    let (q0, _) = &near.levels[0];
+    assert_eq!(q0.len(), per_level + 40);
+    assert_eq!(q0[..per_level], plain.levels[0].0[..]);
+    // Each extra query lies in the ball around a point of an object (more than 1 cm above
+    // the table), none around the table's own points alone.
+    let table = PolicyConfig::tiny().table_height;
+    let objects: Vec<Point3<f32>> = cloud
+        .points
+        .iter()
+        .filter(|p| f64::from(p.z) > table + 0.01)
+        .copied()
+        .collect();
+    assert!(!objects.is_empty() && objects.len() < cloud.points.len());
+    let r = policy::predict::NEAR_CLOUD_RADIUS_M as f32;
+    for q in &q0[per_level..] {
+        let q = Point3::new(q[0], q[1], q[2]);
+        assert!(objects.iter().any(|o| (q - o).norm() < r + 1e-5), "{q:?}");
+    }
+    // A bare table has no objects: no extra queries, and still a prediction.
+    let mut bare = cloud.clone();
+    let keep: Vec<bool> = bare
+        .points
+        .iter()
+        .map(|p| f64::from(p.z) <= table)
+        .collect();
+    let mut it = keep.iter();
+    bare.points.retain(|_| *it.next().unwrap());
+    if let Some(rgb) = bare.rgb.as_mut() {
+        let mut it = keep.iter();
+        rgb.retain(|_| *it.next().unwrap());
+    }
+    assert_eq!(predict(40, &bare).levels[0].0.len(), per_level);
+    // The objects are found in the workspace frame: the keyframe moves with the scene.
+    let (dt, _) = moved_keyframe_error_with(config(40), generic_motion());
+    assert!(dt < 1e-5, "translation error {dt} m");
+}
+
+#[test]
+fn top_k_apart_keeps_the_best_that_are_far_enough_and_fills_up() {
+    use policy::predict::top_k_apart;
+    let x = |v: f64| Point3::new(v, 0.0, 0.0);
+    let samples = [x(0.0), x(0.05), x(0.3), x(0.32), x(0.7)];
+    let logits = [9.0, 8.0, 7.0, 6.0, 1.0];
+    // 0.05 and 0.32 sit within 0.1 of a better sample.
+    assert_eq!(top_k_apart(&samples, &logits, 3, 0.1), vec![0, 2, 4]);
+    assert_eq!(top_k_apart(&samples, &logits, 2, 0.1), vec![0, 2]);
+    // Spacing 0 is the plain top-k.
+    assert_eq!(top_k_apart(&samples, &logits, 3, 0.0), vec![0, 1, 2]);
+    // Too few far enough apart: the rest are the next best, in logit order.
+    assert_eq!(top_k_apart(&samples, &logits, 4, 0.5), vec![0, 4, 1, 2]);
+    assert_eq!(top_k_apart(&samples, &logits, 9, 0.1).len(), 5);
+    assert!(top_k_apart(&[], &[], 3, 0.1).is_empty());
+}
+
+#[test]
+fn spread_anchors_refine_regions_apart_and_move_with_the_scene() {
+    let instr = InstructionEmbedding::random(3);
+    let cloud = scene(2);
+    let config = |spread: bool| gated_tiny_sampling(|s| s.spread_anchors = spread);
+    // Sampling seed 0: its best level-0 samples crowd together (most seeds' do not).
+    let predict = |spread: bool| {
+        seeded(config(spread), 0)
+            .predict_detailed(&cloud, &gripper(), &instr)
+            .unwrap()
+    };
+    let s = PolicyConfig::tiny().sampling;
+    let r1 = s.fine_ball_diameter / 2.0;
+    let as_points = |q: &[[f32; 3]]| -> Vec<Point3<f64>> {
+        q.iter()
+            .map(|q| Point3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2])))
+            .collect()
+    };
+    let (plain, spread) = (predict(false), predict(true));
+    // Level 0 is drawn the same way; only the anchors kept from it differ.
+    assert_eq!(plain.levels[0], spread.levels[0]);
+    let (q0, logits0) = &spread.levels[0];
+    let samples = as_points(q0);
+    let apart = policy::predict::top_k_apart(&samples, logits0, s.top_k, r1);
+    let best = policy::predict::top_k(logits0, s.top_k);
+    assert_eq!(apart[0], best[0]);
+    for (i, &a) in apart.iter().enumerate() {
+        for &b in &apart[..i] {
+            assert!((samples[a] - samples[b]).norm() >= r1);
+        }
+    }
+    // Here two of the best three crowd together, so the two rules pick different anchors.
+    assert_ne!(apart, best);
+    // Level 1 samples around the kept anchors, each anchor's share in turn.
+    let per = s.per_level / s.top_k;
+    for (anchors, levels) in [(&apart, &spread.levels), (&best, &plain.levels)] {
+        let q1 = as_points(&levels[1].0);
+        assert_eq!(q1.len(), per * s.top_k);
+        for (j, chunk) in q1.chunks(per).enumerate() {
+            let a = samples[anchors[j]];
+            assert!(
+                chunk.iter().all(|q| (q - a).norm() < r1 + 1e-5),
+                "anchor {j}"
+            );
+        }
+    }
+    let (dt, _) = moved_keyframe_error_with(config(true), generic_motion());
     assert!(dt < 1e-5, "translation error {dt} m");
 }
 

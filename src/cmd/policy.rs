@@ -283,6 +283,14 @@ pub struct SamplingArgs {
     /// first level, the whole gripper box alone); default: the network configuration's.
     #[arg(long)]
     pub near_gripper: Option<usize>,
+    /// Extra first-level queries in 15 cm balls around random object points of the cloud
+    /// (0: the reference's first level); default: the network configuration's.
+    #[arg(long)]
+    pub near_cloud: Option<usize>,
+    /// Keep the first level's anchors at least the second level's ball radius apart (false:
+    /// the reference's plain best three); default: the network configuration's.
+    #[arg(long)]
+    pub spread_anchors: Option<bool>,
 }
 
 impl SamplingArgs {
@@ -305,6 +313,12 @@ impl SamplingArgs {
         }
         if let Some(n) = self.near_gripper {
             cfg.sampling.near_gripper = n;
+        }
+        if let Some(n) = self.near_cloud {
+            cfg.sampling.near_cloud = n;
+        }
+        if let Some(b) = self.spread_anchors {
+            cfg.sampling.spread_anchors = b;
         }
         cfg
     }
@@ -523,10 +537,14 @@ mod tests {
             queries: Some(90),
             levels: Some(4),
             near_gripper: Some(30),
+            near_cloud: Some(20),
+            spread_anchors: Some(true),
         }
         .apply(cfg.clone());
         assert_eq!((finer.sampling.per_level, finer.sampling.levels), (90, 4));
         assert_eq!(finer.sampling.near_gripper, 30);
+        assert_eq!(finer.sampling.near_cloud, 20);
+        assert!(finer.sampling.spread_anchors);
         assert_eq!((finer.n_points, finer.n_outside_focus), (256, 64));
         assert!(Policy::random(finer, 1).is_ok());
         let too_many = SamplingArgs {
