@@ -1632,28 +1632,23 @@ pub(crate) fn queries_near_points(
 /// Indices of up to `k` samples, best logit first, each at least `min_dist` from the ones
 /// before; filled up with the next best when fewer are that far apart.
 pub fn top_k_apart(samples: &[Point3<f64>], logits: &[f32], k: usize, min_dist: f64) -> Vec<usize> {
-    let order = top_k(logits, logits.len());
-    let mut out: Vec<usize> = Vec::with_capacity(k);
-    for &i in &order {
-        if out.len() == k {
-            break;
-        }
-        if out
-            .iter()
-            .all(|&j| (samples[i] - samples[j]).norm() >= min_dist)
+    // One pass in logit order: a sample far enough from every kept one is kept, the others
+    // wait, in the same order, to fill up.
+    let (mut kept, mut rest) = (Vec::with_capacity(k), Vec::new());
+    for i in top_k(logits, logits.len()) {
+        if kept.len() < k
+            && kept
+                .iter()
+                .all(|&j: &usize| (samples[i] - samples[j]).norm() >= min_dist)
         {
-            out.push(i);
+            kept.push(i);
+        } else {
+            rest.push(i);
         }
     }
-    for &i in &order {
-        if out.len() == k {
-            break;
-        }
-        if !out.contains(&i) {
-            out.push(i);
-        }
-    }
-    out
+    kept.extend(rest);
+    kept.truncate(k);
+    kept
 }
 
 /// Whether `p` lies in the box `b` = [min, max] (bounds included).
