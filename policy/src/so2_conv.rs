@@ -159,6 +159,18 @@ impl EdgeWigners {
         Ok(())
     }
 
+    /// An error unless `map` is for these matrices' degree.
+    fn check_map(&self, map: &CoefficientMapping) -> Result<()> {
+        if map.lmax != self.lmax {
+            return Err(PolicyError::ShapeMismatch {
+                name: "coefficient mapping's lmax for the edge Wigner matrices".into(),
+                expected: vec![self.lmax],
+                got: vec![map.lmax],
+            });
+        }
+        Ok(())
+    }
+
     /// Edges in `range`, or an error if it runs past the edges.
     fn range_len(&self, range: &std::ops::Range<usize>) -> Result<usize> {
         if range.start > range.end || range.end > self.edges {
@@ -184,6 +196,7 @@ impl EdgeWigners {
     /// Rotates `x` `[E, (lmax+1)², c]` into the edge frames, keeping the reduced rows:
     /// `[E, n_reduced, c]`.
     pub fn rotate(&self, map: &CoefficientMapping, x: &[f32], c: usize) -> Result<Vec<f32>> {
+        self.check_map(map)?;
         let k = num_coefficients(self.lmax);
         check_len("features to rotate", x.len(), &[self.edges, k, c])?;
         let nr = map.len();
@@ -194,13 +207,13 @@ impl EdgeWigners {
             let ye = &mut y[e * nr * c..(e + 1) * nr * c];
             for (r, &i) in map.reduced.iter().enumerate() {
                 let l = degree_of(i);
-                let yr = &mut ye[r * c..(r + 1) * c];
-                for j in l * l..(l + 1) * (l + 1) {
-                    let dij = d[i * k + j];
-                    for (yc, xc) in yr.iter_mut().zip(&xe[j * c..(j + 1) * c]) {
-                        *yc += dij * xc;
-                    }
-                }
+                let block = l * l..(l + 1) * (l + 1);
+                combine_rows(
+                    &d[i * k + block.start..i * k + block.end],
+                    &xe[block.start * c..block.end * c],
+                    c,
+                    &mut ye[r * c..(r + 1) * c],
+                );
             }
         }
         Ok(y)
@@ -218,6 +231,7 @@ impl EdgeWigners {
         (x_a, a): (&[f32], &[usize]),
         b: Option<(&[f32], &[usize])>,
     ) -> Result<Vec<f32>> {
+        self.check_map(map)?;
         let k = num_coefficients(self.lmax);
         let ne = self.range_len(&range)?;
         let parts: Vec<(&[f32], &[usize])> = std::iter::once((x_a, a)).chain(b).collect();
@@ -242,13 +256,13 @@ impl EdgeWigners {
                 let xe = &x[idx[e] * k * c..(idx[e] + 1) * k * c];
                 for (r, &i) in map.reduced.iter().enumerate() {
                     let l = degree_of(i);
-                    let yr = &mut ye[r * mc + p * c..r * mc + (p + 1) * c];
-                    for j in l * l..(l + 1) * (l + 1) {
-                        let dij = d[i * k + j];
-                        for (yc, xc) in yr.iter_mut().zip(&xe[j * c..(j + 1) * c]) {
-                            *yc += dij * xc;
-                        }
-                    }
+                    let block = l * l..(l + 1) * (l + 1);
+                    combine_rows(
+                        &d[i * k + block.start..i * k + block.end],
+                        &xe[block.start * c..block.end * c],
+                        c,
+                        &mut ye[r * mc + p * c..r * mc + (p + 1) * c],
+                    );
                 }
             }
         }
@@ -269,27 +283,72 @@ impl EdgeWigners {
         y: &[f32],
         c: usize,
     ) -> Result<Vec<f32>> {
+        self.check_map(map)?;
         let k = num_coefficients(self.lmax);
         let nr = map.len();
         let ne = self.range_len(&range)?;
         check_len("features to rotate back", y.len(), &[ne, nr, c])?;
+        // Each degree's reduced rows are a run of the l-major reduced order.
+        let runs: Vec<std::ops::Range<usize>> = (0..=self.lmax)
+            .scan(0, |start, l| {
+                let run = *start..*start + 2 * l.min(map.mmax) + 1;
+                *start = run.end;
+                Some(run)
+            })
+            .collect();
+        let rescale: Vec<f32> = (0..k).map(|j| map.rotate_inv_rescale(j)).collect();
         let mut x = vec![0.0f32; ne * k * c];
+        let mut w = [0.0f32; 2 * crate::so3::MAX_DEGREE + 1];
         for e in 0..ne {
             let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
             let ye = &y[e * nr * c..(e + 1) * nr * c];
             let xe = &mut x[e * k * c..(e + 1) * k * c];
-            for (r, &i) in map.reduced.iter().enumerate() {
-                let l = degree_of(i);
-                let yr = &ye[r * c..(r + 1) * c];
-                for j in l * l..(l + 1) * (l + 1) {
-                    let w = d[i * k + j] * map.rotate_inv_rescale(j);
-                    for (xc, yc) in xe[j * c..(j + 1) * c].iter_mut().zip(yr) {
-                        *xc += w * yc;
-                    }
+            // Output row j sums its degree's reduced rows in their order, as the
+            // row-by-row loop of the transpose added them.
+            for j in 0..k {
+                let run = &runs[degree_of(j)];
+                let w = &mut w[..run.len()];
+                for (wr, &i) in w.iter_mut().zip(&map.reduced[run.clone()]) {
+                    *wr = d[i * k + j] * rescale[j];
                 }
+                combine_rows(
+                    w,
+                    &ye[run.start * c..run.end * c],
+                    c,
+                    &mut xe[j * c..(j + 1) * c],
+                );
             }
         }
         Ok(x)
+    }
+}
+
+/// `y = Σ_j w[j] · x[j]` over the rows `x[j] = x[j·c..(j+1)·c]`, the terms added in j order
+/// to 0 as a row-by-row loop of `y += w[j] · x[j]` adds them (the same rounding, bit for
+/// bit), a block of channels at a time held in registers: each output is stored once, not
+/// loaded and stored once per term. `y` is overwritten.
+#[inline]
+fn combine_rows(w: &[f32], x: &[f32], c: usize, y: &mut [f32]) {
+    const LANES: usize = 16;
+    debug_assert!(x.len() == w.len() * c && y.len() == c);
+    let mut start = 0;
+    while start + LANES <= c {
+        let mut acc = [0.0f32; LANES];
+        for (j, &wj) in w.iter().enumerate() {
+            let xs = &x[j * c + start..j * c + start + LANES];
+            for (a, &xv) in acc.iter_mut().zip(xs) {
+                *a += wj * xv;
+            }
+        }
+        y[start..start + LANES].copy_from_slice(&acc);
+        start += LANES;
+    }
+    for (t, yt) in y.iter_mut().enumerate().skip(start) {
+        let mut acc = 0.0f32;
+        for (j, &wj) in w.iter().enumerate() {
+            acc += wj * x[j * c + t];
+        }
+        *yt = acc;
     }
 }
 
@@ -535,6 +594,63 @@ impl So2Conv {
 mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
+
+    #[test]
+    fn rotations_equal_the_plain_loops_bit_for_bit() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(11);
+        let (lmax, mmax, ne) = (3, 2, 7);
+        let k = num_coefficients(lmax);
+        let calc = WignerCalculator::new(lmax).unwrap();
+        let map = CoefficientMapping::new(lmax, mmax).unwrap();
+        let nr = map.len();
+        let vecs: Vec<[f32; 3]> = (0..ne)
+            .map(|_| [0; 3].map(|_| rng.random_range(-1.0..1.0f32)))
+            .collect();
+        let w = EdgeWigners::new(&calc, lmax, &vecs).unwrap();
+        // Below, at and past one register block of channels, with a tail.
+        for c in [5, 16, 37] {
+            let x: Vec<f32> = (0..ne * k * c)
+                .map(|_| rng.random_range(-1.0..1.0f32))
+                .collect();
+            // `y += d·x` row by row and term by term, as the rotations were first written.
+            let mut want = vec![0.0f32; ne * nr * c];
+            for e in 0..ne {
+                for (r, &i) in map.reduced.iter().enumerate() {
+                    let l = degree_of(i);
+                    for j in l * l..(l + 1) * (l + 1) {
+                        for t in 0..c {
+                            want[(e * nr + r) * c + t] +=
+                                w.d[e * k * k + i * k + j] * x[(e * k + j) * c + t];
+                        }
+                    }
+                }
+            }
+            let y = w.rotate(&map, &x, c).unwrap();
+            assert_eq!(y, want, "rotate, c = {c}");
+            let mut back_want = vec![0.0f32; ne * k * c];
+            for e in 0..ne {
+                for (r, &i) in map.reduced.iter().enumerate() {
+                    let l = degree_of(i);
+                    for j in l * l..(l + 1) * (l + 1) {
+                        let wij = w.d[e * k * k + i * k + j] * map.rotate_inv_rescale(j);
+                        for t in 0..c {
+                            back_want[(e * k + j) * c + t] += wij * y[(e * nr + r) * c + t];
+                        }
+                    }
+                }
+            }
+            assert_eq!(
+                w.rotate_back(&map, &y, c).unwrap(),
+                back_want,
+                "rotate back, c = {c}"
+            );
+        }
+        // A mapping for another degree is an error, not a panic.
+        let other = CoefficientMapping::new(2, 2).unwrap();
+        let x = vec![0.0f32; ne * k];
+        assert!(w.rotate(&other, &x, 1).is_err());
+        assert!(w.rotate_back(&other, &x[..ne * other.len()], 1).is_err());
+    }
 
     #[test]
     fn messages_rotated_from_the_nodes_equal_rotated_gathered_copies() {
