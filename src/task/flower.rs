@@ -131,6 +131,7 @@ pub(crate) fn sample(level: FlowerLevel, seed: u64, table_height: f64) -> TaskIn
     };
     TaskInstance {
         kind: TaskKind::PluckFlower(level),
+        seed,
         bodies: vec![
             block,
             flower("bottom flower", -0.10, 0.06, [240, 220, 40]),

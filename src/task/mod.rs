@@ -200,6 +200,9 @@ pub struct Body {
 pub struct TaskInstance {
     /// Which task.
     pub kind: TaskKind,
+    /// The seed it was posed with; an expert draws its own variations (where it grasps)
+    /// from a stream of it apart from the scene's, so the scenes stay as they were.
+    pub seed: u64,
     /// The bodies as posed (fixtures and objects).
     pub bodies: Vec<Body>,
     /// The pose of the task's fixture (pick fruit: the fruit's own pose).

@@ -79,6 +79,7 @@ pub(crate) fn sample(fruit: Fruit, seed: u64, table_height: f64) -> TaskInstance
     );
     TaskInstance {
         kind: TaskKind::PickFruit(fruit),
+        seed,
         bodies: vec![Body {
             name: fruit.name().to_string(),
             base_from_body: pose,

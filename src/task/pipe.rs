@@ -147,6 +147,7 @@ pub(crate) fn sample(part: PipePart, seed: u64, table_height: f64) -> TaskInstan
     };
     TaskInstance {
         kind: TaskKind::DisassemblePipe(part),
+        seed,
         bodies: vec![
             base,
             link("first link", -1.0, [60, 120, 200]),

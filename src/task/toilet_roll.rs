@@ -30,6 +30,15 @@ const GRASP_BELOW_TOP: f64 = -0.005;
 const RELEASE_HEIGHT: f64 = 0.012;
 /// A seated roll's centre is this close to its place on the holder (m).
 const SEATED_DISTANCE: f64 = 0.01;
+/// Largest offset along the pads of the expert's grasp (m). Closing jaws centre a roll
+/// across them but not along the pads, so a grasp that misses the centre that way carries
+/// the roll off-centre in the hand; the expert grasps anywhere within this offset and
+/// places the roll's centre, not the TCP, over the spindle, so its demonstrations show how
+/// to place a roll held off-centre (a learned grasp is a few millimetres off).
+pub const GRASP_ALONG_PADS: f64 = 0.006;
+/// The expert's grasp offset is drawn from this stream of the task's seed (the scene uses
+/// stream 0).
+const EXPERT_STREAM: u64 = 1;
 
 /// The variations of `install_toilet_roll`.
 #[derive(Copy, Clone, Debug, PartialEq, Eq, Hash)]
@@ -137,6 +146,7 @@ pub(crate) fn sample(size: RollSize, seed: u64, table_height: f64) -> TaskInstan
     };
     TaskInstance {
         kind: TaskKind::InstallToiletRoll(size),
+        seed,
         bodies: vec![holder, roll],
         base_from_fixture: fixture,
         table_height,
@@ -148,8 +158,17 @@ fn seated_centre(task: &TaskInstance, h: f64) -> Vector3<f64> {
     (task.base_from_fixture * Point3::new(0.0, 0.0, h)).coords
 }
 
-/// Above the roll (open), around its top (close), lifted, above the spindle along the
-/// holder's axis, lowered over it and let go, back up.
+/// The expert's grasp offset along the pads (TCP y) for `task`, within
+/// ±[`GRASP_ALONG_PADS`].
+pub fn expert_grasp_offset(task: &TaskInstance) -> f64 {
+    let mut rng = ChaCha8Rng::seed_from_u64(task.seed);
+    rng.set_stream(EXPERT_STREAM);
+    rng.random_range(-GRASP_ALONG_PADS..=GRASP_ALONG_PADS)
+}
+
+/// Above the roll (open), around its top (close) at [`expert_grasp_offset`] along the pads,
+/// lifted, the roll's centre above the spindle along the holder's axis, lowered over it and
+/// let go, back up.
 pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
     let roll = &task.bodies[1].base_from_body;
     let h = match task.kind {
@@ -158,12 +177,16 @@ pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
     };
     let axis = roll.rotation * Vector3::z();
     let r = grasp_rotation(-axis, roll.rotation * Vector3::x());
-    let grasp = roll.translation.vector + axis * (h - GRASP_BELOW_TOP);
+    let along = expert_grasp_offset(task);
+    let grasp = roll.translation.vector + axis * (h - GRASP_BELOW_TOP) + r * Vector3::y() * along;
     let fz = task.base_from_fixture.rotation * Vector3::z();
     let r_place = grasp_rotation(-fz, r * Vector3::x());
-    // The TCP when the roll's bottom is `s` above the seat: the roll's centre is h − GRASP_BELOW_TOP
-    // below the TCP along the TCP z.
-    let place = |s: f64| seated_centre(task, h) + fz * (s + h - GRASP_BELOW_TOP);
+    // The TCP when the roll's bottom is `s` above the seat: the held roll's centre is
+    // h − GRASP_BELOW_TOP below the TCP along the TCP z and `along` behind it along the
+    // TCP y (the jaws keep the grasp's offset along the pads).
+    let place = |s: f64| {
+        seated_centre(task, h) + fz * (s + h - GRASP_BELOW_TOP) + r_place * Vector3::y() * along
+    };
     let release = place(RELEASE_HEIGHT);
     vec![
         keyframe(grasp + Vector3::z() * 0.10, r, true),
@@ -247,6 +270,50 @@ pub(crate) fn released(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_expert_grasps_off_centre_along_the_pads_and_centres_the_roll_on_the_spindle() {
+        use crate::task::world::TaskWorld;
+        let mut offsets = Vec::new();
+        for seed in 0..40 {
+            let size = RollSize::ALL[seed as usize % 2];
+            let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), seed, -0.06);
+            let along = expert_grasp_offset(&t);
+            assert_eq!(along, expert_grasp_offset(&t), "drawn from the seed");
+            assert!(along.abs() <= GRASP_ALONG_PADS);
+            offsets.push(along);
+            let keys = t.expert_keyframes();
+            let pose = |i: usize| *keys[i].base_from_tcp.isometry();
+            let mut w = TaskWorld::new(t.clone());
+            // The grasp is `along` from the roll's axis, along the pads (TCP y).
+            let grasp = pose(1);
+            let axis_point = t.bodies[1].base_from_body.translation.vector;
+            let local = grasp.inverse() * Point3::from(axis_point);
+            assert!(local.x.abs() < 1e-9, "{local:?}");
+            assert!((local.y + along).abs() < 1e-9, "{local:?}");
+            assert!(w.before_close(&grasp).is_some());
+            w.after_gripper(&grasp, true);
+            assert_eq!(w.held(), Some(1));
+            // Carried to the release: the roll's centre (not the TCP) on the spindle's axis.
+            let release = pose(4);
+            w.carry(&release);
+            let on_holder = t.base_from_fixture.inverse() * w.poses()[1];
+            let c = on_holder.translation.vector;
+            assert!(c.x.hypot(c.y) < 1e-6, "seed {seed}: {c:?} off the axis");
+            let centre_height = size.half_height() + RELEASE_HEIGHT;
+            assert!((c.z - centre_height).abs() < 1e-6, "seed {seed}: {c:?}");
+            w.after_gripper(&release, false);
+            assert!(w.success(), "seed {seed}");
+        }
+        // Spread over the range, both ways.
+        let (lo, hi) = offsets
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+        assert!(
+            lo < -GRASP_ALONG_PADS / 2.0 && hi > GRASP_ALONG_PADS / 2.0,
+            "{offsets:?}"
+        );
+    }
 
     #[test]
     fn a_roll_let_go_over_the_spindle_seats_and_elsewhere_falls() {
