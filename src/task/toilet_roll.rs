@@ -2,8 +2,9 @@
 //! SE(3) transform (x 0.42–0.60 m, 8–20 cm to one side of the base x axis, any yaw, tilt
 //! ≤ 10°, lift ≤ 3 cm); the roll stands upright on the table on the other side (SE(2):
 //! x 0.40–0.60 m, 8–20 cm to the other side, any yaw). The robot grasps the roll across
-//! its outside, carries it above the spindle, lowers it over the spindle along the
-//! holder's axis and lets go. Variations: a large or a small roll.
+//! its outside (the expert up to 6 mm off its centre along the pads), carries it with the
+//! roll's centre above the spindle, lowers it over the spindle along the holder's axis and
+//! lets go. Variations: a large or a small roll.
 
 use cell_types::Keyframe;
 use hil_sim::scene::Primitive;
