@@ -196,27 +196,11 @@ impl EdgeWigners {
     /// Rotates `x` `[E, (lmax+1)², c]` into the edge frames, keeping the reduced rows:
     /// `[E, n_reduced, c]`.
     pub fn rotate(&self, map: &CoefficientMapping, x: &[f32], c: usize) -> Result<Vec<f32>> {
-        self.check_map(map)?;
         let k = num_coefficients(self.lmax);
         check_len("features to rotate", x.len(), &[self.edges, k, c])?;
-        let nr = map.len();
-        let mut y = vec![0.0f32; self.edges * nr * c];
-        for e in 0..self.edges {
-            let d = &self.d[e * k * k..(e + 1) * k * k];
-            let xe = &x[e * k * c..(e + 1) * k * c];
-            let ye = &mut y[e * nr * c..(e + 1) * nr * c];
-            for (r, &i) in map.reduced.iter().enumerate() {
-                let l = degree_of(i);
-                let block = l * l..(l + 1) * (l + 1);
-                combine_rows(
-                    &d[i * k + block.start..i * k + block.end],
-                    &xe[block.start * c..block.end * c],
-                    c,
-                    &mut ye[r * c..(r + 1) * c],
-                );
-            }
-        }
-        Ok(y)
+        // Edge e's features are row e of `x`: the messages' rotation with identity indices.
+        let own: Vec<usize> = (0..self.edges).collect();
+        self.rotate_messages(0..self.edges, map, c, (x, &own), None)
     }
 
     /// [`EdgeWigners::rotate`] of the edges in `range` (no copy of their matrices) on the
@@ -288,12 +272,12 @@ impl EdgeWigners {
         let nr = map.len();
         let ne = self.range_len(&range)?;
         check_len("features to rotate back", y.len(), &[ne, nr, c])?;
-        // Each degree's reduced rows are a run of the l-major reduced order.
+        // Each degree's reduced rows are a run of the l-major reduced order, m = −half..half.
         let runs: Vec<std::ops::Range<usize>> = (0..=self.lmax)
-            .scan(0, |start, l| {
-                let run = *start..*start + 2 * l.min(map.mmax) + 1;
-                *start = run.end;
-                Some(run)
+            .map(|l| {
+                let half = l.min(map.mmax);
+                let start = map.position(l, -(half as i64));
+                start..start + 2 * half + 1
             })
             .collect();
         let rescale: Vec<f32> = (0..k).map(|j| map.rotate_inv_rescale(j)).collect();
