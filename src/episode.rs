@@ -19,7 +19,7 @@ use firmware_iface::arm::{Arm, ExecutionOutcome};
 use firmware_iface::camera::DepthCamera;
 use firmware_iface::gripper::Gripper;
 use firmware_iface::ur::UrArm;
-use nalgebra::Vector3;
+use nalgebra::{Point3, Vector3};
 use planner::{CloudParams, Obstacle, Planner, PlannerConfig, PlannerLimits, RobotModel, World};
 use serde_json::json;
 
@@ -250,6 +250,8 @@ pub fn planner_from_config(cfg: &CellConfig) -> anyhow::Result<Planner> {
 pub fn fusion_params(cfg: &CellConfig, seed: u64) -> FusionParams {
     let mut p = FusionParams {
         seed,
+        gripper_points: cfg.perception.gripper_points,
+        gripper_radius_m: cfg.perception.gripper_radius_m,
         ..FusionParams::default()
     };
     p.workspace.min = cfg.workspace.min;
@@ -492,7 +494,9 @@ fn episode_steps(
         let t1 = Instant::now();
         let opening = gstate.width_m;
         let robot = hil_sim::scene::robot_capsules(&q, opening);
-        let fused = match fusion.fuse(&frames, &robot) {
+        let tcp = planner.model.fk_tcp(&q).translation();
+        let tcp = Point3::new(tcp.x as f32, tcp.y as f32, tcp.z as f32);
+        let fused = match fusion.fuse_at(&frames, &robot, Some(tcp)) {
             Ok(f) => f,
             Err(e) => return Ok((Outcome::PerceptionFault, format!("fusion failed: {e}"))),
         };
@@ -601,7 +605,7 @@ fn episode_steps(
             "/trajectory/planned",
             t,
             &recording::trajectory_scene(t, step, &motion.trajectory, |qq| {
-                nalgebra::Point3::from(planner.model.fk_tcp(qq).translation())
+                Point3::from(planner.model.fk_tcp(qq).translation())
             }),
         )?;
 

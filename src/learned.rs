@@ -210,6 +210,7 @@ pub fn load_network(
     cfg: &CellConfig,
 ) -> anyhow::Result<Policy> {
     let policy_cfg = for_cell(network, cfg);
+    check_gripper_points(&policy_cfg, cfg)?;
     match weights {
         Some(weights) => Policy::load(policy_cfg, weights).with_context(|| {
             format!(
@@ -224,6 +225,23 @@ pub fn load_network(
             )
         }),
     }
+}
+
+/// Refuses a network that samples points near the gripper on a cell whose fusion does not
+/// put them there: it would see a held object through a dozen points instead of the
+/// hundred it was trained on, and place it less precisely without saying so.
+pub fn check_gripper_points(network: &PolicyConfig, cfg: &CellConfig) -> anyhow::Result<()> {
+    let (wanted, fused) = (network.n_near_gripper, cfg.perception.gripper_points);
+    let (radius, fused_radius) = (network.near_gripper_radius, cfg.perception.gripper_radius_m);
+    if wanted > 0 && (wanted > fused || fused_radius < radius) {
+        anyhow::bail!(
+            "the network samples {wanted} of its points within {radius} m of the gripper (its \
+             weights file records it), but this cell's fusion samples {fused} within \
+             {fused_radius} m there: set [perception] gripper_points and gripper_radius_m in \
+             the cell configuration to what its demonstrations were recorded with"
+        );
+    }
+    Ok(())
 }
 
 /// The network configuration with the crop box, focus box and table of this cell.
@@ -306,6 +324,22 @@ mod tests {
             false,
         )
         .unwrap()
+    }
+
+    #[test]
+    fn a_network_sampling_near_the_gripper_needs_the_cells_fusion_to() {
+        let mut cell = CellConfig::simulated().unwrap();
+        let network = policy::builtin::config().with_near_gripper_points(128);
+        let err = load_network(network.clone(), None, &cell)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("gripper_points"), "{err}");
+        assert!(check_gripper_points(&policy::builtin::config(), &cell).is_ok());
+        cell.perception.gripper_points = 256;
+        assert!(check_gripper_points(&network, &cell).is_ok());
+        cell.perception.gripper_radius_m = 0.04;
+        assert!(check_gripper_points(&network, &cell).is_err());
     }
 
     #[test]

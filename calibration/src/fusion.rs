@@ -2,7 +2,9 @@
 //! camera's depth, transform to the base frame with the calibration, crop to the workspace,
 //! merge, voxel-downsample, remove the robot's own points, remove statistical outliers, and
 //! farthest-point sample to the policy's point count with EquAct's split (1536 inside the
-//! focus box, 512 outside), then shuffle.
+//! focus box, 512 outside), then shuffle. Optionally ([`FusionParams::gripper_points`],
+//! given the TCP) part of the focus box's share is first sampled in a ball around the TCP,
+//! so a held object is seen at the dense cloud's spacing rather than the whole scene's.
 //!
 //! No library does this on depth images directly, and the hot loops are simple: each stage
 //! is one pass over flat arrays with no per-point allocation, and the buffers are reused from
@@ -177,6 +179,16 @@ pub struct FusionParams {
     pub points: usize,
     /// How many of them come from inside the focus box.
     pub points_inside: usize,
+    /// Of `points_inside`, how many are first sampled within `gripper_radius_m` of the
+    /// TCP when [`FusionPipeline::fuse_at`] is given one (fewer when the ball holds fewer;
+    /// 0, the default, is EquAct's plain split). Farthest point sampling spreads points
+    /// at the whole scene's spacing (about 13 mm at 2048), too coarse to see where a held
+    /// object sits in the hand; these are sampled at the ball's own, finer spacing.
+    #[serde(default)]
+    pub gripper_points: usize,
+    /// Radius (m) of the ball around the TCP that `gripper_points` are sampled in.
+    #[serde(default = "default_gripper_radius")]
+    pub gripper_radius_m: f64,
     /// Seed of the sampling's start points and the final permutation.
     pub seed: u64,
 }
@@ -193,9 +205,15 @@ impl Default for FusionParams {
             edge_jump_m: 0.02,
             points: 2048,
             points_inside: 1536,
+            gripper_points: 0,
+            gripper_radius_m: default_gripper_radius(),
             seed: 0,
         }
     }
+}
+
+fn default_gripper_radius() -> f64 {
+    0.08
 }
 
 /// Points with optional colours, the working set between stages.
@@ -425,6 +443,20 @@ impl FusionPipeline {
                 "must not exceed points",
             );
         }
+        if params.gripper_points > params.points_inside {
+            return bad(
+                "gripper_points",
+                params.gripper_points as f64,
+                "must not exceed points_inside (they are part of the focus box's share)",
+            );
+        }
+        if !(params.gripper_radius_m.is_finite() && params.gripper_radius_m > 0.0) {
+            return bad(
+                "gripper_radius_m",
+                params.gripper_radius_m,
+                "use a positive radius (m), e.g. 0.08",
+            );
+        }
         let mut rays = Vec::with_capacity(calibration.cameras.len());
         for c in &calibration.cameras {
             let k = &c.intrinsics;
@@ -606,9 +638,19 @@ impl FusionPipeline {
         frames: &[CameraFrame],
         robot: &[Capsule],
     ) -> Result<Fused, CalibrationError> {
-        let dense_points = self.fuse_dense(frames, robot)?;
-        let (dense, stats) = dense_points;
-        let sampled = self.sample(&dense)?;
+        self.fuse_at(frames, robot, None)
+    }
+
+    /// [`fuse`](Self::fuse) with the TCP's position (base frame) at the time of the
+    /// frames, around which `gripper_points` are sampled first (see [`Self::sample_at`]).
+    pub fn fuse_at(
+        &self,
+        frames: &[CameraFrame],
+        robot: &[Capsule],
+        tcp: Option<Point3<f32>>,
+    ) -> Result<Fused, CalibrationError> {
+        let (dense, stats) = self.fuse_dense(frames, robot)?;
+        let sampled = self.sample_at(&dense, tcp)?;
         Ok(Fused {
             dense: dense.into_cloud(),
             sampled: sampled.into_cloud(),
@@ -696,6 +738,18 @@ impl FusionPipeline {
     /// Farthest point sampling to `points` with `points_inside` from the focus box (fewer
     /// when the box holds fewer; the rest from outside, and vice versa), then shuffled.
     pub fn sample(&self, dense: &Points) -> Result<Points, CalibrationError> {
+        self.sample_at(dense, None)
+    }
+
+    /// [`sample`](Self::sample) that, given the TCP, first takes up to `gripper_points`
+    /// of the focus box's share by farthest point sampling of the points within
+    /// `gripper_radius_m` of it; the split's two samplings then choose the rest from the
+    /// other points. With no TCP or `gripper_points` 0 it is exactly [`Self::sample`].
+    pub fn sample_at(
+        &self,
+        dense: &Points,
+        tcp: Option<Point3<f32>>,
+    ) -> Result<Points, CalibrationError> {
         let p = &self.params;
         if dense.len() < p.points {
             return Err(CalibrationError::TooFewPoints {
@@ -703,15 +757,30 @@ impl FusionPipeline {
                 needed: p.points,
             });
         }
-        let (inside, outside): (Vec<usize>, Vec<usize>) =
-            (0..dense.len()).partition(|&i| p.focus.contains(&dense.xyz[i]));
-        let n_in = p
-            .points_inside
-            .min(inside.len())
-            .max(p.points.saturating_sub(outside.len()));
-        let n_out = p.points - n_in;
         let mut rng = ChaCha8Rng::seed_from_u64(p.seed);
-        let mut chosen = farthest_point_sample(&dense.xyz, &inside, n_in, &mut rng);
+        let mut chosen = Vec::with_capacity(p.points);
+        let mut taken = Vec::new();
+        if let (Some(tcp), true) = (tcp, p.gripper_points > 0) {
+            let r2 = (p.gripper_radius_m * p.gripper_radius_m) as f32;
+            let near: Vec<usize> = (0..dense.len())
+                .filter(|&i| (dense.xyz[i] - tcp).norm_squared() <= r2)
+                .collect();
+            chosen = farthest_point_sample(&dense.xyz, &near, p.gripper_points, &mut rng);
+            taken = vec![false; dense.len()];
+            for &i in &chosen {
+                taken[i] = true;
+            }
+        }
+        let free = |i: &usize| taken.get(*i) != Some(&true);
+        let (inside, outside): (Vec<usize>, Vec<usize>) = (0..dense.len())
+            .filter(free)
+            .partition(|&i| p.focus.contains(&dense.xyz[i]));
+        let rest = p.points - chosen.len();
+        let n_in = (p.points_inside - chosen.len())
+            .min(inside.len())
+            .max(rest.saturating_sub(outside.len()));
+        let n_out = rest - n_in;
+        chosen.extend(farthest_point_sample(&dense.xyz, &inside, n_in, &mut rng));
         chosen.extend(farthest_point_sample(&dense.xyz, &outside, n_out, &mut rng));
         chosen.shuffle(&mut rng);
         let has_rgb = dense.rgb.len() == dense.len();
@@ -1613,5 +1682,53 @@ mod tests {
             .filter(|p| pipe.params().focus.contains(p))
             .count();
         assert_eq!((s.len(), inside), (40, 30));
+    }
+
+    #[test]
+    fn gripper_points_sample_the_ball_around_the_tcp_densely() {
+        let params = FusionParams {
+            points: 100,
+            points_inside: 100,
+            gripper_points: 40,
+            gripper_radius_m: 0.05,
+            focus: Bounds {
+                min: [-1.0, -1.0, -1.0],
+                max: [2.0, 2.0, 2.0],
+            },
+            ..FusionParams::default()
+        };
+        let pipe = FusionPipeline::new(calib(&[0]), params).unwrap();
+        let pts = grid_plane(100, 0.005); // 0.5 m square, 5 mm spacing
+        let tcp = Point3::new(0.25f32, 0.25, 0.02);
+        let near = |s: &Points| s.xyz.iter().filter(|p| (*p - tcp).norm() <= 0.05).count();
+        let plain = pipe.sample(&pts).unwrap();
+        assert_eq!(pipe.sample_at(&pts, None).unwrap(), plain);
+        let dense = pipe.sample_at(&pts, Some(tcp)).unwrap();
+        assert_eq!(dense.len(), 100);
+        // Plain sampling spreads 100 points about 5 cm apart: a handful in the ball.
+        assert!(near(&plain) < 10, "{}", near(&plain));
+        assert!(near(&dense) >= 40, "{}", near(&dense));
+        let mut seen: Vec<_> = dense
+            .xyz
+            .iter()
+            .map(|p| (p.x.to_bits(), p.y.to_bits()))
+            .collect();
+        seen.sort_unstable();
+        seen.dedup();
+        assert_eq!(seen.len(), 100, "a point sampled twice");
+        // A TCP away from every point leaves the plain split.
+        let far = Point3::new(5.0f32, 5.0, 5.0);
+        assert_eq!(pipe.sample_at(&pts, Some(far)).unwrap().len(), 100);
+        let bad = FusionParams {
+            gripper_points: 2000,
+            ..FusionParams::default()
+        };
+        assert!(matches!(
+            FusionPipeline::new(calib(&[0]), bad),
+            Err(CalibrationError::InvalidParameter {
+                what: "gripper_points",
+                ..
+            })
+        ));
     }
 }

@@ -188,6 +188,28 @@ pub struct WorkspaceSection {
     pub table_height: f64,
 }
 
+/// `[perception]`: how the fused cloud is sampled for the policy (optional section).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PerceptionSection {
+    /// Of the 1536 points sampled in EquAct's focus box, how many are first sampled within
+    /// `gripper_radius_m` of the TCP, at the dense cloud's spacing instead of the whole
+    /// scene's (0, the default: EquAct's plain split). A policy trained on clouds sampled
+    /// this way needs them sampled the same way at run time.
+    pub gripper_points: usize,
+    /// Radius (m) of that ball around the TCP.
+    pub gripper_radius_m: f64,
+}
+
+impl Default for PerceptionSection {
+    fn default() -> Self {
+        Self {
+            gripper_points: 0,
+            gripper_radius_m: 0.08,
+        }
+    }
+}
+
 /// D455 depth stream modes.
 #[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum DepthMode {
@@ -334,6 +356,9 @@ pub struct CellConfig {
     pub calibration: CalibrationSection,
     /// Recording.
     pub recording: RecordingSection,
+    /// Sampling of the fused cloud (optional; defaults to EquAct's).
+    #[serde(default)]
+    pub perception: PerceptionSection,
 }
 
 impl CellConfig {
@@ -507,6 +532,21 @@ impl CellConfig {
                 "workspace.table_height",
                 &w.table_height.to_string(),
                 "must be finite",
+            );
+        }
+        let pc = &self.perception;
+        if pc.gripper_points > 1536 {
+            return invalid(
+                "perception.gripper_points",
+                &pc.gripper_points.to_string(),
+                "at most the 1536 points of EquAct's focus box (0 turns it off)",
+            );
+        }
+        if !(pc.gripper_radius_m.is_finite() && pc.gripper_radius_m > 0.0) {
+            return invalid(
+                "perception.gripper_radius_m",
+                &pc.gripper_radius_m.to_string(),
+                "use a positive radius in metres, e.g. 0.08",
             );
         }
 
@@ -754,6 +794,21 @@ mod tests {
             let p = expect_invalid(&text, "robot.lost_cycles");
             assert!(p.contains("real controller"), "{p}");
         }
+    }
+
+    #[test]
+    fn perception_section_is_optional_and_checked() {
+        let cfg = CellConfig::from_toml_str(&sim_text(), "test").unwrap();
+        assert_eq!(cfg.perception, PerceptionSection::default());
+        assert_eq!(cfg.perception.gripper_points, 0);
+        let set = format!("{}\n[perception]\ngripper_points = 256\n", sim_text());
+        let cfg = CellConfig::from_toml_str(&set, "test").unwrap();
+        assert_eq!(cfg.perception.gripper_points, 256);
+        assert_eq!(cfg.perception.gripper_radius_m, 0.08);
+        let text = format!("{}\n[perception]\ngripper_points = 2000\n", sim_text());
+        expect_invalid(&text, "perception.gripper_points");
+        let text = format!("{}\n[perception]\ngripper_radius_m = -0.1\n", sim_text());
+        expect_invalid(&text, "perception.gripper_radius_m");
     }
 
     #[test]

@@ -2,9 +2,11 @@
 //!
 //! Spec: `equact.md` ("Point cloud in", "Heads") and the reference's `EquAct.forward` in
 //! evaluation mode. [`Policy::predict`]:
-//! 1. input preparation: the cloud (base frame, metres) is cropped to the workspace box; up to
-//!    `n_outside_focus` points are farthest-point sampled outside the focus box (the gripper
-//!    bounds with z-min at the table height) and the rest inside it, then randomly permuted;
+//! 1. input preparation: the cloud (base frame, metres) is cropped to the workspace box;
+//!    optionally [`PolicyConfig::n_near_gripper`] points are first sampled in a ball around
+//!    the gripper; up to `n_outside_focus` points are farthest-point sampled outside the
+//!    focus box (the gripper bounds with z-min at the table height) and the rest inside it,
+//!    then randomly permuted;
 //!    colours go to [0, 1] (grey without colour); the model writes the gripper into the last
 //!    `n_gripper_pos` points;
 //! 2. the U-net encodes the scene once;
@@ -340,6 +342,15 @@ pub struct PolicyConfig {
     pub n_points: usize,
     /// Of those, at most this many from outside the focus box.
     pub n_outside_focus: usize,
+    /// Of `n_points`, how many are first sampled within `near_gripper_radius` of the
+    /// gripper (fewer when the ball holds fewer; 0 in every built-in configuration).
+    /// Farthest point sampling spreads the points at the whole scene's spacing (18 mm at
+    /// 1024), so a held object is seen through a dozen points; these see it at the
+    /// cloud's own spacing near the gripper. The ball moves with the gripper, so the
+    /// choice is SE(3)-equivariant.
+    pub n_near_gripper: usize,
+    /// Radius (m) of the ball around the gripper that `n_near_gripper` are sampled in.
+    pub near_gripper_radius: f64,
     /// The frame the boxes are expressed in.
     pub base_from_workspace: Isometry3<f64>,
     /// Crop box [min, max] (m).
@@ -365,6 +376,8 @@ impl PolicyConfig {
             mode: PolicyMode::Equivariant { s2_grid: 16 },
             n_points: 2048,
             n_outside_focus: 512,
+            n_near_gripper: 0,
+            near_gripper_radius: 0.08,
             base_from_workspace: Isometry3::identity(),
             workspace_bounds: [[0.18, -0.39, -0.10], [0.96, 0.39, 0.53]],
             gripper_bounds: [[0.18, -0.39, -0.07], [0.96, 0.39, 0.53]],
@@ -506,6 +519,13 @@ impl PolicyConfig {
         self
     }
 
+    /// The same configuration with `n` of its points sampled first near the gripper
+    /// ([`Self::n_near_gripper`]).
+    pub fn with_near_gripper_points(mut self, n: usize) -> Self {
+        self.n_near_gripper = n;
+        self
+    }
+
     /// The same configuration in another mode (sets the network's S2 grids and up-sampling
     /// distance).
     pub fn with_mode(mut self, mode: PolicyMode) -> Self {
@@ -550,6 +570,22 @@ impl PolicyConfig {
                  and at most {MAX_POINTS} (the physical network's 2048 take seconds per \
                  keyframe on a CPU already)",
                 self.n_points, self.model.n_gripper_pos
+            )));
+        }
+        if self.n_near_gripper > self.n_points - self.n_outside_focus.min(self.n_points) {
+            return Err(PolicyError::BadConfig(format!(
+                "n_near_gripper is {}: at most the {} points the focus box may take \
+                 (n_points {} less n_outside_focus {})",
+                self.n_near_gripper,
+                self.n_points - self.n_outside_focus.min(self.n_points),
+                self.n_points,
+                self.n_outside_focus
+            )));
+        }
+        if !(self.near_gripper_radius.is_finite() && self.near_gripper_radius > 0.0) {
+            return Err(PolicyError::BadConfig(format!(
+                "near_gripper_radius is {}: use a positive radius in metres, e.g. 0.08",
+                self.near_gripper_radius
             )));
         }
         for b in [self.workspace_bounds, self.gripper_bounds] {
@@ -1367,11 +1403,42 @@ pub fn prepare_input(
             got: in_workspace,
         });
     }
+    let mut picked = Vec::with_capacity(cfg.n_points);
+    if cfg.n_near_gripper > 0 {
+        // The points near the gripper first, at their own spacing; the split below then
+        // samples the others.
+        let g = gripper.base_from_tcp.translation();
+        let r2 = cfg.near_gripper_radius * cfg.near_gripper_radius;
+        let dist2 = |i: usize| {
+            (0..3)
+                .map(|k| (f64::from(raw[i][k]) - g[k]).powi(2))
+                .sum::<f64>()
+        };
+        let near: Vec<usize> = focused
+            .iter()
+            .copied()
+            .filter(|&i| dist2(i) <= r2)
+            .collect();
+        if !near.is_empty() {
+            let pos: Vec<[f32; 3]> = near.iter().map(|&i| raw[i]).collect();
+            let n = cfg.n_near_gripper.min(near.len());
+            for j in farthest_point_sampling(&pos, n)? {
+                picked.push(near[j]);
+            }
+            let mut taken = vec![false; raw.len()];
+            for &i in &picked {
+                taken[i] = true;
+            }
+            focused.retain(|&i| !taken[i]);
+        }
+    }
     // Outside the focus box at most n_outside_focus; the focus box fills the rest (and
     // the outside tops up when the focus box has too few).
-    let n_in = (cfg.n_points - cfg.n_outside_focus.min(other.len())).min(focused.len());
-    let n_out = cfg.n_points - n_in;
-    let mut picked = Vec::with_capacity(cfg.n_points);
+    let rest = cfg.n_points - picked.len();
+    let n_in = rest
+        .saturating_sub(cfg.n_outside_focus.min(other.len()))
+        .min(focused.len());
+    let n_out = rest - n_in;
     for (set, n) in [(&other, n_out), (&focused, n_in)] {
         if n == 0 {
             continue;

@@ -300,6 +300,10 @@ impl Trainer {
             crate::weights::N_POINTS_KEY,
             cfg.policy.n_points.to_string(),
         );
+        weights.set_metadata(
+            crate::weights::NEAR_GRIPPER_POINTS_KEY,
+            cfg.policy.n_near_gripper.to_string(),
+        );
         Ok(Self {
             grid: LossGrid::new(cfg.rotation_grid_level)?,
             optim: AdamW::new(cfg.optim),

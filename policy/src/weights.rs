@@ -18,6 +18,10 @@ use crate::fixtures::{parse_safetensors, StoredTensor, TensorData};
 /// learned from, so the inference commands take it from the file.
 pub const N_POINTS_KEY: &str = "equact.n_points";
 
+/// Metadata key of how many of those points were sampled first near the gripper
+/// (`PolicyConfig::n_near_gripper`); absent means 0, as in every file from before it.
+pub const NEAR_GRIPPER_POINTS_KEY: &str = "equact.near_gripper_points";
+
 /// Metadata key of how trained weights came to be: a JSON array with one object per
 /// training run that led to them, oldest first, each that run's settings (its `train.json`)
 /// and `steps`, the optimiser steps it had taken when the file was written. `equact train`
@@ -38,6 +42,18 @@ pub struct Weights {
 /// megabytes); `None` when the file does not record it (weights from before it was, or a
 /// converted reference checkpoint).
 pub fn trained_points(path: &Path) -> Result<Option<usize>> {
+    header_count(path, N_POINTS_KEY)
+}
+
+/// How many of the trained cloud points were sampled near the gripper
+/// ([`NEAR_GRIPPER_POINTS_KEY`]), read from the header as [`trained_points`]; `None` when
+/// the file does not record it (that is 0).
+pub fn trained_near_gripper_points(path: &Path) -> Result<Option<usize>> {
+    header_count(path, NEAR_GRIPPER_POINTS_KEY)
+}
+
+/// A count recorded under `key` in the safetensors header's metadata.
+fn header_count(path: &Path, key: &str) -> Result<Option<usize>> {
     let bad = |message: String| PolicyError::Safetensors {
         path: path.to_path_buf(),
         message,
@@ -62,22 +78,21 @@ pub fn trained_points(path: &Path) -> Result<Option<usize>> {
         serde_json::from_slice(&header).map_err(|e| bad(format!("header: {e}")))?;
     let value = header
         .get("__metadata__")
-        .and_then(|m| m.get(N_POINTS_KEY))
+        .and_then(|m| m.get(key))
         .map(|v| {
             v.as_str()
-                .ok_or_else(|| bad(format!("{N_POINTS_KEY} is not a string")))
+                .ok_or_else(|| bad(format!("{key} is not a string")))
         })
         .transpose()?;
-    parse_points(value).map_err(bad)
+    parse_count(key, value).map_err(bad)
 }
 
-/// Parses a [`N_POINTS_KEY`] value.
-fn parse_points(value: Option<&str>) -> std::result::Result<Option<usize>, String> {
+/// Parses a count of points recorded under `key`.
+fn parse_count(key: &str, value: Option<&str>) -> std::result::Result<Option<usize>, String> {
     value
         .map(|v| {
-            v.parse::<usize>().map_err(|_| {
-                format!("{N_POINTS_KEY} is {v:?}: expected a count of points, e.g. \"512\"")
-            })
+            v.parse::<usize>()
+                .map_err(|_| format!("{key} is {v:?}: expected a count of points, e.g. \"512\""))
         })
         .transpose()
 }
@@ -143,9 +158,11 @@ impl Weights {
     /// The number of cloud points these weights were trained with ([`N_POINTS_KEY`]), as
     /// [`trained_points`] reads it from a file's header; `None` when not recorded.
     pub fn trained_points(&self) -> Result<Option<usize>> {
-        parse_points(self.metadata(N_POINTS_KEY)).map_err(|message| PolicyError::Safetensors {
-            path: self.source.clone().into(),
-            message,
+        parse_count(N_POINTS_KEY, self.metadata(N_POINTS_KEY)).map_err(|message| {
+            PolicyError::Safetensors {
+                path: self.source.clone().into(),
+                message,
+            }
         })
     }
 

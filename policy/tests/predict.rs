@@ -334,6 +334,53 @@ fn level_zero_also_samples_around_the_gripper_and_moves_with_it() {
 }
 
 #[test]
+fn points_near_the_gripper_are_sampled_first_and_move_with_it() {
+    // A gripper just above the first blob (centre 0.45, 0.1, -0.05; radius 5 cm).
+    let g = GripperPose {
+        base_from_tcp: Transform::from_xyz_rpy([0.45, 0.1, 0.03], [3.0, 0.1, 0.4]),
+        open: false,
+    };
+    let cloud = scene(2);
+    let radius = PolicyConfig::tiny().near_gripper_radius;
+    let near_of = |n: usize| {
+        let p = seeded(PolicyConfig::tiny().with_near_gripper_points(n), 5);
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let prep = p.prepare(&cloud, &g, &mut rng).unwrap();
+        assert_eq!(prep.xyz.len(), p.config().n_points);
+        let mut keys: Vec<[u32; 3]> = prep.xyz.iter().map(|q| q.map(f32::to_bits)).collect();
+        keys.sort_unstable();
+        keys.dedup();
+        assert_eq!(keys.len(), prep.xyz.len(), "a point sampled twice");
+        let tcp = g.base_from_tcp.translation();
+        prep.xyz
+            .iter()
+            .filter(|q| {
+                (Vector3::new(f64::from(q[0]), f64::from(q[1]), f64::from(q[2])) - tcp).norm()
+                    <= radius
+            })
+            .count()
+    };
+    let (plain, near) = (near_of(0), near_of(40));
+    assert!(
+        plain < 30,
+        "plain sampling put {plain} points near the gripper"
+    );
+    assert!(near >= 40, "only {near} points near the gripper");
+    // The ball moves with the gripper: the keyframe still moves with the scene (a ball
+    // wide enough to reach the blobs from the test's gripper pose).
+    let mut cfg = PolicyConfig::tiny()
+        .with_mode(PolicyMode::Gated)
+        .with_near_gripper_points(40);
+    cfg.near_gripper_radius = 0.4;
+    let (dt, _) = moved_keyframe_error_with(cfg, generic_motion());
+    assert!(dt < 1e-5, "translation error {dt} m");
+    // More than the focus box's share is refused with the reason.
+    let too_many = PolicyConfig::tiny().with_near_gripper_points(120);
+    let err = Policy::random(too_many, 7).unwrap_err().to_string();
+    assert!(err.contains("n_near_gripper"), "{err}");
+}
+
+#[test]
 fn level_zero_also_samples_near_the_objects_and_moves_with_them() {
     let instr = InstructionEmbedding::random(3);
     let cloud = scene(2);

@@ -421,6 +421,9 @@ pub(crate) fn weights_info(weights: &policy::weights::Weights) -> anyhow::Result
         Some(n) => format!("trained with {n} cloud points\n"),
         None => "trained cloud points not recorded (the network size's default applies)\n".into(),
     });
+    if let Some(n) = weights.metadata(policy::weights::NEAR_GRIPPER_POINTS_KEY) {
+        s.push_str(&format!("of them sampled first near the gripper: {n}\n"));
+    }
     let runs = weights.training_history()?;
     if runs.is_empty() {
         s.push_str("training history not recorded\n");

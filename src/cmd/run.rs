@@ -147,6 +147,9 @@ pub fn network_config(
         if let Some(n) = trained {
             cfg = cfg.with_points(n);
         }
+        let near = policy::weights::trained_near_gripper_points(path)
+            .with_context(|| format!("reading the weights file {}", path.display()))?;
+        cfg = cfg.with_near_gripper_points(near.unwrap_or(0));
     }
     Ok(cfg)
 }

@@ -73,6 +73,12 @@ pub struct TrainArgs {
     /// is written into the weights file, which `run`, `eval` and `policy` read.
     #[arg(long)]
     pub points: Option<usize>,
+    /// Of those points, how many are sampled first within 8 cm of the gripper, at the
+    /// cloud's own spacing (0: none, EquAct's sampling). Recorded in the weights file. The
+    /// demonstrations should be collected with `[perception] gripper_points` set in the
+    /// cell's configuration, so that their clouds hold that many points near the gripper.
+    #[arg(long, default_value_t = 0)]
+    pub near_gripper_points: usize,
     /// Translation queries per sampling level.
     #[arg(long, default_value_t = 30)]
     pub queries: usize,
@@ -199,6 +205,9 @@ struct RunSettings {
     /// Cloud points (`None`: the network size's; runs from before the flag).
     #[serde(default)]
     points: Option<usize>,
+    /// Points sampled near the gripper first (runs from before the flag: 0).
+    #[serde(default)]
+    near_gripper_points: usize,
 }
 
 fn one() -> f32 {
@@ -269,6 +278,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     if let Some(n) = args.points {
         policy_cfg = policy_cfg.with_points(n);
     }
+    policy_cfg = policy_cfg.with_near_gripper_points(args.near_gripper_points);
     let cfg = TrainConfig {
         policy: policy_cfg,
         optim: AdamWConfig {
@@ -306,6 +316,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         conditioning_lr_scale: args.conditioning_lr_scale,
         sibling_negatives: args.sibling_negatives,
         points: args.points,
+        near_gripper_points: args.near_gripper_points,
     };
     let (mut trainer, before) = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -606,6 +617,7 @@ mod tests {
         assert!(!s.paired);
         assert!(!s.sibling_negatives);
         assert_eq!(s.points, None);
+        assert_eq!(s.near_gripper_points, 0);
         assert_eq!(s.conditioning_lr_scale, 1.0);
         assert_eq!(s.init, None);
         // The cosine schedule spans the run's iterations; a resume asking for more steps
@@ -676,6 +688,7 @@ mod tests {
             conditioning_lr_scale: 1.0,
             sibling_negatives: false,
             points: None,
+            near_gripper_points: 0,
         };
         let history = |dir: &Path| {
             policy::weights::Weights::from_file(&dir.join(WEIGHTS_FILE))
