@@ -4,7 +4,8 @@
 //! the task's language instruction.
 //!
 //! On disk: one safetensors shard per episode (`<task>-<variation>/seed_<seed>.safetensors`)
-//! and `index.json` listing every episode tried. Shards and the index are written to a
+//! and `index.json` listing every episode tried, with the cell's `[perception]` sampling
+//! the clouds were recorded with (absent in older indexes: EquAct's plain sampling). Shards and the index are written to a
 //! temporary file and renamed, so an interrupted collection never leaves a half-written
 //! file under its final name; on restart, episodes already in the index are skipped.
 //!
@@ -22,7 +23,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 use std::time::Instant;
 
-use cell_types::config::CellConfig;
+use cell_types::config::{CellConfig, PerceptionSection};
 use cell_types::{Keyframe, Transform};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use safetensors::tensor::TensorView;
@@ -63,6 +64,24 @@ pub enum DemosError {
         path: PathBuf,
         /// What is wrong.
         why: String,
+    },
+    /// A collection would mix clouds sampled two ways in one dataset.
+    #[error(
+        "{path} holds demonstrations recorded with [perception] gripper_points = {recorded} \
+         (radius {recorded_radius} m); this cell samples {cell} (radius {cell_radius} m): \
+         record into another folder, or use the configuration the dataset was recorded with"
+    )]
+    PerceptionMismatch {
+        /// The dataset directory.
+        path: PathBuf,
+        /// The dataset's points near the gripper.
+        recorded: usize,
+        /// The dataset's ball radius (m).
+        recorded_radius: f64,
+        /// The cell's points near the gripper.
+        cell: usize,
+        /// The cell's ball radius (m).
+        cell_radius: f64,
     },
     /// The simulated cell could not run the episode.
     #[error("episode {task} seed {seed}: {why}")]
@@ -118,6 +137,11 @@ pub struct Index {
     pub format: String,
     /// Every episode tried, in the order they finished.
     pub episodes: Vec<IndexEntry>,
+    /// How the clouds were sampled near the gripper (the cell's `[perception]`); indexes
+    /// from before the field read as the default, EquAct's plain sampling, which is how
+    /// they were recorded.
+    #[serde(default)]
+    pub perception: PerceptionSection,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> DemosError + '_ {
@@ -141,7 +165,7 @@ impl Index {
         if !path.exists() {
             return Ok(Self {
                 format: FORMAT.into(),
-                episodes: Vec::new(),
+                ..Self::default()
             });
         }
         let text = fs::read_to_string(&path).map_err(io(&path))?;
@@ -426,6 +450,17 @@ pub fn collect(
 ) -> Result<CollectSummary, DemosError> {
     fs::create_dir_all(out).map_err(io(out))?;
     let mut index = Index::load(out)?;
+    if index.episodes.is_empty() {
+        index.perception = cfg.perception.clone();
+    } else if index.perception != cfg.perception {
+        return Err(DemosError::PerceptionMismatch {
+            path: out.to_path_buf(),
+            recorded: index.perception.gripper_points,
+            recorded_radius: index.perception.gripper_radius_m,
+            cell: cfg.perception.gripper_points,
+            cell_radius: cfg.perception.gripper_radius_m,
+        });
+    }
     let total = kinds.len() as u64 * episodes;
     let mut summary = CollectSummary::default();
     let started = Instant::now();
@@ -539,4 +574,53 @@ fn record_episode(
     cell.controller.shutdown();
     let _ = fs::remove_file(&scratch);
     Ok((report.outcome, expert.steps))
+}
+
+#[cfg(test)]
+mod tests {
+    #![allow(clippy::unwrap_used)] // tests may unwrap (CONVENTIONS 6)
+    use super::*;
+
+    #[test]
+    fn a_dataset_keeps_one_perception_setting_and_old_indexes_read_as_plain() {
+        let dir = std::env::temp_dir().join(format!("equact-demos-perc-{}", std::process::id()));
+        fs::create_dir_all(&dir).unwrap();
+        // An index from before the field: plain sampling.
+        let old = r#"{"format": "equact-demos/1", "episodes": [{"task":
+            "install_toilet_roll/large", "instruction": "install the large toilet roll",
+            "seed": 0, "outcome": "plan_failed", "steps": 1, "file": null}]}"#;
+        fs::write(dir.join("index.json"), old).unwrap();
+        let index = Index::load(&dir).unwrap();
+        assert_eq!(index.perception, PerceptionSection::default());
+        // Resuming it with denser sampling near the gripper would mix two kinds of cloud.
+        let mut cfg = CellConfig::simulated().unwrap();
+        cfg.perception.gripper_points = 256;
+        let kinds = [TaskKind::parse("install_toilet_roll/large").unwrap()];
+        let stop = Arc::new(AtomicBool::new(false));
+        let err = collect(&cfg, &kinds, 1, 0, &dir, &stop).unwrap_err();
+        assert!(
+            matches!(
+                err,
+                DemosError::PerceptionMismatch {
+                    recorded: 0,
+                    cell: 256,
+                    ..
+                }
+            ),
+            "{err}"
+        );
+        // Training or scoring a network that samples near the gripper on these clouds is
+        // refused; on clouds recorded densely enough it is not.
+        let network = policy::builtin::config().with_near_gripper_points(48);
+        let err = crate::train::check_dataset_gripper_points(&dir, &network).unwrap_err();
+        assert!(err.to_string().contains("gripper_points"), "{err}");
+        let mut index = Index::load(&dir).unwrap();
+        index.perception.gripper_points = 256;
+        index.save(&dir).unwrap();
+        assert!(crate::train::check_dataset_gripper_points(&dir, &network).is_ok());
+        assert!(
+            crate::train::check_dataset_gripper_points(&dir, &policy::builtin::config()).is_ok()
+        );
+        let _ = fs::remove_dir_all(&dir);
+    }
 }

@@ -14,7 +14,7 @@
 use std::path::Path;
 
 use anyhow::Context;
-use cell_types::config::CellConfig;
+use cell_types::config::{CellConfig, PerceptionSection};
 use cell_types::{Base, Keyframe, Tcp, Transform};
 use policy::predict::{
     GripperPose, InstructionEmbedding, Policy, PolicyConfig, SceneEncoding, TranslationCandidate,
@@ -152,6 +152,7 @@ impl LearnedPolicy {
         cfg: &CellConfig,
         seed: u64,
     ) -> anyhow::Result<Self> {
+        check_cell_gripper_points(&network, cfg)?;
         let mut policy = load_network(network, weights, cfg)?;
         policy.seed = seed;
         Self::new(policy, instruction, cfg)
@@ -210,7 +211,6 @@ pub fn load_network(
     cfg: &CellConfig,
 ) -> anyhow::Result<Policy> {
     let policy_cfg = for_cell(network, cfg);
-    check_gripper_points(&policy_cfg, cfg)?;
     match weights {
         Some(weights) => Policy::load(policy_cfg, weights).with_context(|| {
             format!(
@@ -227,21 +227,36 @@ pub fn load_network(
     }
 }
 
-/// Refuses a network that samples points near the gripper on a cell whose fusion does not
-/// put them there: it would see a held object through a dozen points instead of the
-/// hundred it was trained on, and place it less precisely without saying so.
-pub fn check_gripper_points(network: &PolicyConfig, cfg: &CellConfig) -> anyhow::Result<()> {
-    let (wanted, fused) = (network.n_near_gripper, cfg.perception.gripper_points);
-    let (radius, fused_radius) = (network.near_gripper_radius, cfg.perception.gripper_radius_m);
+/// Refuses a network that samples points near the gripper on clouds that were not sampled
+/// densely there (`perception`, of the cell or of the demonstrations named by `source`): it
+/// would see a held object through a dozen points instead of the many it was trained on,
+/// and place it less precisely without saying so. `fix` says what to change.
+pub fn check_gripper_points(
+    network: &PolicyConfig,
+    perception: &PerceptionSection,
+    source: &str,
+    fix: &str,
+) -> anyhow::Result<()> {
+    let (wanted, radius) = (network.n_near_gripper, network.near_gripper_radius);
+    let (fused, fused_radius) = (perception.gripper_points, perception.gripper_radius_m);
     if wanted > 0 && (wanted > fused || fused_radius < radius) {
         anyhow::bail!(
-            "the network samples {wanted} of its points within {radius} m of the gripper (its \
-             weights file records it), but this cell's fusion samples {fused} within \
-             {fused_radius} m there: set [perception] gripper_points and gripper_radius_m in \
-             the cell configuration to what its demonstrations were recorded with"
+            "the network samples {wanted} of its points within {radius} m of the gripper, but \
+             {source} sampled {fused} within {fused_radius} m there: {fix}"
         );
     }
     Ok(())
+}
+
+/// [`check_gripper_points`] against a cell's own fusion.
+pub fn check_cell_gripper_points(network: &PolicyConfig, cfg: &CellConfig) -> anyhow::Result<()> {
+    check_gripper_points(
+        network,
+        &cfg.perception,
+        "this cell's fusion",
+        "set [perception] gripper_points and gripper_radius_m in the cell configuration to \
+         what the network's demonstrations were recorded with",
+    )
 }
 
 /// The network configuration with the crop box, focus box and table of this cell.
@@ -330,16 +345,17 @@ mod tests {
     fn a_network_sampling_near_the_gripper_needs_the_cells_fusion_to() {
         let mut cell = CellConfig::simulated().unwrap();
         let network = policy::builtin::config().with_near_gripper_points(128);
-        let err = load_network(network.clone(), None, &cell)
+        let instruction = policy::builtin::instruction("pick up the peach").unwrap();
+        let err = LearnedPolicy::load_with(network.clone(), None, instruction, &cell, 0)
             .err()
             .unwrap()
             .to_string();
         assert!(err.contains("gripper_points"), "{err}");
-        assert!(check_gripper_points(&policy::builtin::config(), &cell).is_ok());
+        assert!(check_cell_gripper_points(&policy::builtin::config(), &cell).is_ok());
         cell.perception.gripper_points = 256;
-        assert!(check_gripper_points(&network, &cell).is_ok());
+        assert!(check_cell_gripper_points(&network, &cell).is_ok());
         cell.perception.gripper_radius_m = 0.04;
-        assert!(check_gripper_points(&network, &cell).is_err());
+        assert!(check_cell_gripper_points(&network, &cell).is_err());
     }
 
     #[test]

@@ -12,7 +12,7 @@ use anyhow::Context;
 use cell_types::config::CellConfig;
 use cell_types::{FrameId, PointCloud};
 use nalgebra::Point3;
-use policy::predict::{GripperPose, InstructionEmbedding};
+use policy::predict::{GripperPose, InstructionEmbedding, PolicyConfig};
 use policy::trainer::TrainSample;
 
 use crate::demos::{read_shard, Index};
@@ -93,6 +93,20 @@ pub struct DemoSample {
     pub step: usize,
     /// The observation and the expert's keyframe.
     pub sample: TrainSample,
+}
+
+/// Refuses to train or score `network` on the demonstrations in `dir` when it samples more
+/// points near the gripper than their clouds hold there (their index says how they were
+/// recorded).
+pub fn check_dataset_gripper_points(dir: &Path, network: &PolicyConfig) -> anyhow::Result<()> {
+    let recorded = Index::load(dir)?.perception;
+    crate::learned::check_gripper_points(
+        network,
+        &recorded,
+        &format!("the demonstrations in {}", dir.display()),
+        "record them with [perception] gripper_points of at least that (`equact demos collect \
+         --config` a cell file with it), or use a network with fewer (--near-gripper-points)",
+    )
 }
 
 /// The training samples of a dataset: every step of every successful episode, with the

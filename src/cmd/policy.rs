@@ -345,6 +345,7 @@ fn load_scoring<'a>(a: &'a ScoreArgs, what: &str) -> anyhow::Result<Scoring<'a>>
         a.network,
         a.heads,
     )?);
+    equact::train::check_dataset_gripper_points(&a.demos, &network)?;
     let mut policy = equact::learned::load_network(network, a.model.as_deref(), &cfg)?;
     policy.set_threads(a.threads);
     let s = policy.config().sampling;

@@ -279,6 +279,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         policy_cfg = policy_cfg.with_points(n);
     }
     policy_cfg = policy_cfg.with_near_gripper_points(args.near_gripper_points);
+    equact::train::check_dataset_gripper_points(&args.demos, &policy_cfg)?;
     let cfg = TrainConfig {
         policy: policy_cfg,
         optim: AdamWConfig {
