@@ -213,7 +213,7 @@ impl Default for FusionParams {
 }
 
 fn default_gripper_radius() -> f64 {
-    0.08
+    cell_types::config::DEFAULT_GRIPPER_RADIUS_M
 }
 
 /// Points with optional colours, the working set between stages.

@@ -188,6 +188,11 @@ pub struct WorkspaceSection {
     pub table_height: f64,
 }
 
+/// Default radius (m) of the ball around the gripper that the fusion and the network may
+/// sample densely: one value for both, since a network is refused on clouds sampled in a
+/// smaller ball than its own.
+pub const DEFAULT_GRIPPER_RADIUS_M: f64 = 0.08;
+
 /// `[perception]`: how the fused cloud is sampled for the policy (optional section).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -205,7 +210,7 @@ impl Default for PerceptionSection {
     fn default() -> Self {
         Self {
             gripper_points: 0,
-            gripper_radius_m: 0.08,
+            gripper_radius_m: DEFAULT_GRIPPER_RADIUS_M,
         }
     }
 }

@@ -377,7 +377,7 @@ impl PolicyConfig {
             n_points: 2048,
             n_outside_focus: 512,
             n_near_gripper: 0,
-            near_gripper_radius: 0.08,
+            near_gripper_radius: cell_types::config::DEFAULT_GRIPPER_RADIUS_M,
             base_from_workspace: Isometry3::identity(),
             workspace_bounds: [[0.18, -0.39, -0.10], [0.96, 0.39, 0.53]],
             gripper_bounds: [[0.18, -0.39, -0.07], [0.96, 0.39, 0.53]],
