@@ -67,21 +67,17 @@ pub enum DemosError {
     },
     /// A collection would mix clouds sampled two ways in one dataset.
     #[error(
-        "{path} holds demonstrations recorded with [perception] gripper_points = {recorded} \
-         (radius {recorded_radius} m); this cell samples {cell} (radius {cell_radius} m): \
-         record into another folder, or use the configuration the dataset was recorded with"
+        "{path} holds demonstrations recorded with [perception] {recorded}; this cell \
+         samples {cell}: record into another folder, or use the configuration the dataset \
+         was recorded with"
     )]
     PerceptionMismatch {
         /// The dataset directory.
         path: PathBuf,
-        /// The dataset's points near the gripper.
-        recorded: usize,
-        /// The dataset's ball radius (m).
-        recorded_radius: f64,
-        /// The cell's points near the gripper.
-        cell: usize,
-        /// The cell's ball radius (m).
-        cell_radius: f64,
+        /// The dataset's sampling.
+        recorded: Box<PerceptionSection>,
+        /// The cell's sampling.
+        cell: Box<PerceptionSection>,
     },
     /// The simulated cell could not run the episode.
     #[error("episode {task} seed {seed}: {why}")]
@@ -455,10 +451,8 @@ pub fn collect(
     } else if index.perception != cfg.perception {
         return Err(DemosError::PerceptionMismatch {
             path: out.to_path_buf(),
-            recorded: index.perception.gripper_points,
-            recorded_radius: index.perception.gripper_radius_m,
-            cell: cfg.perception.gripper_points,
-            cell_radius: cfg.perception.gripper_radius_m,
+            recorded: Box::new(index.perception.clone()),
+            cell: Box::new(cfg.perception.clone()),
         });
     }
     let total = kinds.len() as u64 * episodes;
@@ -598,29 +592,44 @@ mod tests {
         let kinds = [TaskKind::parse("install_toilet_roll/large").unwrap()];
         let stop = Arc::new(AtomicBool::new(false));
         let err = collect(&cfg, &kinds, 1, 0, &dir, &stop).unwrap_err();
-        assert!(
-            matches!(
-                err,
-                DemosError::PerceptionMismatch {
-                    recorded: 0,
-                    cell: 256,
-                    ..
-                }
-            ),
-            "{err}"
-        );
+        match &err {
+            DemosError::PerceptionMismatch { recorded, cell, .. } => {
+                assert_eq!(recorded.gripper_points, 0);
+                assert_eq!(cell.gripper_points, 256);
+            }
+            other => panic!("expected a perception mismatch, got {other}"),
+        }
+        assert!(err.to_string().contains("gripper_points = 256"), "{err}");
+        // So would fewer points, or a focus box raised off the table.
+        for change in [
+            |c: &mut CellConfig| c.perception.points = 1024,
+            |c: &mut CellConfig| c.perception.focus_above_table_m = Some(0.01),
+        ] {
+            let mut cfg = CellConfig::simulated().unwrap();
+            change(&mut cfg);
+            let err = collect(&cfg, &kinds, 1, 0, &dir, &stop).unwrap_err();
+            assert!(
+                matches!(err, DemosError::PerceptionMismatch { .. }),
+                "{err}"
+            );
+        }
         // Training or scoring a network that samples near the gripper on these clouds is
         // refused; on clouds recorded densely enough it is not.
         let network = policy::builtin::config().with_near_gripper_points(48);
-        let err = crate::train::check_dataset_gripper_points(&dir, &network).unwrap_err();
+        let err = crate::train::check_dataset_perception(&dir, &network).unwrap_err();
         assert!(err.to_string().contains("gripper_points"), "{err}");
         let mut index = Index::load(&dir).unwrap();
         index.perception.gripper_points = 256;
         index.save(&dir).unwrap();
-        assert!(crate::train::check_dataset_gripper_points(&dir, &network).is_ok());
-        assert!(
-            crate::train::check_dataset_gripper_points(&dir, &policy::builtin::config()).is_ok()
-        );
+        assert!(crate::train::check_dataset_perception(&dir, &network).is_ok());
+        assert!(crate::train::check_dataset_perception(&dir, &policy::builtin::config()).is_ok());
+        // A network reading more points than the clouds hold is refused too.
+        index.perception.points = 512;
+        index.save(&dir).unwrap();
+        let err = crate::train::check_dataset_perception(&dir, &policy::builtin::config())
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("[perception] points"), "{err}");
         let _ = fs::remove_dir_all(&dir);
     }
 }

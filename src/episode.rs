@@ -246,16 +246,22 @@ pub fn planner_from_config(cfg: &CellConfig) -> anyhow::Result<Planner> {
     Ok(Planner::new(model, limits, PlannerConfig::default())?)
 }
 
-/// Builds the fusion pipeline for the cell's workspace.
+/// Builds the fusion pipeline for the cell's workspace and `[perception]` section.
 pub fn fusion_params(cfg: &CellConfig, seed: u64) -> FusionParams {
+    let perception = &cfg.perception;
     let mut p = FusionParams {
         seed,
-        gripper_points: cfg.perception.gripper_points,
-        gripper_radius_m: cfg.perception.gripper_radius_m,
+        points: perception.points,
+        points_inside: perception.points_inside(),
+        gripper_points: perception.gripper_points,
+        gripper_radius_m: perception.gripper_radius_m,
         ..FusionParams::default()
     };
     p.workspace.min = cfg.workspace.min;
     p.workspace.max = cfg.workspace.max;
+    if let Some(h) = perception.focus_above_table_m {
+        p.focus.min[2] = cfg.workspace.table_height + h;
+    }
     p
 }
 

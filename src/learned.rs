@@ -152,7 +152,7 @@ impl LearnedPolicy {
         cfg: &CellConfig,
         seed: u64,
     ) -> anyhow::Result<Self> {
-        check_cell_gripper_points(&network, cfg)?;
+        check_cell_perception(&network, cfg)?;
         let mut policy = load_network(network, weights, cfg)?;
         policy.seed = seed;
         Self::new(policy, instruction, cfg)
@@ -227,16 +227,26 @@ pub fn load_network(
     }
 }
 
-/// Refuses a network that samples points near the gripper on clouds that were not sampled
-/// densely there (`perception`, of the cell or of the demonstrations named by `source`): it
-/// would see a held object through a dozen points instead of the many it was trained on,
-/// and place it less precisely without saying so. `fix` says what to change.
-pub fn check_gripper_points(
+/// Refuses a network whose input the clouds of `perception` (of the cell or of the
+/// demonstrations named by `source`) cannot give: more points than they hold (the network
+/// would fail on the first keyframe), or points near the gripper on clouds that were not
+/// sampled densely there (it would see a held object through a dozen points instead of the
+/// many it was trained on, and place it less precisely without saying so). `fix` says what
+/// to change for the second; the first names `[perception] points`.
+pub fn check_perception(
     network: &PolicyConfig,
     perception: &PerceptionSection,
     source: &str,
     fix: &str,
 ) -> anyhow::Result<()> {
+    if network.n_points > perception.points {
+        anyhow::bail!(
+            "the network reads {} points, but {source} sampled {} ([perception] points): \
+             sample at least as many, or use a network that reads fewer (--points)",
+            network.n_points,
+            perception.points
+        );
+    }
     let (wanted, radius) = (network.n_near_gripper, network.near_gripper_radius);
     let (fused, fused_radius) = (perception.gripper_points, perception.gripper_radius_m);
     if wanted > 0 && (wanted > fused || fused_radius < radius) {
@@ -248,9 +258,65 @@ pub fn check_gripper_points(
     Ok(())
 }
 
-/// [`check_gripper_points`] against a cell's own fusion.
-pub fn check_cell_gripper_points(network: &PolicyConfig, cfg: &CellConfig) -> anyhow::Result<()> {
-    check_gripper_points(
+/// The `perception` setting a training run records: `None` for EquAct's plain sampling
+/// (so plain runs record what they did before the setting existed).
+pub fn recorded_perception(perception: &PerceptionSection) -> Option<PerceptionSection> {
+    (*perception != PerceptionSection::default()).then(|| perception.clone())
+}
+
+/// How the clouds a network last trained on were sampled: the `perception` of the last run
+/// in its training history (`policy::weights::TRAINING_KEY`); EquAct's plain sampling when
+/// that run records none (plain runs, runs from before the setting, the built-in model).
+pub fn trained_perception(history: &[serde_json::Value]) -> anyhow::Result<PerceptionSection> {
+    match history.last().and_then(|run| run.get("perception")) {
+        None | Some(serde_json::Value::Null) => Ok(PerceptionSection::default()),
+        Some(p) => serde_json::from_value(p.clone())
+            .context("the weights' training history records an unreadable perception setting"),
+    }
+}
+
+/// [`trained_perception`] of the weights file `weights` (`None`: the built-in model), read
+/// from its header.
+pub fn weights_perception(weights: Option<&Path>) -> anyhow::Result<PerceptionSection> {
+    let Some(path) = weights else {
+        return Ok(PerceptionSection::default());
+    };
+    let history = policy::weights::header_metadata(path, policy::weights::TRAINING_KEY)
+        .with_context(|| format!("reading the weights file {}", path.display()))?;
+    let runs: Vec<serde_json::Value> = match history {
+        Some(text) => serde_json::from_str(&text).with_context(|| {
+            format!(
+                "{}: metadata {} is not a JSON array",
+                path.display(),
+                policy::weights::TRAINING_KEY
+            )
+        })?,
+        None => Vec::new(),
+    };
+    trained_perception(&runs)
+}
+
+/// A note when `now` (the clouds of `source`) samples otherwise than the network's
+/// demonstrations were (`trained`): the network then sees another kind of cloud than it
+/// learned from (e.g. the table top instead of the objects), which costs precision
+/// silently. `None` when they agree.
+pub fn perception_note(
+    trained: &PerceptionSection,
+    now: &PerceptionSection,
+    source: &str,
+) -> Option<String> {
+    (trained != now).then(|| {
+        format!(
+            "note: the network's demonstrations were sampled with [perception] {trained}, \
+             the clouds of {source} with {now}: it sees other clouds than it learned from; \
+             set [perception] as the demonstrations were recorded"
+        )
+    })
+}
+
+/// [`check_perception`] against a cell's own fusion.
+pub fn check_cell_perception(network: &PolicyConfig, cfg: &CellConfig) -> anyhow::Result<()> {
+    check_perception(
         network,
         &cfg.perception,
         "this cell's fusion",
@@ -341,21 +407,81 @@ mod tests {
         .unwrap()
     }
 
+    /// Why loading the built-in weights as `network` on `cell` fails.
+    fn load_error(network: &PolicyConfig, cell: &CellConfig) -> String {
+        let instruction = policy::builtin::instruction("pick up the peach").unwrap();
+        LearnedPolicy::load_with(network.clone(), None, instruction, cell, 0)
+            .err()
+            .unwrap()
+            .to_string()
+    }
+
     #[test]
     fn a_network_sampling_near_the_gripper_needs_the_cells_fusion_to() {
         let mut cell = CellConfig::simulated().unwrap();
         let network = policy::builtin::config().with_near_gripper_points(128);
-        let instruction = policy::builtin::instruction("pick up the peach").unwrap();
-        let err = LearnedPolicy::load_with(network.clone(), None, instruction, &cell, 0)
-            .err()
-            .unwrap()
-            .to_string();
+        let err = load_error(&network, &cell);
         assert!(err.contains("gripper_points"), "{err}");
-        assert!(check_cell_gripper_points(&policy::builtin::config(), &cell).is_ok());
+        assert!(check_cell_perception(&policy::builtin::config(), &cell).is_ok());
         cell.perception.gripper_points = 256;
-        assert!(check_cell_gripper_points(&network, &cell).is_ok());
+        assert!(check_cell_perception(&network, &cell).is_ok());
         cell.perception.gripper_radius_m = 0.04;
-        assert!(check_cell_gripper_points(&network, &cell).is_err());
+        assert!(check_cell_perception(&network, &cell).is_err());
+    }
+
+    #[test]
+    fn the_last_training_run_says_how_its_clouds_were_sampled() {
+        let raised = PerceptionSection {
+            points: 1280,
+            focus_above_table_m: Some(0.01),
+            ..PerceptionSection::default()
+        };
+        // No history (the built-in model) or a last run without the setting: plain.
+        assert_eq!(
+            trained_perception(&[]).unwrap(),
+            PerceptionSection::default()
+        );
+        let plain_run = serde_json::json!({"steps": 10, "lr": 1e-4});
+        let raised_run = serde_json::json!({"steps": 20, "perception": raised});
+        let history = [plain_run.clone(), raised_run.clone()];
+        assert_eq!(trained_perception(&history).unwrap(), raised);
+        // A later plain fine-tune is what the network last adapted to.
+        let history = [raised_run, plain_run];
+        assert_eq!(
+            trained_perception(&history).unwrap(),
+            PerceptionSection::default()
+        );
+        let bad = [serde_json::json!({"perception": {"points": "many"}})];
+        assert!(trained_perception(&bad).is_err());
+        assert_eq!(
+            weights_perception(None).unwrap(),
+            PerceptionSection::default()
+        );
+        // The note names both settings; agreeing settings give none.
+        let note =
+            perception_note(&raised, &PerceptionSection::default(), "this cell's fusion").unwrap();
+        assert!(note.contains("focus_above_table_m = 0.01"), "{note}");
+        assert!(
+            note.contains("the clouds of this cell's fusion with points = 2048"),
+            "{note}"
+        );
+        assert!(perception_note(&raised, &raised, "x").is_none());
+        // A dataset records its setting only when it is not the plain one.
+        assert_eq!(recorded_perception(&PerceptionSection::default()), None);
+        assert_eq!(recorded_perception(&raised), Some(raised));
+    }
+
+    #[test]
+    fn a_network_reading_more_points_than_the_cell_samples_is_refused_at_load() {
+        let mut cell = CellConfig::simulated().unwrap();
+        cell.perception.points = 512;
+        let network = policy::builtin::config();
+        assert_eq!(network.n_points, 1024);
+        let err = load_error(&network, &cell);
+        assert!(err.contains("[perception] points"), "{err}");
+        assert!(err.contains("1024") && err.contains("512"), "{err}");
+        cell.perception.points = 1024;
+        assert!(check_cell_perception(&network, &cell).is_ok());
     }
 
     #[test]

@@ -95,12 +95,12 @@ pub struct DemoSample {
     pub sample: TrainSample,
 }
 
-/// Refuses to train or score `network` on the demonstrations in `dir` when it samples more
-/// points near the gripper than their clouds hold there (their index says how they were
-/// recorded).
-pub fn check_dataset_gripper_points(dir: &Path, network: &PolicyConfig) -> anyhow::Result<()> {
+/// Refuses to train or score `network` on the demonstrations in `dir` when it reads more
+/// points than their clouds hold, or samples more near the gripper than they hold there
+/// (their index says how they were recorded).
+pub fn check_dataset_perception(dir: &Path, network: &PolicyConfig) -> anyhow::Result<()> {
     let recorded = Index::load(dir)?.perception;
-    crate::learned::check_gripper_points(
+    crate::learned::check_perception(
         network,
         &recorded,
         &format!("the demonstrations in {}", dir.display()),

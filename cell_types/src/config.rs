@@ -197,20 +197,64 @@ pub const DEFAULT_GRIPPER_RADIUS_M: f64 = 0.08;
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
 pub struct PerceptionSection {
-    /// Of the 1536 points sampled in EquAct's focus box, how many are first sampled within
-    /// `gripper_radius_m` of the TCP, at the dense cloud's spacing instead of the whole
-    /// scene's (0, the default: EquAct's plain split). A policy trained on clouds sampled
-    /// this way needs them sampled the same way at run time.
+    /// Points handed to the policy (2048, EquAct's); three quarters of them
+    /// ([`Self::points_inside`]) are sampled in the focus box, the rest outside it. A policy
+    /// that reads all of them (its weights' cloud size equal to this) sees every point the
+    /// fusion chose; one that reads fewer thins them by farthest point sampling.
+    pub points: usize,
+    /// Of the focus box's points, how many are first sampled within `gripper_radius_m` of
+    /// the TCP, at the dense cloud's spacing instead of the whole scene's (0, the default:
+    /// EquAct's plain split). A policy trained on clouds sampled this way needs them
+    /// sampled the same way at run time.
     pub gripper_points: usize,
     /// Radius (m) of that ball around the TCP.
     pub gripper_radius_m: f64,
+    /// Raise the focus box's floor to this height (m) above `workspace.table_height`, so its
+    /// share of the points goes to the objects standing on the table instead of the table
+    /// top (absent, the default: EquAct's box, whose floor is the table, -0.06 m). The table
+    /// then gets the quarter sampled outside the box.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub focus_above_table_m: Option<f64>,
 }
 
 impl Default for PerceptionSection {
     fn default() -> Self {
         Self {
+            points: DEFAULT_POLICY_POINTS,
             gripper_points: 0,
             gripper_radius_m: DEFAULT_GRIPPER_RADIUS_M,
+            focus_above_table_m: None,
+        }
+    }
+}
+
+/// Points the fusion hands to the policy by default (EquAct's 2048).
+pub const DEFAULT_POLICY_POINTS: usize = 2048;
+
+/// Fewest points `[perception] points` accepts (the network's neighbour graphs need some).
+pub const MIN_POLICY_POINTS: usize = 64;
+
+/// Most points `[perception] points` accepts.
+pub const MAX_POLICY_POINTS: usize = 16384;
+
+impl PerceptionSection {
+    /// How many of [`Self::points`] are sampled in the focus box: three quarters, EquAct's
+    /// split (1536 of 2048).
+    pub fn points_inside(&self) -> usize {
+        self.points * 3 / 4
+    }
+}
+
+impl std::fmt::Display for PerceptionSection {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(
+            f,
+            "points = {}, gripper_points = {} (radius {} m), ",
+            self.points, self.gripper_points, self.gripper_radius_m
+        )?;
+        match self.focus_above_table_m {
+            Some(h) => write!(f, "focus_above_table_m = {h}"),
+            None => write!(f, "focus box from the table (EquAct's)"),
         }
     }
 }
@@ -540,11 +584,25 @@ impl CellConfig {
             );
         }
         let pc = &self.perception;
-        if pc.gripper_points > 1536 {
+        if !(MIN_POLICY_POINTS..=MAX_POLICY_POINTS).contains(&pc.points) {
+            return invalid(
+                "perception.points",
+                &pc.points.to_string(),
+                &format!(
+                    "use {MIN_POLICY_POINTS}..={MAX_POLICY_POINTS} points (2048, EquAct's, \
+                     when in doubt)"
+                ),
+            );
+        }
+        if pc.gripper_points > pc.points_inside() {
             return invalid(
                 "perception.gripper_points",
                 &pc.gripper_points.to_string(),
-                "at most the 1536 points of EquAct's focus box (0 turns it off)",
+                &format!(
+                    "at most the {} points of the focus box (three quarters of \
+                     perception.points; 0 turns it off)",
+                    pc.points_inside()
+                ),
             );
         }
         if !(pc.gripper_radius_m.is_finite() && pc.gripper_radius_m > 0.0) {
@@ -553,6 +611,19 @@ impl CellConfig {
                 &pc.gripper_radius_m.to_string(),
                 "use a positive radius in metres, e.g. 0.08",
             );
+        }
+        if let Some(h) = pc.focus_above_table_m {
+            let room = w.max[2] - w.table_height;
+            if !(h.is_finite() && h >= 0.0 && h < room) {
+                return invalid(
+                    "perception.focus_above_table_m",
+                    &h.to_string(),
+                    &format!(
+                        "use a height in metres from 0 to below the workspace's top ({room:.2} m \
+                         above the table), e.g. 0.01"
+                    ),
+                );
+            }
         }
 
         if self.cameras.is_empty() {
@@ -814,6 +885,43 @@ mod tests {
         expect_invalid(&text, "perception.gripper_points");
         let text = format!("{}\n[perception]\ngripper_radius_m = -0.1\n", sim_text());
         expect_invalid(&text, "perception.gripper_radius_m");
+        assert_eq!(cfg.perception.points, 2048);
+        assert_eq!(cfg.perception.points_inside(), 1536);
+        assert_eq!(cfg.perception.focus_above_table_m, None);
+    }
+
+    #[test]
+    fn perception_points_and_focus_floor_are_checked() {
+        let set = format!(
+            "{}\n[perception]\npoints = 1024\nfocus_above_table_m = 0.01\n",
+            sim_text()
+        );
+        let cfg = CellConfig::from_toml_str(&set, "test").unwrap();
+        assert_eq!(cfg.perception.points, 1024);
+        assert_eq!(cfg.perception.points_inside(), 768);
+        assert_eq!(cfg.perception.focus_above_table_m, Some(0.01));
+        assert!(cfg
+            .perception
+            .to_string()
+            .contains("focus_above_table_m = 0.01"));
+        // The focus box's share shrinks with the total: 1000 near the gripper no longer fit.
+        let text = format!(
+            "{}\n[perception]\npoints = 1024\ngripper_points = 1000\n",
+            sim_text()
+        );
+        let p = expect_invalid(&text, "perception.gripper_points");
+        assert!(p.contains("768"), "{p}");
+        for bad in ["0", "63", "20000"] {
+            let text = format!("{}\n[perception]\npoints = {bad}\n", sim_text());
+            expect_invalid(&text, "perception.points");
+        }
+        for bad in ["-0.01", "0.7", "nan"] {
+            let text = format!(
+                "{}\n[perception]\nfocus_above_table_m = {bad}\n",
+                sim_text()
+            );
+            expect_invalid(&text, "perception.focus_above_table_m");
+        }
     }
 
     #[test]

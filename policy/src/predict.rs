@@ -357,8 +357,16 @@ pub struct PolicyConfig {
     pub workspace_bounds: [[f64; 3]; 2],
     /// Where the gripper may go [min, max] (m): the translation samples.
     pub gripper_bounds: [[f64; 3]; 2],
-    /// Table height (m): the focus box is the gripper bounds with this z-min.
+    /// Table height (m): the focus box is the gripper bounds with this z-min (plus
+    /// [`Self::focus_above_table`]).
     pub table_height: f64,
+    /// Height (m) of the focus box's floor above `table_height`: 0 in every built-in
+    /// configuration (EquAct's: the table top fills most of the focus box's share, a
+    /// strawberry gets 4 of 1024 points); raised (e.g. 0.01) the share goes to the objects
+    /// first, at their own spacing, and the table gets the `n_outside_focus` points. The
+    /// floor is a plane of the workspace frame, as the boxes are, so the sampling still
+    /// moves with the scene.
+    pub focus_above_table: f64,
     /// Translation sampling.
     pub sampling: SamplingConfig,
     /// Rotation search.
@@ -382,6 +390,7 @@ impl PolicyConfig {
             workspace_bounds: [[0.18, -0.39, -0.10], [0.96, 0.39, 0.53]],
             gripper_bounds: [[0.18, -0.39, -0.07], [0.96, 0.39, 0.53]],
             table_height: -0.06,
+            focus_above_table: 0.0,
             sampling: SamplingConfig {
                 levels: 3,
                 per_level: per - per % 3,
@@ -526,6 +535,13 @@ impl PolicyConfig {
         self
     }
 
+    /// The same configuration with the focus box's floor `h` m above the table
+    /// ([`Self::focus_above_table`]).
+    pub fn with_focus_above_table(mut self, h: f64) -> Self {
+        self.focus_above_table = h;
+        self
+    }
+
     /// The same configuration in another mode (sets the network's S2 grids and up-sampling
     /// distance).
     pub fn with_mode(mut self, mode: PolicyMode) -> Self {
@@ -586,6 +602,14 @@ impl PolicyConfig {
             return Err(PolicyError::BadConfig(format!(
                 "near_gripper_radius is {}: use a positive radius in metres, e.g. 0.08",
                 self.near_gripper_radius
+            )));
+        }
+        let floor = self.table_height + self.focus_above_table;
+        if !(self.focus_above_table >= 0.0 && floor < self.gripper_bounds[1][2]) {
+            return Err(PolicyError::BadConfig(format!(
+                "focus_above_table is {}: use a height in metres from 0 (EquAct's focus box) \
+                 to below the gripper bounds' top, e.g. 0.01",
+                self.focus_above_table
             )));
         }
         for b in [self.workspace_bounds, self.gripper_bounds] {
@@ -1383,7 +1407,7 @@ pub fn prepare_input(
     }
     let inv = cfg.base_from_workspace.inverse();
     let mut focus_box = cfg.gripper_bounds;
-    focus_box[0][2] = cfg.table_height;
+    focus_box[0][2] = cfg.table_height + cfg.focus_above_table;
     let (mut focused, mut other) = (Vec::new(), Vec::new());
     for (i, p) in raw.iter().enumerate() {
         let w = inv * Point3::new(f64::from(p[0]), f64::from(p[1]), f64::from(p[2]));

@@ -304,6 +304,10 @@ impl Trainer {
             crate::weights::NEAR_GRIPPER_POINTS_KEY,
             cfg.policy.n_near_gripper.to_string(),
         );
+        weights.set_metadata(
+            crate::weights::FOCUS_ABOVE_TABLE_KEY,
+            cfg.policy.focus_above_table.to_string(),
+        );
         Ok(Self {
             grid: LossGrid::new(cfg.rotation_grid_level)?,
             optim: AdamW::new(cfg.optim),
@@ -851,6 +855,10 @@ mod tests {
         assert_eq!(
             back.weights.metadata(crate::weights::N_POINTS_KEY),
             Some(n_points.to_string().as_str())
+        );
+        assert_eq!(
+            crate::weights::trained_focus_above_table(&dir.join(WEIGHTS_FILE)).unwrap(),
+            Some(trainer.cfg.policy.focus_above_table)
         );
         for key in trainer.weights.keys() {
             assert_eq!(

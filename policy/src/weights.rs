@@ -22,6 +22,10 @@ pub const N_POINTS_KEY: &str = "equact.n_points";
 /// (`PolicyConfig::n_near_gripper`); absent means 0, as in every file from before it.
 pub const NEAR_GRIPPER_POINTS_KEY: &str = "equact.near_gripper_points";
 
+/// Metadata key of the height (m) above the table of the focus box's floor the network
+/// was trained with (`PolicyConfig::focus_above_table`); absent means 0, EquAct's box.
+pub const FOCUS_ABOVE_TABLE_KEY: &str = "equact.focus_above_table_m";
+
 /// Metadata key of how trained weights came to be: a JSON array with one object per
 /// training run that led to them, oldest first, each that run's settings (its `train.json`)
 /// and `steps`, the optimiser steps it had taken when the file was written. `equact train`
@@ -52,8 +56,36 @@ pub fn trained_near_gripper_points(path: &Path) -> Result<Option<usize>> {
     header_count(path, NEAR_GRIPPER_POINTS_KEY)
 }
 
+/// The focus box's floor above the table the weights in `path` were trained with
+/// ([`FOCUS_ABOVE_TABLE_KEY`]), read from the header as [`trained_points`]; `None` when the
+/// file does not record it (that is 0).
+pub fn trained_focus_above_table(path: &Path) -> Result<Option<f64>> {
+    let Some(text) = header_metadata(path, FOCUS_ABOVE_TABLE_KEY)? else {
+        return Ok(None);
+    };
+    match text.parse::<f64>() {
+        Ok(h) if h.is_finite() && h >= 0.0 => Ok(Some(h)),
+        _ => Err(PolicyError::Safetensors {
+            path: path.to_path_buf(),
+            message: format!(
+                "{FOCUS_ABOVE_TABLE_KEY} is {text:?}: expected a height in metres, e.g. \"0.01\""
+            ),
+        }),
+    }
+}
+
 /// A count recorded under `key` in the safetensors header's metadata.
 fn header_count(path: &Path, key: &str) -> Result<Option<usize>> {
+    let value = header_metadata(path, key)?;
+    parse_count(key, value.as_deref()).map_err(|message| PolicyError::Safetensors {
+        path: path.to_path_buf(),
+        message,
+    })
+}
+
+/// The metadata value under `key` in the safetensors header of `path`, read without the
+/// tensors (a physical network's file is hundreds of megabytes); `None` when absent.
+pub fn header_metadata(path: &Path, key: &str) -> Result<Option<String>> {
     let bad = |message: String| PolicyError::Safetensors {
         path: path.to_path_buf(),
         message,
@@ -76,15 +108,15 @@ fn header_count(path: &Path, key: &str) -> Result<Option<usize>> {
     file.read_exact(&mut header).map_err(io)?;
     let header: serde_json::Value =
         serde_json::from_slice(&header).map_err(|e| bad(format!("header: {e}")))?;
-    let value = header
+    header
         .get("__metadata__")
         .and_then(|m| m.get(key))
         .map(|v| {
             v.as_str()
+                .map(str::to_string)
                 .ok_or_else(|| bad(format!("{key} is not a string")))
         })
-        .transpose()?;
-    parse_count(key, value).map_err(bad)
+        .transpose()
 }
 
 /// Parses a count of points recorded under `key`.

@@ -802,3 +802,58 @@ fn plain_heads_are_not_equivariant() {
     assert!(plain[0] > 1e-2, "{plain:?}");
     assert!(plain[2] > 1e-2, "{plain:?}");
 }
+
+#[test]
+fn a_raised_focus_floor_keeps_the_objects_points_and_moves_with_the_scene() {
+    // A table top just above the table height (inside EquAct's focus box) and one small
+    // object 3 cm above it: farthest point sampling at the table's spacing sees the object
+    // through a handful of points.
+    let cfg = PolicyConfig::tiny();
+    let table = cfg.table_height as f32;
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let mut pts = Vec::new();
+    for _ in 0..600 {
+        pts.push(Point3::new(
+            rng.random_range(0.25..0.9f32),
+            rng.random_range(-0.33..0.33f32),
+            table + 0.002,
+        ));
+    }
+    for _ in 0..60 {
+        pts.push(Point3::new(
+            0.5 + rng.random_range(-0.02..0.02f32),
+            rng.random_range(-0.02..0.02f32),
+            table + 0.03 + rng.random_range(0.0..0.02f32),
+        ));
+    }
+    let cloud = PointCloud::new(FrameId::Base, pts, None).unwrap();
+    let on_object = |floor: f64| {
+        let p = seeded(PolicyConfig::tiny().with_focus_above_table(floor), 5);
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        let prep = p.prepare(&cloud, &gripper(), &mut rng).unwrap();
+        assert_eq!(prep.xyz.len(), p.config().n_points);
+        prep.xyz.iter().filter(|q| q[2] > table + 0.01).count()
+    };
+    let (plain, raised) = (on_object(0.0), on_object(0.01));
+    assert!(
+        plain < 20,
+        "EquAct's box kept {plain} of the object's 60 points"
+    );
+    assert_eq!(
+        raised, 60,
+        "the raised box kept {raised} of the object's 60 points"
+    );
+    // The floor is a plane of the workspace frame: the keyframe moves with the scene.
+    let cfg = PolicyConfig::tiny()
+        .with_mode(PolicyMode::Gated)
+        .with_focus_above_table(0.01);
+    let (dt, _) = moved_keyframe_error_with(cfg, generic_motion());
+    assert!(dt < 1e-5, "translation error {dt} m");
+    // A floor below the table or above the gripper's reach is refused with the reason.
+    for bad in [-0.01, 1.0, f64::NAN] {
+        let err = Policy::random(PolicyConfig::tiny().with_focus_above_table(bad), 7)
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("focus_above_table"), "{err}");
+    }
+}

@@ -109,6 +109,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
                     "evaluating {}",
                     super::run::describe_weights(args.model.as_deref())
                 );
+                super::run::note_perception(
+                    args.model.as_deref(),
+                    &cfg.perception,
+                    "this cell's fusion",
+                )?;
                 let mut policy = LearnedPolicy::load_with(
                     network,
                     args.model.as_deref(),

@@ -345,7 +345,12 @@ fn load_scoring<'a>(a: &'a ScoreArgs, what: &str) -> anyhow::Result<Scoring<'a>>
         a.network,
         a.heads,
     )?);
-    equact::train::check_dataset_gripper_points(&a.demos, &network)?;
+    equact::train::check_dataset_perception(&a.demos, &network)?;
+    super::run::note_perception(
+        a.model.as_deref(),
+        &equact::demos::Index::load(&a.demos)?.perception,
+        &format!("the demonstrations in {}", a.demos.display()),
+    )?;
     let mut policy = equact::learned::load_network(network, a.model.as_deref(), &cfg)?;
     policy.set_threads(a.threads);
     let s = policy.config().sampling;
@@ -424,6 +429,9 @@ pub(crate) fn weights_info(weights: &policy::weights::Weights) -> anyhow::Result
     });
     if let Some(n) = weights.metadata(policy::weights::NEAR_GRIPPER_POINTS_KEY) {
         s.push_str(&format!("of them sampled first near the gripper: {n}\n"));
+    }
+    if let Some(h) = weights.metadata(policy::weights::FOCUS_ABOVE_TABLE_KEY) {
+        s.push_str(&format!("focus box floor above the table: {h} m\n"));
     }
     let runs = weights.training_history()?;
     if runs.is_empty() {

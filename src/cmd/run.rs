@@ -150,8 +150,25 @@ pub fn network_config(
         let near = policy::weights::trained_near_gripper_points(path)
             .with_context(|| format!("reading the weights file {}", path.display()))?;
         cfg = cfg.with_near_gripper_points(near.unwrap_or(0));
+        let floor = policy::weights::trained_focus_above_table(path)
+            .with_context(|| format!("reading the weights file {}", path.display()))?;
+        cfg = cfg.with_focus_above_table(floor.unwrap_or(0.0));
     }
     Ok(cfg)
+}
+
+/// Says on stderr when the clouds of `source` (sampled as `now`) are not sampled as the
+/// demonstrations of `weights` were (`equact::learned::perception_note`).
+pub(crate) fn note_perception(
+    weights: Option<&Path>,
+    now: &cell_types::config::PerceptionSection,
+    source: &str,
+) -> anyhow::Result<()> {
+    let trained = equact::learned::weights_perception(weights)?;
+    if let Some(note) = equact::learned::perception_note(&trained, now, source) {
+        eprintln!("{note}");
+    }
+    Ok(())
 }
 
 /// Names the weights a learned policy runs, for the terminal and the recordings.
@@ -196,6 +213,13 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
     } else {
         None
     };
+    if learned_chosen {
+        note_perception(
+            args.weights.as_deref(),
+            &cfg.perception,
+            "this cell's fusion",
+        )?;
+    }
     let kind = TaskKind::parse(&args.task).map_err(anyhow::Error::msg)?;
     if let (Some(text), false) = (&args.instruction, learned_chosen) {
         if *text != kind.instruction() {
@@ -539,6 +563,20 @@ mod tests {
         let cpu =
             network_config(Some(&file), Some(NetworkSize::Cpu), HeadsArg::Equivariant).unwrap();
         assert_eq!((cpu.n_points, cpu.n_outside_focus), (1024, 256));
+        assert_eq!(cpu.focus_above_table, 0.0);
+        // ... and where its focus box's floor was.
+        weights.set_metadata(policy::weights::FOCUS_ABOVE_TABLE_KEY, "0.01".into());
+        weights.save(&file).unwrap();
+        let raised =
+            network_config(Some(&file), Some(NetworkSize::Cpu), HeadsArg::Equivariant).unwrap();
+        assert_eq!(raised.focus_above_table, 0.01);
+        weights.set_metadata(policy::weights::FOCUS_ABOVE_TABLE_KEY, "-1".into());
+        weights.save(&file).unwrap();
+        let err = format!(
+            "{:#}",
+            network_config(Some(&file), Some(NetworkSize::Cpu), HeadsArg::Equivariant).unwrap_err()
+        );
+        assert!(err.contains("focus_above_table_m"), "{err}");
         // A file that cannot be read is named.
         let missing = dir.join("missing.safetensors");
         let err = format!(

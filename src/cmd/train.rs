@@ -208,6 +208,11 @@ struct RunSettings {
     /// Points sampled near the gripper first (runs from before the flag: 0).
     #[serde(default)]
     near_gripper_points: usize,
+    /// How the demonstrations' clouds were sampled, when not EquAct's plain way (their
+    /// index's `[perception]`; runs from before the field, and plain ones, leave it out):
+    /// `run` and `eval` compare it with the cell's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    perception: Option<cell_types::config::PerceptionSection>,
 }
 
 fn one() -> f32 {
@@ -279,7 +284,15 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         policy_cfg = policy_cfg.with_points(n);
     }
     policy_cfg = policy_cfg.with_near_gripper_points(args.near_gripper_points);
-    equact::train::check_dataset_gripper_points(&args.demos, &policy_cfg)?;
+    // The network's focus box follows its demonstrations': where their fusion gave the
+    // objects the focus box's share, the network keeps them instead of thinning them to
+    // the table's spacing.
+    let recorded = equact::demos::Index::load(&args.demos)?.perception;
+    if let Some(h) = recorded.focus_above_table_m {
+        policy_cfg = policy_cfg.with_focus_above_table(h);
+        println!("focus box floor {h} m above the table, as the demonstrations were sampled");
+    }
+    equact::train::check_dataset_perception(&args.demos, &policy_cfg)?;
     let cfg = TrainConfig {
         policy: policy_cfg,
         optim: AdamWConfig {
@@ -318,6 +331,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         sibling_negatives: args.sibling_negatives,
         points: args.points,
         near_gripper_points: args.near_gripper_points,
+        perception: equact::learned::recorded_perception(&recorded),
     };
     let (mut trainer, before) = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -619,8 +633,12 @@ mod tests {
         assert!(!s.sibling_negatives);
         assert_eq!(s.points, None);
         assert_eq!(s.near_gripper_points, 0);
+        assert_eq!(s.perception, None);
         assert_eq!(s.conditioning_lr_scale, 1.0);
         assert_eq!(s.init, None);
+        // A plain run writes no perception key: its settings read as before the field.
+        let plain = serde_json::to_string(&s).unwrap();
+        assert!(!plain.contains("perception"), "{plain}");
         // The cosine schedule spans the run's iterations; a resume asking for more steps
         // has other settings, so it cannot silently restart the decay.
         let c = ScheduleArg::Cosine.schedule(100, 2400);
@@ -690,6 +708,7 @@ mod tests {
             sibling_negatives: false,
             points: None,
             near_gripper_points: 0,
+            perception: None,
         };
         let history = |dir: &Path| {
             policy::weights::Weights::from_file(&dir.join(WEIGHTS_FILE))

@@ -72,3 +72,49 @@ fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it()
     assert!(leftovers.is_empty(), "{leftovers:?}");
     let _ = std::fs::remove_dir_all(&out);
 }
+
+/// Points of a recorded cloud more than `clearance` above the table: the objects.
+fn above_table(cloud: &[[f32; 3]], table: f64, clearance: f64) -> usize {
+    cloud
+        .iter()
+        .filter(|p| f64::from(p[2]) > table + clearance)
+        .count()
+}
+
+#[test]
+fn a_focus_box_raised_off_the_table_samples_the_objects_instead_of_the_table_top() {
+    let kind = TaskKind::DisassemblePipe(PipePart::FirstLink);
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut counts = Vec::new();
+    for raised in [false, true] {
+        let mut cfg = CellConfig::simulated().unwrap();
+        if raised {
+            cfg.perception.points = 1024;
+            cfg.perception.focus_above_table_m = Some(0.01);
+        }
+        let out = std::env::temp_dir().join(format!(
+            "equact-demos-focus-{raised}-{}",
+            std::process::id()
+        ));
+        let _ = std::fs::remove_dir_all(&out);
+        let s = collect(&cfg, &[kind], 1, 3, &out, &stop).unwrap();
+        assert_eq!(s.recorded, 1);
+        let index = Index::load(&out).unwrap();
+        assert_eq!(index.perception, cfg.perception);
+        let demo = read_shard(&out.join(index.episodes[0].file.as_ref().unwrap())).unwrap();
+        assert_eq!(demo.points, cfg.perception.points);
+        let first = &demo.steps[0].cloud_xyz;
+        let table = cfg.workspace.table_height;
+        counts.push((above_table(first, table, 0.01), first.len()));
+        let _ = std::fs::remove_dir_all(&out);
+    }
+    let ((plain, of_plain), (raised, of_raised)) = (counts[0], counts[1]);
+    // EquAct's box starts at the table: the pipe is a few dozen of 2048 points.
+    assert!(plain < 150, "{plain} of {of_plain} above the table");
+    // Raised, the box's three quarters go to the pipe, and the table keeps a quarter.
+    assert!(
+        raised > 4 * plain,
+        "{raised} of {of_raised} against {plain}"
+    );
+    assert!(of_raised - raised >= 200, "{raised} of {of_raised}");
+}
