@@ -616,19 +616,38 @@ mod tests {
         // Training or scoring a network that samples near the gripper on these clouds is
         // refused; on clouds recorded densely enough it is not.
         let network = policy::builtin::config().with_near_gripper_points(48);
-        let err = crate::train::check_dataset_perception(&dir, &network).unwrap_err();
+        let err = crate::train::check_dataset_perception(
+            &Index::load(&dir).unwrap().perception,
+            &dir,
+            &network,
+        )
+        .unwrap_err();
         assert!(err.to_string().contains("gripper_points"), "{err}");
         let mut index = Index::load(&dir).unwrap();
         index.perception.gripper_points = 256;
         index.save(&dir).unwrap();
-        assert!(crate::train::check_dataset_perception(&dir, &network).is_ok());
-        assert!(crate::train::check_dataset_perception(&dir, &policy::builtin::config()).is_ok());
+        assert!(crate::train::check_dataset_perception(
+            &Index::load(&dir).unwrap().perception,
+            &dir,
+            &network
+        )
+        .is_ok());
+        assert!(crate::train::check_dataset_perception(
+            &Index::load(&dir).unwrap().perception,
+            &dir,
+            &policy::builtin::config()
+        )
+        .is_ok());
         // A network reading more points than the clouds hold is refused too.
         index.perception.points = 512;
         index.save(&dir).unwrap();
-        let err = crate::train::check_dataset_perception(&dir, &policy::builtin::config())
-            .unwrap_err()
-            .to_string();
+        let err = crate::train::check_dataset_perception(
+            &Index::load(&dir).unwrap().perception,
+            &dir,
+            &policy::builtin::config(),
+        )
+        .unwrap_err()
+        .to_string();
         assert!(err.contains("[perception] points"), "{err}");
         let _ = fs::remove_dir_all(&dir);
     }

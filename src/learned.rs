@@ -281,18 +281,9 @@ pub fn weights_perception(weights: Option<&Path>) -> anyhow::Result<PerceptionSe
     let Some(path) = weights else {
         return Ok(PerceptionSection::default());
     };
-    let history = policy::weights::header_metadata(path, policy::weights::TRAINING_KEY)
+    let runs = policy::weights::Weights::header_only(path)
+        .and_then(|header| header.training_history())
         .with_context(|| format!("reading the weights file {}", path.display()))?;
-    let runs: Vec<serde_json::Value> = match history {
-        Some(text) => serde_json::from_str(&text).with_context(|| {
-            format!(
-                "{}: metadata {} is not a JSON array",
-                path.display(),
-                policy::weights::TRAINING_KEY
-            )
-        })?,
-        None => Vec::new(),
-    };
     trained_perception(&runs)
 }
 

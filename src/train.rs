@@ -9,7 +9,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::Context;
-use cell_types::config::CellConfig;
+use cell_types::config::{CellConfig, PerceptionSection};
 use cell_types::{FrameId, PointCloud};
 use nalgebra::Point3;
 use policy::predict::{GripperPose, InstructionEmbedding, PolicyConfig};
@@ -97,12 +97,15 @@ pub struct DemoSample {
 
 /// Refuses to train or score `network` on the demonstrations in `dir` when it reads more
 /// points than their clouds hold, or samples more near the gripper than they hold there
-/// (their index says how they were recorded).
-pub fn check_dataset_perception(dir: &Path, network: &PolicyConfig) -> anyhow::Result<()> {
-    let recorded = Index::load(dir)?.perception;
+/// (`recorded`: how their index says they were recorded).
+pub fn check_dataset_perception(
+    recorded: &PerceptionSection,
+    dir: &Path,
+    network: &PolicyConfig,
+) -> anyhow::Result<()> {
     crate::learned::check_perception(
         network,
-        &recorded,
+        recorded,
         &format!("the demonstrations in {}", dir.display()),
         "record them with [perception] gripper_points of at least that (`equact demos collect \
          --config` a cell file with it), or use a network with fewer (--near-gripper-points)",

@@ -857,7 +857,10 @@ mod tests {
             Some(n_points.to_string().as_str())
         );
         assert_eq!(
-            crate::weights::trained_focus_above_table(&dir.join(WEIGHTS_FILE)).unwrap(),
+            crate::weights::Weights::header_only(&dir.join(WEIGHTS_FILE))
+                .unwrap()
+                .trained_focus_above_table()
+                .unwrap(),
             Some(trainer.cfg.policy.focus_above_table)
         );
         for key in trainer.weights.keys() {

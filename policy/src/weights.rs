@@ -42,50 +42,15 @@ pub struct Weights {
 }
 
 /// The number of cloud points the weights in `path` were trained with ([`N_POINTS_KEY`]),
-/// read from the safetensors header alone (a physical network's file is hundreds of
-/// megabytes); `None` when the file does not record it (weights from before it was, or a
-/// converted reference checkpoint).
+/// read from the safetensors header alone ([`Weights::header_only`]); `None` when the file
+/// does not record it (weights from before it was, or a converted reference checkpoint).
 pub fn trained_points(path: &Path) -> Result<Option<usize>> {
-    header_count(path, N_POINTS_KEY)
+    Weights::header_only(path)?.trained_points()
 }
 
-/// How many of the trained cloud points were sampled near the gripper
-/// ([`NEAR_GRIPPER_POINTS_KEY`]), read from the header as [`trained_points`]; `None` when
-/// the file does not record it (that is 0).
-pub fn trained_near_gripper_points(path: &Path) -> Result<Option<usize>> {
-    header_count(path, NEAR_GRIPPER_POINTS_KEY)
-}
-
-/// The focus box's floor above the table the weights in `path` were trained with
-/// ([`FOCUS_ABOVE_TABLE_KEY`]), read from the header as [`trained_points`]; `None` when the
-/// file does not record it (that is 0).
-pub fn trained_focus_above_table(path: &Path) -> Result<Option<f64>> {
-    let Some(text) = header_metadata(path, FOCUS_ABOVE_TABLE_KEY)? else {
-        return Ok(None);
-    };
-    match text.parse::<f64>() {
-        Ok(h) if h.is_finite() && h >= 0.0 => Ok(Some(h)),
-        _ => Err(PolicyError::Safetensors {
-            path: path.to_path_buf(),
-            message: format!(
-                "{FOCUS_ABOVE_TABLE_KEY} is {text:?}: expected a height in metres, e.g. \"0.01\""
-            ),
-        }),
-    }
-}
-
-/// A count recorded under `key` in the safetensors header's metadata.
-fn header_count(path: &Path, key: &str) -> Result<Option<usize>> {
-    let value = header_metadata(path, key)?;
-    parse_count(key, value.as_deref()).map_err(|message| PolicyError::Safetensors {
-        path: path.to_path_buf(),
-        message,
-    })
-}
-
-/// The metadata value under `key` in the safetensors header of `path`, read without the
-/// tensors (a physical network's file is hundreds of megabytes); `None` when absent.
-pub fn header_metadata(path: &Path, key: &str) -> Result<Option<String>> {
+/// The metadata of the safetensors header of `path`, read without the tensors (a physical
+/// network's file is hundreds of megabytes).
+fn read_header_metadata(path: &Path) -> Result<BTreeMap<String, String>> {
     let bad = |message: String| PolicyError::Safetensors {
         path: path.to_path_buf(),
         message,
@@ -108,15 +73,16 @@ pub fn header_metadata(path: &Path, key: &str) -> Result<Option<String>> {
     file.read_exact(&mut header).map_err(io)?;
     let header: serde_json::Value =
         serde_json::from_slice(&header).map_err(|e| bad(format!("header: {e}")))?;
-    header
-        .get("__metadata__")
-        .and_then(|m| m.get(key))
-        .map(|v| {
-            v.as_str()
-                .map(str::to_string)
-                .ok_or_else(|| bad(format!("{key} is not a string")))
+    let Some(metadata) = header.get("__metadata__").and_then(|m| m.as_object()) else {
+        return Ok(BTreeMap::new());
+    };
+    metadata
+        .iter()
+        .map(|(key, v)| match v.as_str() {
+            Some(text) => Ok((key.clone(), text.to_string())),
+            None => Err(bad(format!("{key} is not a string"))),
         })
-        .transpose()
+        .collect()
 }
 
 /// Parses a count of points recorded under `key`.
@@ -168,6 +134,16 @@ impl Weights {
         })
     }
 
+    /// The metadata of the safetensors file `path` without its tensors: enough for the
+    /// `trained_*` settings and the training history, read in one pass over the header.
+    pub fn header_only(path: &Path) -> Result<Self> {
+        Ok(Self {
+            source: path.display().to_string(),
+            tensors: HashMap::new(),
+            metadata: read_header_metadata(path)?,
+        })
+    }
+
     /// Wraps tensors already in memory (no metadata); `source` names them in error messages.
     pub fn from_tensors(source: &str, tensors: HashMap<String, StoredTensor>) -> Self {
         Self {
@@ -190,12 +166,40 @@ impl Weights {
     /// The number of cloud points these weights were trained with ([`N_POINTS_KEY`]), as
     /// [`trained_points`] reads it from a file's header; `None` when not recorded.
     pub fn trained_points(&self) -> Result<Option<usize>> {
-        parse_count(N_POINTS_KEY, self.metadata(N_POINTS_KEY)).map_err(|message| {
-            PolicyError::Safetensors {
-                path: self.source.clone().into(),
-                message,
-            }
-        })
+        parse_count(N_POINTS_KEY, self.metadata(N_POINTS_KEY))
+            .map_err(|message| self.bad_metadata(message))
+    }
+
+    /// How many of the trained cloud points were sampled near the gripper
+    /// ([`NEAR_GRIPPER_POINTS_KEY`]); `None` when not recorded (that is 0).
+    pub fn trained_near_gripper_points(&self) -> Result<Option<usize>> {
+        parse_count(
+            NEAR_GRIPPER_POINTS_KEY,
+            self.metadata(NEAR_GRIPPER_POINTS_KEY),
+        )
+        .map_err(|message| self.bad_metadata(message))
+    }
+
+    /// The focus box's floor above the table these weights were trained with
+    /// ([`FOCUS_ABOVE_TABLE_KEY`]); `None` when not recorded (that is 0).
+    pub fn trained_focus_above_table(&self) -> Result<Option<f64>> {
+        let Some(text) = self.metadata(FOCUS_ABOVE_TABLE_KEY) else {
+            return Ok(None);
+        };
+        match text.parse::<f64>() {
+            Ok(h) if h.is_finite() && h >= 0.0 => Ok(Some(h)),
+            _ => Err(self.bad_metadata(format!(
+                "{FOCUS_ABOVE_TABLE_KEY} is {text:?}: expected a height in metres, e.g. \"0.01\""
+            ))),
+        }
+    }
+
+    /// The error for a metadata value of this file that cannot be read.
+    fn bad_metadata(&self, message: String) -> PolicyError {
+        PolicyError::Safetensors {
+            path: self.source.clone().into(),
+            message,
+        }
     }
 
     /// The training runs that led to these weights ([`TRAINING_KEY`], oldest first); empty

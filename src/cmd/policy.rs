@@ -345,10 +345,11 @@ fn load_scoring<'a>(a: &'a ScoreArgs, what: &str) -> anyhow::Result<Scoring<'a>>
         a.network,
         a.heads,
     )?);
-    equact::train::check_dataset_perception(&a.demos, &network)?;
+    let recorded = equact::demos::Index::load(&a.demos)?.perception;
+    equact::train::check_dataset_perception(&recorded, &a.demos, &network)?;
     super::run::note_perception(
         a.model.as_deref(),
-        &equact::demos::Index::load(&a.demos)?.perception,
+        &recorded,
         &format!("the demonstrations in {}", a.demos.display()),
     )?;
     let mut policy = equact::learned::load_network(network, a.model.as_deref(), &cfg)?;

@@ -142,16 +142,13 @@ pub fn network_config(
     if let Some(path) = weights {
         // A network trained on another point count than its size's default says so in its
         // file; feeding it the default would blur what it learned.
-        let trained = policy::weights::trained_points(path)
+        let header = policy::weights::Weights::header_only(path)
             .with_context(|| format!("reading the weights file {}", path.display()))?;
-        if let Some(n) = trained {
+        if let Some(n) = header.trained_points()? {
             cfg = cfg.with_points(n);
         }
-        let near = policy::weights::trained_near_gripper_points(path)
-            .with_context(|| format!("reading the weights file {}", path.display()))?;
-        cfg = cfg.with_near_gripper_points(near.unwrap_or(0));
-        let floor = policy::weights::trained_focus_above_table(path)
-            .with_context(|| format!("reading the weights file {}", path.display()))?;
+        cfg = cfg.with_near_gripper_points(header.trained_near_gripper_points()?.unwrap_or(0));
+        let floor = header.trained_focus_above_table()?;
         cfg = cfg.with_focus_above_table(floor.unwrap_or(0.0));
     }
     Ok(cfg)

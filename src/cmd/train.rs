@@ -292,7 +292,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         policy_cfg = policy_cfg.with_focus_above_table(h);
         println!("focus box floor {h} m above the table, as the demonstrations were sampled");
     }
-    equact::train::check_dataset_perception(&args.demos, &policy_cfg)?;
+    equact::train::check_dataset_perception(&recorded, &args.demos, &policy_cfg)?;
     let cfg = TrainConfig {
         policy: policy_cfg,
         optim: AdamWConfig {
