@@ -626,14 +626,9 @@ mod tests {
         let mut index = Index::load(&dir).unwrap();
         index.perception.gripper_points = 256;
         index.save(&dir).unwrap();
+        assert!(crate::train::check_dataset_perception(&index.perception, &dir, &network).is_ok());
         assert!(crate::train::check_dataset_perception(
-            &Index::load(&dir).unwrap().perception,
-            &dir,
-            &network
-        )
-        .is_ok());
-        assert!(crate::train::check_dataset_perception(
-            &Index::load(&dir).unwrap().perception,
+            &index.perception,
             &dir,
             &policy::builtin::config()
         )
@@ -642,7 +637,7 @@ mod tests {
         index.perception.points = 512;
         index.save(&dir).unwrap();
         let err = crate::train::check_dataset_perception(
-            &Index::load(&dir).unwrap().perception,
+            &index.perception,
             &dir,
             &policy::builtin::config(),
         )
