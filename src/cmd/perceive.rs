@@ -87,7 +87,8 @@ type Captured = (
     Vec<Capsule>,
 );
 
-/// Renders the simulated rig of the default cell.
+/// Renders the simulated rig of the default cell and fuses it with the built-in simulated
+/// cell's fusion settings (those of `equact run`).
 fn simulated(args: &PerceiveArgs) -> anyhow::Result<Captured> {
     let mode = parse_mode(&args.mode)?;
     let scene = Scene::default_cell();
@@ -97,10 +98,8 @@ fn simulated(args: &PerceiveArgs) -> anyhow::Result<Captured> {
         c.intrinsics = Intrinsics::d455_depth(mode);
     }
     let frames = render_rig(&rig, &geometry, 0, Duration::ZERO)?;
-    let params = FusionParams {
-        seed: args.seed,
-        ..FusionParams::default()
-    };
+    // Fused as the simulated episodes fuse: the built-in cell's workspace and sampling.
+    let params = equact::episode::fusion_params(&super::config::load(None)?, args.seed);
     Ok((
         frames,
         rig.iter().map(|c| c.name.clone()).collect(),
