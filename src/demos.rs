@@ -626,6 +626,7 @@ mod tests {
         let mut index = Index::load(&dir).unwrap();
         index.perception.gripper_points = 256;
         index.save(&dir).unwrap();
+        assert_eq!(Index::load(&dir).unwrap().perception, index.perception);
         assert!(crate::train::check_dataset_perception(&index.perception, &dir, &network).is_ok());
         assert!(crate::train::check_dataset_perception(
             &index.perception,
@@ -636,6 +637,7 @@ mod tests {
         // A network reading more points than the clouds hold is refused too.
         index.perception.points = 512;
         index.save(&dir).unwrap();
+        assert_eq!(Index::load(&dir).unwrap().perception, index.perception);
         let err = crate::train::check_dataset_perception(
             &index.perception,
             &dir,
