@@ -26,8 +26,8 @@ const WEIGHTS: &[u8] = include_bytes!("../weights/cpu_gated.safetensors");
 const INSTRUCTIONS: &[u8] = include_bytes!("../weights/minilm_instructions.safetensors");
 
 /// Cloud points the built-in network was trained with (twice [`PolicyConfig::cpu`]'s
-/// default: its last 1900 training steps were at this density, the final 1000 with a fourth
-/// translation-loss level; the weights file records the count).
+/// default: its last 900 training steps were at this density; the weights file records the
+/// count).
 pub const POINTS: usize = 1024;
 
 /// The network configuration the built-in weights were trained with (before it is adapted
@@ -106,15 +106,19 @@ mod tests {
             w.metadata(crate::weights::N_POINTS_KEY),
             Some(POINTS.to_string().as_str())
         );
-        // And how it was trained: four runs, the last 1000 steps at these points with a
-        // fourth translation-loss level (the README's reproduction chain).
+        // And how it was trained: three runs, all with instruction pairs and sibling
+        // negatives, the first from random weights, the last 900 steps at these points
+        // (the README's reproduction chain).
         let runs = w.training_history().unwrap();
         let steps: Vec<_> = runs.iter().map(|r| r["steps"].as_u64()).collect();
-        assert_eq!(steps, [Some(6124), Some(2400), Some(900), Some(1000)]);
-        let last = &runs[3];
+        assert_eq!(steps, [Some(6000), Some(2400), Some(900)]);
+        assert!(runs
+            .iter()
+            .all(|r| r["paired"] == true && r["sibling_negatives"] == true));
+        let last = &runs[2];
         assert_eq!(
             (last["points"].as_u64(), last["levels"].as_u64()),
-            (Some(POINTS as u64), Some(4))
+            (Some(POINTS as u64), Some(3))
         );
         let cfg = config();
         let fresh = crate::init::random_weights(&cfg.model, &cfg.extra, 0);
