@@ -103,8 +103,12 @@ pub trait TaskMonitor {
     }
     /// The gripper is about to close at `q`.
     fn before_close(&mut self, _q: &Joints) {}
-    /// The gripper finished moving at `q`; `holding` as the gripper reports.
-    fn after_gripper(&mut self, _q: &Joints, _holding: bool) {}
+    /// The gripper finished moving at `q`; `holding` as the gripper reports. Returns what
+    /// happened to an object, in words, where the cell knows (simulation: "released the large
+    /// toilet roll: let go 14.2 mm from the spindle's axis ..."); `None` on a real cell.
+    fn after_gripper(&mut self, _q: &Joints, _holding: bool) -> Option<String> {
+        None
+    }
 }
 
 impl TaskMonitor for SimWorld {
@@ -123,8 +127,8 @@ impl TaskMonitor for SimWorld {
     fn before_close(&mut self, q: &Joints) {
         SimWorld::before_close(self, q);
     }
-    fn after_gripper(&mut self, q: &Joints, holding: bool) {
-        SimWorld::after_gripper(self, q, holding);
+    fn after_gripper(&mut self, q: &Joints, holding: bool) -> Option<String> {
+        SimWorld::after_gripper(self, q, holding).map(|e| e.to_string())
     }
 }
 
@@ -220,6 +224,9 @@ pub struct EpisodeReport {
     pub steps: usize,
     /// What happened, in words.
     pub detail: String,
+    /// What the gripper did to objects, in words, with the keyframe (index from 0) at which
+    /// it happened; empty on a real cell, which cannot tell.
+    pub gripper_events: Vec<(usize, String)>,
     /// The recording.
     pub recording: PathBuf,
     /// Messages recorded per topic.
@@ -358,8 +365,17 @@ pub fn run_episode(
     seed: u64,
 ) -> EpisodeReport {
     let mut steps = 0;
+    let mut gripper_events = Vec::new();
     let (outcome, detail) = match episode_steps(
-        cfg, &mut cell, policy, recorder, interrupt, clock, seed, &mut steps,
+        cfg,
+        &mut cell,
+        policy,
+        recorder,
+        interrupt,
+        clock,
+        seed,
+        &mut steps,
+        &mut gripper_events,
     ) {
         Ok((o, d)) => (o, d),
         Err(e) => (Outcome::Error, format!("{e:#}")),
@@ -397,6 +413,7 @@ pub fn run_episode(
         outcome,
         steps,
         detail,
+        gripper_events,
         recording: recorder.path().to_path_buf(),
         counts,
     }
@@ -412,6 +429,7 @@ fn episode_steps(
     clock: &dyn Clock,
     seed: u64,
     steps: &mut usize,
+    gripper_events: &mut Vec<(usize, String)>,
 ) -> anyhow::Result<(Outcome, String)> {
     let planner = planner_from_config(cfg)?;
     let fusion = FusionPipeline::new(cell.calibration.clone(), fusion_params(cfg, seed))?;
@@ -661,6 +679,7 @@ fn episode_steps(
         // Gripper.
         let t5 = Instant::now();
         let was_open = gstate.width_m > 0.08;
+        let mut event = None;
         if keyframe.gripper_open != was_open {
             let result = if keyframe.gripper_open {
                 cell.gripper.open()
@@ -677,7 +696,7 @@ fn episode_steps(
                     ))
                 }
             };
-            cell.task.after_gripper(&final_q, gstate.holds_object());
+            event = cell.task.after_gripper(&final_q, gstate.holds_object());
             cell.task.update_robot(&final_q, gstate.width_m)?;
         }
         let gripper_s = t5.elapsed().as_secs_f64();
@@ -720,9 +739,10 @@ fn episode_steps(
                 "gripper",
                 gripper_s,
                 format!(
-                    "width {:.4} m, holds object: {}",
+                    "width {:.4} m, holds object: {}{}",
                     gstate.width_m,
-                    gstate.holds_object()
+                    gstate.holds_object(),
+                    event.as_ref().map(|e| format!("; {e}")).unwrap_or_default()
                 ),
             ),
         ] {
@@ -749,6 +769,10 @@ fn episode_steps(
             exec_s,
             gripper_s,
         );
+        if let Some(e) = event {
+            println!("           {e}");
+            gripper_events.push((step, e));
+        }
         if cell.task.success() == Some(true) {
             return Ok((
                 Outcome::Success,

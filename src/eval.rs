@@ -242,7 +242,11 @@ pub fn evaluate(
             let why = if success {
                 String::new()
             } else {
-                format!(": {}", report.detail)
+                format!(
+                    ": {}{}",
+                    report.detail,
+                    gripper_summary(&report.gripper_events)
+                )
             };
             progress(&format!(
                 "[{done}/{total}] {} seed {seed}: {} after {} keyframes ({}/{} so far){why}",
@@ -259,4 +263,41 @@ pub fn evaluate(
         }
     }
     Ok(table)
+}
+
+/// Gripper events shown on a failed episode's line: the first grasp, the first release and
+/// the first re-grasp usually say why it failed.
+const EVENTS_SHOWN: usize = 3;
+
+/// A failed episode's gripper events for its progress line: ` | keyframe K: event` for the
+/// first [`EVENTS_SHOWN`], then how many more; empty without events.
+pub fn gripper_summary(events: &[(usize, String)]) -> String {
+    let mut s: String = events
+        .iter()
+        .take(EVENTS_SHOWN)
+        .map(|(k, e)| format!(" | keyframe {k}: {e}"))
+        .collect();
+    if events.len() > EVENTS_SHOWN {
+        s.push_str(&format!(
+            " | {} more gripper events",
+            events.len() - EVENTS_SHOWN
+        ));
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_failed_episodes_line_shows_its_first_gripper_events() {
+        assert_eq!(gripper_summary(&[]), "");
+        let events: Vec<(usize, String)> = (0..5).map(|k| (2 * k, format!("event {k}"))).collect();
+        assert_eq!(gripper_summary(&events[..1]), " | keyframe 0: event 0");
+        assert_eq!(
+            gripper_summary(&events),
+            " | keyframe 0: event 0 | keyframe 2: event 1 | keyframe 4: event 2 | 2 more gripper events"
+        );
+    }
 }

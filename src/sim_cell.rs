@@ -21,7 +21,7 @@ use hil_sim::scene::{Scene, HOME_Q};
 use hil_sim::ur_controller::{self, UrSimConfig, UrSimHandle};
 use nalgebra::{Isometry3, Translation3, Vector3};
 
-use crate::task::world::TaskWorld;
+use crate::task::world::{GripperEvent, TaskWorld};
 use crate::task::TaskInstance;
 
 /// Control cycles without data before the driver stops a motion, in the simulated cell.
@@ -93,15 +93,16 @@ impl SimWorld {
 
     /// After a gripper motion: a closed gripper with its fingers on an object carries it;
     /// opening releases it, and it comes to rest where the task says (the table, or the
-    /// target of a place task).
-    pub fn after_gripper(&mut self, q: &Joints, holding: bool) {
+    /// target of a place task). Returns what happened to a body, if anything.
+    pub fn after_gripper(&mut self, q: &Joints, holding: bool) -> Option<GripperEvent> {
         let tcp = self.tcp(q);
         let was_held = self.truth.held().is_some();
-        self.truth.after_gripper(&tcp, holding);
+        let event = self.truth.after_gripper(&tcp, holding);
         if was_held && self.truth.held().is_none() {
             self.gripper.set_object(None);
         }
         self.place_bodies();
+        event
     }
 
     fn place_bodies(&mut self) {

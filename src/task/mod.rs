@@ -290,6 +290,30 @@ impl TaskInstance {
             TaskKind::InstallToiletRoll(s) => toilet_roll::released(self, s, index, pose),
         }
     }
+
+    /// In words, where body `index` was let go at `let_go` (relative to where the task needs
+    /// it, where that matters) and where it came to rest at `rest`.
+    pub fn describe_release(
+        &self,
+        index: usize,
+        let_go: &Isometry3<f64>,
+        rest: &Isometry3<f64>,
+    ) -> String {
+        if let TaskKind::InstallToiletRoll(s) = self.kind {
+            if let Some(words) = toilet_roll::describe_release(self, s, index, let_go) {
+                return words;
+            }
+        }
+        let drop = let_go.translation.vector.z - rest.translation.vector.z;
+        let p = rest.translation.vector;
+        format!(
+            "it fell {:.0} mm and came to rest at [{:.3}, {:.3}, {:.3}] m",
+            rounded_mm(drop, 0),
+            p.x,
+            p.y,
+            p.z
+        )
+    }
 }
 
 /// How far body `i` is from where the task placed it (m).
@@ -406,6 +430,14 @@ pub(crate) fn lying_on_table(
         ),
         UnitQuaternion::from_axis_angle(&Vector3::z_axis(), heading),
     )
+}
+
+/// A length (m) in millimetres rounded to `decimals` places, for reports: a value that
+/// rounds to zero prints as 0, never "-0".
+pub(crate) fn rounded_mm(m: f64, decimals: i32) -> f64 {
+    let scale = 10f64.powi(decimals);
+    // Adding 0.0 turns the −0.0 that rounding a small negative value gives into 0.0.
+    (m * 1e3 * scale).round() / scale + 0.0
 }
 
 /// Angle between two unit vectors (rad).

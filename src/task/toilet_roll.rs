@@ -13,8 +13,8 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::{
-    angle_between, grasp_rotation, keyframe, keyframe_through, pedestal, sample_fixture, Body,
-    BodyPart, GraspSite, TaskInstance, TaskKind, HALF_TURN,
+    angle_between, grasp_rotation, keyframe, keyframe_through, pedestal, rounded_mm,
+    sample_fixture, Body, BodyPart, GraspSite, TaskInstance, TaskKind, HALF_TURN,
 };
 
 /// Radius of the holder's spindle (m).
@@ -227,9 +227,49 @@ pub(crate) fn on_table(
         && (pose.translation.vector.z - (task.table_height + size.half_height())).abs() < 1e-3
 }
 
-/// A released roll whose hole is around the spindle (axis within 15°, centre within the
-/// hole's play, bottom between the seat and the spindle's top) slides down onto the seat;
-/// anywhere else it falls onto the table, upright.
+/// Where a roll let go sits relative to the holder's spindle.
+#[derive(Copy, Clone, Debug, PartialEq)]
+struct OverSpindle {
+    /// Distance of the roll's centre from the spindle's axis (m).
+    radial: f64,
+    /// Angle between the roll's axis and the spindle's (rad).
+    tilt: f64,
+    /// Height of the roll's bottom above the holder's seat (m).
+    bottom: f64,
+}
+
+/// The hole's play around the spindle: a roll whose centre is further off the axis does not
+/// go over it (m).
+const HOLE_PLAY: f64 = HOLE_RADIUS - SPINDLE_RADIUS;
+/// Largest tilt of a roll that still slides down the spindle.
+const SEAT_TILT_DEG: f64 = 15.0;
+/// Lowest and highest roll bottom (above the seat) that still slides down the spindle (m):
+/// from just below the seat's face to the spindle's top.
+const SEAT_BOTTOM: std::ops::Range<f64> = -0.005..SPINDLE_HEIGHT;
+
+impl OverSpindle {
+    /// Measures a roll of `size` at `pose` against `task`'s holder.
+    fn measure(task: &TaskInstance, size: RollSize, pose: &Isometry3<f64>) -> Self {
+        let local = task.base_from_fixture.inverse() * pose;
+        let c = local.translation.vector;
+        Self {
+            radial: c.x.hypot(c.y),
+            tilt: angle_between(&(local.rotation * Vector3::z()), &Vector3::z()),
+            bottom: c.z - size.half_height(),
+        }
+    }
+
+    /// Whether the roll's hole is around the spindle: axis within [`SEAT_TILT_DEG`], centre
+    /// within the hole's play, bottom between the seat and the spindle's top.
+    fn seats(&self) -> bool {
+        self.tilt < SEAT_TILT_DEG.to_radians()
+            && self.radial < HOLE_PLAY
+            && SEAT_BOTTOM.contains(&self.bottom)
+    }
+}
+
+/// A released roll whose hole is around the spindle ([`OverSpindle::seats`]) slides down
+/// onto the seat; anywhere else it falls onto the table, upright.
 pub(crate) fn released(
     task: &TaskInstance,
     size: RollSize,
@@ -240,15 +280,8 @@ pub(crate) fn released(
     if index != 1 {
         return *pose;
     }
-    let local = task.base_from_fixture.inverse() * pose;
-    let c = local.translation.vector;
-    let axis = local.rotation * Vector3::z();
-    let radial = (c.x * c.x + c.y * c.y).sqrt();
-    let bottom = c.z - h;
-    if angle_between(&axis, &Vector3::z()) < 15f64.to_radians()
-        && radial < HOLE_RADIUS - SPINDLE_RADIUS
-        && (-0.005..SPINDLE_HEIGHT).contains(&bottom)
-    {
+    if OverSpindle::measure(task, size, pose).seats() {
+        let local = task.base_from_fixture.inverse() * pose;
         let x = local.rotation * Vector3::x();
         let yaw = x.y.atan2(x.x);
         return task.base_from_fixture
@@ -266,6 +299,36 @@ pub(crate) fn released(
         ),
         UnitQuaternion::from_axis_angle(&Vector3::z_axis(), x.y.atan2(x.x)),
     )
+}
+
+/// The roll (body 1) let go at `pose`, in words: how far from the spindle's axis against the
+/// hole's play, its tilt and height, and whether it went onto the spindle; `None` for
+/// another body.
+pub(crate) fn describe_release(
+    task: &TaskInstance,
+    size: RollSize,
+    index: usize,
+    pose: &Isometry3<f64>,
+) -> Option<String> {
+    if index != 1 {
+        return None;
+    }
+    let m = OverSpindle::measure(task, size, pose);
+    Some(format!(
+        "let go {:.1} mm from the spindle's axis (a roll goes over it within {:.0} mm), tilted \
+         {:.0}° (within {SEAT_TILT_DEG:.0}°), its bottom {:.0} mm above the seat ({:.0} to {:.0}); {}",
+        rounded_mm(m.radial, 1),
+        rounded_mm(HOLE_PLAY, 0),
+        m.tilt.to_degrees(),
+        rounded_mm(m.bottom, 0),
+        rounded_mm(SEAT_BOTTOM.start, 0),
+        rounded_mm(SEAT_BOTTOM.end, 0),
+        if m.seats() {
+            "it slid down onto the spindle"
+        } else {
+            "it fell onto the table"
+        }
+    ))
 }
 
 #[cfg(test)]
@@ -331,5 +394,58 @@ mod tests {
         poses[1] = t.released_pose(1, &beside);
         assert!(!t.success(&poses, None));
         assert!((poses[1].translation.vector.z - (-0.06 + h)).abs() < 1e-9);
+    }
+
+    /// The release report measures what the seating rule measures: just inside the hole's
+    /// play seats and says so, just outside falls and says so, with the distance.
+    #[test]
+    fn the_release_report_says_how_far_off_the_spindle_the_roll_was_let_go() {
+        let t = TaskInstance::sample(TaskKind::InstallToiletRoll(RollSize::Large), 4, -0.06);
+        let h = RollSize::Large.half_height();
+        // Off the axis along a diagonal of the fixture frame, 12 mm above the seat.
+        let at = |r: f64| {
+            t.base_from_fixture
+                * Isometry3::translation(r * 0.6, r * 0.8, h + 0.012)
+                * Isometry3::rotation(Vector3::x() * 3f64.to_radians())
+        };
+        let words = |r: f64| {
+            let p = at(r);
+            let rest = t.released_pose(1, &p);
+            let seated = (rest.translation.vector - seated_centre(&t, h)).norm() < 1e-9;
+            (t.describe_release(1, &p, &rest), seated)
+        };
+        let (inside, seated) = words(0.0079);
+        assert!(seated);
+        assert!(
+            inside.starts_with("let go 7.9 mm from the spindle's axis (a roll goes over it within 8 mm), tilted 3°")
+                && inside.contains("its bottom 12 mm above the seat")
+                && inside.ends_with("it slid down onto the spindle"),
+            "{inside}"
+        );
+        let (outside, seated) = words(0.0081);
+        assert!(!seated);
+        assert!(
+            outside.starts_with("let go 8.1 mm") && outside.ends_with("it fell onto the table"),
+            "{outside}"
+        );
+        // Too high above the spindle: centred, yet it falls, and the report says how high.
+        let high = t.base_from_fixture * Isometry3::translation(0.0, 0.0, h + 0.04);
+        let rest = t.released_pose(1, &high);
+        let words = t.describe_release(1, &high, &rest);
+        assert!(
+            words.contains("0.0 mm") && words.contains("bottom 40 mm above the seat (-5 to 35)"),
+            "{words}"
+        );
+        assert!(words.ends_with("it fell onto the table"), "{words}");
+        // A bottom a hair below the seat prints as 0 mm, not "-0 mm".
+        let low = t.base_from_fixture * Isometry3::translation(0.0, 0.0, h - 1e-6);
+        let words = t.describe_release(1, &low, &t.released_pose(1, &low));
+        assert!(words.contains("its bottom 0 mm above the seat"), "{words}");
+        assert!(words.ends_with("it slid down onto the spindle"), "{words}");
+        // The holder is not the roll: the generic report.
+        let holder = t.bodies[0].base_from_body;
+        assert!(t
+            .describe_release(0, &holder, &holder)
+            .starts_with("it fell 0 mm"));
     }
 }

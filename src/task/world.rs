@@ -3,13 +3,54 @@
 //! ([`crate::sim_cell::SimWorld`]) renders it; the kinematic check ([`super::check`]) uses
 //! it without rendering.
 
+use std::fmt;
+
 use nalgebra::{Isometry3, Point3, Translation3, Vector3};
 
-use super::{GraspSite, TaskInstance};
+use super::{rounded_mm, GraspSite, TaskInstance};
 
 /// Grasp distance: a body is caught when its grasp site is this close to the TCP as the
 /// fingers close (m).
 pub const GRASP_RADIUS: f64 = 0.03;
+
+/// What a gripper motion did to a body: what an episode's log says after the step, so that a
+/// failed episode shows how it failed (a roll grasped far off-centre, let go beside the
+/// spindle) without a debugger.
+#[derive(Clone, Debug, PartialEq)]
+pub enum GripperEvent {
+    /// Closing fingers caught a body.
+    Grasped {
+        /// The body's name.
+        body: String,
+        /// Its grasp site in the TCP frame once the jaws closed (m): x across the jaws,
+        /// y along the pads, z along the approach.
+        site_in_tcp: Vector3<f64>,
+    },
+    /// Opening fingers let a body go.
+    Released {
+        /// The body's name.
+        body: String,
+        /// Where it was let go and where it came to rest ([`TaskInstance::describe_release`]).
+        outcome: String,
+    },
+}
+
+impl fmt::Display for GripperEvent {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            GripperEvent::Grasped { body, site_in_tcp } => {
+                let mm = site_in_tcp.map(|v| rounded_mm(v, 0));
+                write!(
+                    f,
+                    "grasped the {body}, its grasp site {:+.0} mm along the pads, {:+.0} mm across \
+                     the jaws, {:+.0} mm along the approach from the TCP",
+                    mm.y, mm.x, mm.z
+                )
+            }
+            GripperEvent::Released { body, outcome } => write!(f, "released the {body}: {outcome}"),
+        }
+    }
+}
 
 /// The bodies' poses and the grasp attachment of one posed task.
 #[derive(Clone, Debug)]
@@ -75,22 +116,35 @@ impl TaskWorld {
 
     /// After a gripper motion with the TCP at `base_from_tcp`: closed fingers on the body
     /// found by [`TaskWorld::before_close`] carry it; opening releases the held body, which
-    /// comes to rest where the task says.
-    pub fn after_gripper(&mut self, base_from_tcp: &Isometry3<f64>, holding: bool) {
+    /// comes to rest where the task says. Returns what happened to a body, if anything.
+    pub fn after_gripper(
+        &mut self,
+        base_from_tcp: &Isometry3<f64>,
+        holding: bool,
+    ) -> Option<GripperEvent> {
         if holding && self.held.is_none() {
-            if let Some(i) = self.between_fingers.take() {
-                if let Some(site) = self.task.bodies[i].grasp {
-                    if self.task.stands_free(i, &self.poses[i]) {
-                        self.poses[i] = slid_between_jaws(base_from_tcp, &self.poses[i], &site);
-                    }
-                }
-                self.held = Some((i, base_from_tcp.inverse() * self.poses[i]));
+            let i = self.between_fingers.take()?;
+            let site = self.task.bodies[i].grasp?;
+            if self.task.stands_free(i, &self.poses[i]) {
+                self.poses[i] = slid_between_jaws(base_from_tcp, &self.poses[i], &site);
             }
+            let tcp_from_body = base_from_tcp.inverse() * self.poses[i];
+            self.held = Some((i, tcp_from_body));
+            Some(GripperEvent::Grasped {
+                body: self.task.bodies[i].name.clone(),
+                site_in_tcp: (tcp_from_body * Point3::from(site.point)).coords,
+            })
         } else if !holding {
             self.between_fingers = None;
-            if let Some((i, _)) = self.held.take() {
-                self.poses[i] = self.task.released_pose(i, &self.poses[i]);
-            }
+            let (i, _) = self.held.take()?;
+            let let_go = self.poses[i];
+            self.poses[i] = self.task.released_pose(i, &let_go);
+            Some(GripperEvent::Released {
+                body: self.task.bodies[i].name.clone(),
+                outcome: self.task.describe_release(i, &let_go, &self.poses[i]),
+            })
+        } else {
+            None
         }
     }
 
@@ -160,11 +214,32 @@ mod tests {
         let along = crate::task::toilet_roll::expert_grasp_offset(&task);
         assert!((before - Vector3::new(-0.008, -0.005 - along, -0.002)).norm() < 1e-9);
         assert!(w.before_close(&at).is_some());
-        w.after_gripper(&at, true);
+        let event = w.after_gripper(&at, true);
         assert_eq!(w.held(), Some(1));
         // Centred across the jaws; the offset along the pads and in height stays.
         let after = site_in_tcp(&w, 1, &at);
         assert!(after.x.abs() < 1e-9, "{after}");
+        // The event reports where in the hand the roll is held.
+        let Some(GripperEvent::Grasped {
+            body,
+            site_in_tcp: held_at,
+        }) = &event
+        else {
+            panic!("{event:?}")
+        };
+        assert_eq!(body, "small toilet roll");
+        assert!((held_at - after).norm() < 1e-12);
+        let words = event.unwrap().to_string();
+        let mm = after * 1e3;
+        assert_eq!(
+            words,
+            format!(
+                "grasped the small toilet roll, its grasp site {:+.0} mm along the pads, +0 mm \
+                 across the jaws, -2 mm along the approach from the TCP",
+                mm.y
+            )
+        );
+        assert!(mm.y < -4.0, "{mm}: the 5 mm offset along the pads shows");
         assert!(
             (after.yz() - before.yz()).norm() < 1e-9,
             "{after} vs {before}"
@@ -207,12 +282,26 @@ mod tests {
         let far = Isometry3::translation(0.0, 0.0, 0.3) * at;
         assert_eq!(w.before_close(&far), None);
         assert_eq!(w.before_close(&at), Some(0.05));
-        w.after_gripper(&at, true);
+        assert!(matches!(
+            w.after_gripper(&at, true),
+            Some(GripperEvent::Grasped { .. })
+        ));
         assert_eq!(w.held(), Some(0));
+        // Closing again on the held fruit, or opening empty, does nothing to report.
+        assert_eq!(w.after_gripper(&at, true), None);
         let up = Isometry3::translation(0.0, 0.0, 0.1) * at;
         w.carry(&up);
         assert!(w.success());
-        w.after_gripper(&up, false);
+        let event = w.after_gripper(&up, false).unwrap().to_string();
+        let rest = w.poses()[0].translation.vector;
+        assert_eq!(
+            event,
+            format!(
+                "released the plum: it fell 100 mm and came to rest at [{:.3}, {:.3}, -0.035] m",
+                rest.x, rest.y
+            )
+        );
+        assert_eq!(w.after_gripper(&up, false), None);
         assert_eq!(w.held(), None);
         assert!((w.poses()[0].translation.vector.z - (-0.06 + 0.025)).abs() < 1e-12);
         assert!(!w.success());

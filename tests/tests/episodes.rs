@@ -130,6 +130,17 @@ fn expert_picks_the_fruit_and_the_recording_checks_out() {
         run.report.detail
     );
     assert_eq!(run.report.steps, 3);
+    // Above the fruit, closed around it, lifted: one grasp, at the second keyframe, near
+    // the fruit's centre (the expert aims at it).
+    let events = &run.report.gripper_events;
+    assert_eq!(events.len(), 1, "{events:?}");
+    assert_eq!(events[0].0, 1, "{events:?}");
+    assert!(
+        events[0]
+            .1
+            .starts_with("grasped the strawberry, its grasp site "),
+        "{events:?}"
+    );
     assert!(run.still);
     check_recording(&run.report);
     check_plots(&run.report);
