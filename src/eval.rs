@@ -25,6 +25,10 @@ use crate::task::{TaskInstance, TaskKind};
 /// First evaluation seed by default (demonstrations use 0, 1, ...).
 pub const EVAL_SEED: u64 = 1_000_000;
 
+/// The file in the output folder that gets one JSON line per finished episode
+/// ([`EpisodeSummary`]), appended across runs into the same folder.
+pub const EPISODE_LOG: &str = "episodes.jsonl";
+
 /// The results of one task variation.
 #[derive(Clone, Debug, PartialEq, Serialize)]
 pub struct VariationResult {
@@ -36,6 +40,27 @@ pub struct VariationResult {
     pub successes: u64,
     /// Episodes per outcome label.
     pub outcomes: BTreeMap<&'static str, u64>,
+    /// Each episode, in the order run.
+    pub runs: Vec<EpisodeSummary>,
+}
+
+/// One evaluation episode: what a user analysing a run needs without opening its recording.
+#[derive(Clone, Debug, PartialEq, Serialize)]
+pub struct EpisodeSummary {
+    /// `task/variation`.
+    pub task: String,
+    /// The scene's seed.
+    pub seed: u64,
+    /// Outcome label ([`crate::episode::Outcome::label`]).
+    pub outcome: &'static str,
+    /// Keyframes executed.
+    pub steps: usize,
+    /// What happened, in words.
+    pub detail: String,
+    /// What the gripper did to objects: (keyframe, words).
+    pub gripper_events: Vec<(usize, String)>,
+    /// The episode's MCAP recording.
+    pub recording: std::path::PathBuf,
 }
 
 impl VariationResult {
@@ -178,7 +203,8 @@ pub struct EvalPlan {
 }
 
 /// Runs the evaluation: for each variation and seed, a fresh simulated cell and the
-/// policy's source for that episode; recordings go to `out`.
+/// policy's source for that episode; recordings go to `out`, and one JSON line per finished
+/// episode to `out`/[`EPISODE_LOG`].
 /// Progress lines go to `progress`. Ctrl-C (`interrupt`) stops after the current episode
 /// (its arm stopped, its recording finished) and returns the table so far.
 pub fn evaluate(
@@ -190,6 +216,7 @@ pub fn evaluate(
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<EvalTable> {
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
+    let log_path = out.join(EPISODE_LOG);
     let policy_name = policy.name().to_string();
     let mut table = EvalTable {
         policy: policy_name.clone(),
@@ -203,6 +230,7 @@ pub fn evaluate(
             episodes: 0,
             successes: 0,
             outcomes: BTreeMap::new(),
+            runs: Vec::new(),
         };
         for e in 0..plan.episodes {
             if interrupt.load(Ordering::SeqCst) {
@@ -256,6 +284,19 @@ pub fn evaluate(
                 row.successes,
                 row.episodes
             ));
+            let summary = EpisodeSummary {
+                task: kind.name(),
+                seed,
+                outcome: report.outcome.label(),
+                steps: report.steps,
+                detail: report.detail,
+                gripper_events: report.gripper_events,
+                recording: report.recording,
+            };
+            // One line per episode as it ends, so that a long run killed midway keeps what
+            // it measured.
+            append_json_line(&log_path, &summary)?;
+            row.runs.push(summary);
         }
         table.rows.push(row);
         if interrupt.load(Ordering::SeqCst) {
@@ -263,6 +304,19 @@ pub fn evaluate(
         }
     }
     Ok(table)
+}
+
+/// Appends `value` as one JSON line to `path` (created if missing).
+fn append_json_line(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
+    use std::io::Write;
+    let mut line = serde_json::to_string(value)?;
+    line.push('\n');
+    std::fs::OpenOptions::new()
+        .create(true)
+        .append(true)
+        .open(path)
+        .and_then(|mut f| f.write_all(line.as_bytes()))
+        .with_context(|| format!("appending an episode's summary to {}", path.display()))
 }
 
 /// Gripper events shown on a failed episode's line: the first grasp, the first release and

@@ -8,7 +8,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use cell_types::config::CellConfig;
-use equact::eval::{evaluate, EvalPlan, ExpertEval, LearnedEval, EVAL_SEED};
+use equact::eval::{evaluate, EvalPlan, ExpertEval, LearnedEval, EPISODE_LOG, EVAL_SEED};
 use equact::learned::{for_cell, LearnedPolicy};
 use equact::task::{Fruit, TaskKind};
 use policy::predict::{InstructionEmbedding, Policy, PolicyConfig};
@@ -54,6 +54,31 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
         })
         .count();
     assert_eq!(recordings, 2);
+    // Each episode summarised: its seed, outcome, the grasp the expert made, its recording.
+    let seeds: Vec<u64> = row.runs.iter().map(|r| r.seed).collect();
+    assert_eq!(seeds, [EVAL_SEED, EVAL_SEED + 1]);
+    for r in &row.runs {
+        assert_eq!((r.task.as_str(), r.outcome), ("pick_fruit/plum", "success"));
+        assert_eq!(r.gripper_events.len(), 1, "{:?}", r.gripper_events);
+        assert!(r.gripper_events[0].1.starts_with("grasped the plum"));
+        assert!(r.recording.is_file(), "{}", r.recording.display());
+    }
+    // The same summaries, one JSON line per episode, in the output folder.
+    let log = |n: usize| {
+        let text = std::fs::read_to_string(dir.join(EPISODE_LOG)).unwrap();
+        let lines: Vec<serde_json::Value> = text
+            .lines()
+            .map(|l| serde_json::from_str(l).unwrap())
+            .collect();
+        assert_eq!(lines.len(), n, "{text}");
+        lines
+    };
+    let lines = log(2);
+    for (line, r) in lines.iter().zip(&row.runs) {
+        assert_eq!(line["seed"], r.seed);
+        assert_eq!(line["outcome"], "success");
+        assert_eq!(line["gripper_events"][0][1], r.gripper_events[0].1.as_str());
+    }
 
     let net = for_cell(PolicyConfig::tiny(), &cfg);
     let policy = LearnedPolicy::new(
@@ -84,6 +109,9 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
     assert_eq!(row.episodes, 1);
     assert_eq!(row.outcomes.values().sum::<u64>(), 1);
     assert!(!row.outcomes.contains_key("error"), "{:?}", row.outcomes);
+    // Appended to the same folder's log.
+    let lines = log(3);
+    assert_eq!(lines[2]["outcome"], row.runs[0].outcome);
 
     // A variation without an embedding is an error, not a silent skip.
     let err = evaluate(
