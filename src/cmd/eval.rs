@@ -61,7 +61,7 @@ pub struct EvalArgs {
     /// The network's translation sampling (learned policy).
     #[command(flatten)]
     pub sampling: super::policy::SamplingArgs,
-    /// Where the episodes' recordings go.
+    /// Where the episodes' recordings and their summaries (`episodes.jsonl`) go.
     #[arg(long, default_value = "recordings/eval")]
     pub out: PathBuf,
     /// The cell configuration; the built-in simulated cell when omitted.
