@@ -256,8 +256,8 @@ impl TaskInstance {
     }
 
     /// Why the task can no longer succeed in this state (a part it must leave in place has
-    /// moved); `None` while it still can. A task that can always be retried (pick again,
-    /// re-grasp a fallen roll) is never lost.
+    /// moved, a roll fell off the holder onto its side); `None` while it still can. A fruit
+    /// can always be picked again, a roll dropped upright on the table re-grasped.
     pub fn lost(&self, poses: &[Isometry3<f64>]) -> Option<String> {
         if poses.len() != self.bodies.len() {
             return None;
@@ -265,7 +265,8 @@ impl TaskInstance {
         match self.kind {
             TaskKind::DisassemblePipe(p) => pipe::lost(self, p, poses),
             TaskKind::PluckFlower(l) => flower::lost(self, l, poses),
-            TaskKind::PickFruit(_) | TaskKind::InstallToiletRoll(_) => None,
+            TaskKind::InstallToiletRoll(s) => toilet_roll::lost(self, s, poses),
+            TaskKind::PickFruit(_) => None,
         }
     }
 

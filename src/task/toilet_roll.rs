@@ -6,6 +6,8 @@
 //! roll's centre above the spindle, lowers it over the spindle along the holder's axis and
 //! lets go. Variations: a large or a small roll.
 
+use std::f64::consts::{FRAC_PI_2, FRAC_PI_4};
+
 use cell_types::Keyframe;
 use hil_sim::scene::Primitive;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
@@ -317,10 +319,14 @@ impl OverSpindle {
     }
 }
 
-/// A released roll that [`OverSpindle::seats`] slides down onto the seat; any other falls
-/// onto the table, upright, and off the holder: where it would land on the pedestal or the
-/// spindle it slides off them, away from the spindle, to the table beside the pedestal (it
-/// never ends inside the holder, where the success test could take it for seated).
+/// A released roll that [`OverSpindle::seats`] slides down onto the seat. One let go over
+/// the holder that does not seat was driven into the spindle or against the pedestal (the
+/// held roll is not collision-checked against the holder), or dropped onto the spindle's
+/// tip: it falls off the holder, and the simulator lays it on its side on the table beside
+/// the pedestal, where the task is lost ([`lost`]). Where it really lands (on the pedestal,
+/// leaning on the spindle, upright or not) is not modelled; on its side is the conservative
+/// choice, as no demonstration shows how to pick a roll up from there. A roll let go
+/// elsewhere falls upright to the table below, where it can be grasped again.
 pub(crate) fn released(
     task: &TaskInstance,
     size: RollSize,
@@ -342,29 +348,52 @@ pub(crate) fn released(
             );
     }
     let x = pose.rotation * Vector3::x();
-    let centre = off_the_holder(task, size, &pose.translation.vector);
+    let heading = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), x.y.atan2(x.x));
+    let c = pose.translation.vector;
+    if !over_pedestal(task, size.radius(), &c) {
+        return Isometry3::from_parts(Translation3::new(c.x, c.y, task.table_height + h), heading);
+    }
+    let beside = off_the_holder(task, size, &c);
     Isometry3::from_parts(
-        Translation3::new(centre.x, centre.y, task.table_height + h),
-        UnitQuaternion::from_axis_angle(&Vector3::z_axis(), x.y.atan2(x.x)),
+        Translation3::new(beside.x, beside.y, task.table_height + size.radius()),
+        heading * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), FRAC_PI_2),
     )
 }
 
-/// Whether a roll of `size` standing at `centre` (base frame, any height) overlaps the
+/// The roll lying on its side on the table (where [`released`] puts one that fell off the
+/// holder) loses the task.
+pub(crate) fn lost(
+    task: &TaskInstance,
+    size: RollSize,
+    poses: &[Isometry3<f64>],
+) -> Option<String> {
+    let p = &poses[1];
+    let on_side = (p.translation.vector.z - (task.table_height + size.radius())).abs() < 1e-6
+        && angle_between(&(p.rotation * Vector3::z()), &Vector3::z()) > FRAC_PI_4;
+    on_side.then(|| {
+        format!(
+            "the {} fell off the holder onto its side; no demonstration shows how to pick it \
+             up from there",
+            task.bodies[1].name
+        )
+    })
+}
+
+/// Whether a disc of `radius` centred at `centre` (base frame, any height) overlaps the
 /// holder's pedestal seen from above (in the fixture's plane).
-fn over_pedestal(task: &TaskInstance, size: RollSize, centre: &Vector3<f64>) -> bool {
+fn over_pedestal(task: &TaskInstance, radius: f64, centre: &Vector3<f64>) -> bool {
     let c = task.base_from_fixture.inverse() * Point3::from(*centre);
     // Distance from the disc's centre to the square.
     let dx = (c.x.abs() - PEDESTAL_HALF).max(0.0);
     let dy = (c.y.abs() - PEDESTAL_HALF).max(0.0);
-    dx.hypot(dy) < size.radius()
+    dx.hypot(dy) < radius
 }
 
-/// Where a roll falling at `centre` (base frame) comes down: there, or, over the holder,
-/// moved away from the spindle's axis (in the fixture's plane) until it clears the pedestal.
+/// Where a roll falling off the holder at `centre` (base frame) comes down on its side:
+/// moved away from the spindle's axis (in the fixture's plane) until a disc covering the
+/// lying roll (its half-length and radius) clears the pedestal.
 fn off_the_holder(task: &TaskInstance, size: RollSize, centre: &Vector3<f64>) -> Vector3<f64> {
-    if !over_pedestal(task, size, centre) {
-        return *centre;
-    }
+    let lying = size.radius().hypot(size.half_height());
     let f = &task.base_from_fixture;
     let local = f.inverse() * Point3::from(*centre);
     let mut away = Vector3::new(local.x, local.y, 0.0);
@@ -372,13 +401,13 @@ fn off_the_holder(task: &TaskInstance, size: RollSize, centre: &Vector3<f64>) ->
         away = Vector3::x();
     }
     let away = away.normalize();
-    // Outward in millimetre steps: the pedestal's half-diagonal plus the roll's radius is at
-    // most ~12 cm, so this ends within ~120 steps.
+    // Outward in millimetre steps: the pedestal's half-diagonal plus the lying roll's disc
+    // is at most ~14 cm, so this ends within ~140 steps.
     let mut r = local.x.hypot(local.y);
     loop {
         r += 0.001;
         let p = f * Point3::from(away * r);
-        if !over_pedestal(task, size, &p.coords) {
+        if !over_pedestal(task, lying, &p.coords) {
             return p.coords;
         }
     }
@@ -417,8 +446,8 @@ pub(crate) fn describe_release(
     };
     let outcome = if m.seats() {
         "it slid down onto the spindle"
-    } else if over_pedestal(task, size, &pose.translation.vector) {
-        "it fell off the holder onto the table"
+    } else if over_pedestal(task, size.radius(), &pose.translation.vector) {
+        "it fell off the holder onto its side"
     } else {
         "it fell onto the table"
     };
@@ -493,7 +522,9 @@ mod tests {
         let beside = t.base_from_fixture * Isometry3::translation(0.03, 0.0, h + 0.01);
         poses[1] = t.released_pose(1, &beside);
         assert!(!t.success(&poses, None));
-        assert!((poses[1].translation.vector.z - (-0.06 + h)).abs() < 1e-9);
+        // Off the holder, on its side.
+        let r = RollSize::Small.radius();
+        assert!((poses[1].translation.vector.z - (-0.06 + r)).abs() < 1e-9);
     }
 
     /// A roll of `size` whose hole's axis passes through the spindle's axis point at height
@@ -548,7 +579,7 @@ mod tests {
         assert!(
             outside.starts_with("let go 8.1 mm")
                 && outside.contains("the spindle cutting through its wall, 8.1 mm off")
-                && outside.ends_with("it fell off the holder onto the table"),
+                && outside.ends_with("it fell off the holder onto its side"),
             "{outside}"
         );
         // A bottom a hair below the seat prints as 0 mm, not "-0 mm".
@@ -601,7 +632,8 @@ mod tests {
     }
 
     /// Let go above the spindle: upright with the tip under the hole it falls over the
-    /// spindle; tilted past 15°, or with the tip under its wall, it falls off the holder.
+    /// spindle; tilted past 15°, or with the tip under its wall, it falls off the holder onto
+    /// its side.
     #[test]
     fn a_roll_let_go_above_the_spindle_falls_over_it_only_upright_and_centred() {
         let size = RollSize::Large;
@@ -629,17 +661,18 @@ mod tests {
         );
         assert!(!seated, "{words}");
         assert!(
-            words.ends_with("it fell off the holder onto the table"),
+            words.ends_with("it fell off the holder onto its side"),
             "{words}"
         );
     }
 
-    /// A roll that does not seat never ends inside the holder: over the pedestal it comes
-    /// down beside it, on the table, where the success test cannot take it for seated even
-    /// on a holder whose seat is at the table's height.
+    /// A roll that does not seat over the holder never ends inside it: it lies on its side
+    /// beside the pedestal, which loses the task, and the success test cannot take it for
+    /// seated even on a holder whose seat is at the table's height.
     #[test]
-    fn a_roll_falling_over_the_holder_lands_beside_it() {
+    fn a_roll_falling_off_the_holder_lies_beside_it_and_loses_the_task() {
         let size = RollSize::Small;
+        let lying = size.radius().hypot(size.half_height());
         for seed in 0..20 {
             let mut t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), seed, -0.06);
             // The seat at the table's height, level: the worst case for a false success.
@@ -647,29 +680,42 @@ mod tests {
             f.translation.vector.z = t.table_height;
             f.rotation = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), 0.3 * seed as f64);
             let tilted = roll_at(&t, size, 0.0, 0.001, 24.0, 0.005);
+            let (words, seated) = release(&t, size, &tilted);
+            assert!(!seated && words.ends_with("it fell off the holder onto its side"));
             let rest = t.released_pose(1, &tilted);
             let mut poses: Vec<_> = t.bodies.iter().map(|b| b.base_from_body).collect();
+            assert_eq!(t.lost(&poses), None, "seed {seed}: the roll as posed");
             poses[1] = rest;
             assert!(!t.success(&poses, None), "seed {seed}");
+            let why = t.lost(&poses).unwrap();
             assert!(
-                !over_pedestal(&t, size, &rest.translation.vector),
-                "seed {seed}"
+                why.contains("small toilet roll fell off the holder"),
+                "{why}"
             );
-            assert!((rest.translation.z - (t.table_height + size.half_height())).abs() < 1e-12);
-            // Just clear: within a millimetre step of touching the pedestal.
+            // On its side, on the table, just clear of the pedestal (within a millimetre
+            // step of touching it).
+            let axis = rest.rotation * Vector3::z();
+            assert!(axis.z.abs() < 1e-9, "seed {seed}: {axis}");
+            assert!((rest.translation.z - (t.table_height + size.radius())).abs() < 1e-12);
+            assert!(!over_pedestal(&t, lying, &rest.translation.vector));
             let local = t.base_from_fixture.inverse() * Point3::from(rest.translation.vector);
-            let clear = (local.x.abs() - PEDESTAL_HALF)
+            let gap = (local.x.abs() - PEDESTAL_HALF)
                 .max(0.0)
                 .hypot((local.y.abs() - PEDESTAL_HALF).max(0.0));
-            assert!(clear - size.radius() < 0.0011, "seed {seed}: {clear}");
-            // Away from the table-standing roll's grasp: it is where a re-grasp finds it.
-            assert!(t.stands_free(1, &rest), "seed {seed}");
+            assert!(gap - lying < 0.0011, "seed {seed}: {gap}");
+            assert!(!t.stands_free(1, &rest), "seed {seed}");
         }
-        // Let go well away from the holder, it lands where it was.
+        // Let go well away from the holder, it lands upright where it was, to be grasped
+        // again: not lost.
         let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), 1, -0.06);
         let far = t.bodies[1].base_from_body * Isometry3::translation(0.0, 0.0, 0.05);
         let rest = t.released_pose(1, &far);
-        assert!((rest.translation.vector.xy() - far.translation.vector.xy()).norm() < 1e-12);
+        assert!(
+            (rest.translation.vector - t.bodies[1].base_from_body.translation.vector).norm()
+                < 1e-12
+        );
+        assert!(t.stands_free(1, &rest));
+        assert_eq!(t.lost(&[t.bodies[0].base_from_body, rest]), None);
         assert!(t
             .describe_release(1, &far, &rest)
             .ends_with("; it fell onto the table"));
