@@ -451,11 +451,19 @@ pub(crate) fn describe_release(
     } else {
         "it fell onto the table"
     };
+    // How far the roll and the spindle lean from the vertical: a roll let go upright over a
+    // leaning holder is tilted from the spindle by the holder's lean.
+    let up = Vector3::z();
+    let lean = |axis: Vector3<f64>| angle_between(&axis, &up).min(angle_between(&-axis, &up));
+    let spindle_lean = lean(task.base_from_fixture.rotation * up);
+    let roll_lean = lean(pose.rotation * up);
     Some(format!(
-        "let go {:.1} mm from the spindle's axis, tilted {:.0}°, its bottom {:.0} mm above the \
-         seat, {fit}; {outcome}",
+        "let go {:.1} mm from the spindle's axis, tilted {:.0}° from it (the roll {:.0}° from \
+         the vertical, the spindle {:.0}°), its bottom {:.0} mm above the seat, {fit}; {outcome}",
         rounded_mm(m.radial, 1),
         m.tilt.to_degrees(),
+        roll_lean.to_degrees(),
+        spindle_lean.to_degrees(),
         rounded_mm(m.bottom, 0),
     ))
 }
@@ -565,14 +573,23 @@ mod tests {
     fn an_upright_roll_seats_within_the_holes_play_and_the_report_says_how_far_off_it_was() {
         let size = RollSize::Large;
         let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), 4, -0.06);
+        let lean = angle_between(
+            &(t.base_from_fixture.rotation * Vector3::z()),
+            &Vector3::z(),
+        )
+        .to_degrees();
+        assert!(lean > 2.0, "seed 4's holder leans {lean}°");
         // 12 mm above the seat, off the axis along the fixture's y.
         let (inside, seated) = release(&t, size, &roll_at(&t, size, 0.0, 0.0079, 0.0, 0.012));
         assert!(seated);
         assert_eq!(
             inside,
-            "let go 7.9 mm from the spindle's axis, tilted 0°, its bottom 12 mm above the seat, \
-             the spindle in its hole, at most 7.9 mm off the hole's axis (fits within 8 mm); it \
-             slid down onto the spindle"
+            format!(
+                "let go 7.9 mm from the spindle's axis, tilted 0° from it (the roll {lean:.0}° \
+                 from the vertical, the spindle {lean:.0}°), its bottom 12 mm above the seat, \
+                 the spindle in its hole, at most 7.9 mm off the hole's axis (fits within 8 mm); \
+                 it slid down onto the spindle"
+            )
         );
         let (outside, seated) = release(&t, size, &roll_at(&t, size, 0.0, 0.0081, 0.0, 0.012));
         assert!(!seated);
@@ -581,6 +598,19 @@ mod tests {
                 && outside.contains("the spindle cutting through its wall, 8.1 mm off")
                 && outside.ends_with("it fell off the holder onto its side"),
             "{outside}"
+        );
+        // Upright over the leaning holder: tilted from the spindle by the holder's lean.
+        let centre = t.base_from_fixture * Point3::new(0.0, 0.0, size.half_height() + 0.012);
+        let upright = Isometry3::from_parts(
+            Translation3::from(centre.coords),
+            UnitQuaternion::identity(),
+        );
+        let (words, _) = release(&t, size, &upright);
+        assert!(
+            words.contains(&format!(
+                "tilted {lean:.0}° from it (the roll 0° from the vertical, the spindle {lean:.0}°)"
+            )),
+            "{words}"
         );
         // A bottom a hair below the seat prints as 0 mm, not "-0 mm".
         let (words, seated) = release(&t, size, &roll_at(&t, size, 0.0, 0.0, 0.0, -1e-6));
@@ -609,7 +639,9 @@ mod tests {
         let (words, seated) = release(&t, size, &shallow);
         assert!(seated, "{words}");
         assert!(
-            words.contains("tilted 20°, its bottom 30 mm above the seat"),
+            words.contains("tilted 20° from it")
+                && words.contains("its bottom 30 mm above the seat")
+                && words.contains("at most 1.1 mm off the hole's axis"),
             "{words}"
         );
         // The same tilt, the roll's bottom 5 mm above the seat and its centre on the axis:
