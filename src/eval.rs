@@ -324,7 +324,7 @@ fn append_json_line(path: &Path, value: &impl Serialize) -> anyhow::Result<()> {
 const EVENTS_SHOWN: usize = 3;
 
 /// A failed episode's gripper events for its progress line: ` | keyframe K: event` for the
-/// first [`EVENTS_SHOWN`], then how many more; empty without events.
+/// first three, then how many more; empty without events.
 pub fn gripper_summary(events: &[(usize, String)]) -> String {
     let mut s: String = events
         .iter()
