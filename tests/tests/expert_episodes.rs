@@ -13,7 +13,7 @@ use cell_types::SystemClock;
 use equact::episode::{run_sim_episode, EpisodeReport, ScriptedExpert};
 use equact::recording::EpisodeRecorder;
 use equact::sim_cell::SimCell;
-use equact::task::{FlowerLevel, PipePart, RollSize, TaskInstance, TaskKind};
+use equact::task::{toilet_roll, FlowerLevel, PipePart, RollSize, TaskInstance, TaskKind};
 
 /// Episodes run in real time against loopback servers: one at a time.
 static SERIAL: Mutex<()> = Mutex::new(());
@@ -47,7 +47,7 @@ fn expert_episode(kind: TaskKind, seed: u64) -> (EpisodeReport, bool) {
     (report, success)
 }
 
-fn assert_success(kind: TaskKind, seed: u64) {
+fn assert_success(kind: TaskKind, seed: u64) -> EpisodeReport {
     let (report, world_success) = expert_episode(kind, seed);
     assert_eq!(
         report.outcome,
@@ -57,6 +57,7 @@ fn assert_success(kind: TaskKind, seed: u64) {
         report.detail
     );
     assert!(world_success);
+    report
 }
 
 #[test]
@@ -69,9 +70,43 @@ fn expert_plucks_the_bottom_flower() {
     assert_success(TaskKind::PluckFlower(FlowerLevel::Bottom), 1);
 }
 
+/// Through the simulated arm and gripper, the report of each gripper event reaches the
+/// episode: the expert's grasp at its drawn offset along the pads, its release on the
+/// spindle's axis.
 #[test]
 fn expert_installs_the_small_toilet_roll() {
-    assert_success(TaskKind::InstallToiletRoll(RollSize::Small), 1);
+    let kind = TaskKind::InstallToiletRoll(RollSize::Small);
+    let report = assert_success(kind, 1);
+    let events = &report.gripper_events;
+    assert_eq!(events.len(), 2, "{events:?}");
+    // The grasp site's offset along the pads, in whole millimetres, is the expert's drawn
+    // one (the arm tracks the keyframe to well under a millimetre).
+    let task = TaskInstance::sample(
+        kind,
+        1,
+        CellConfig::simulated().unwrap().workspace.table_height,
+    );
+    let drawn = (toilet_roll::expert_grasp_offset(&task) * 1e3).round();
+    let grasp = &events[0].1;
+    let along: f64 = grasp
+        .strip_prefix("grasped the small toilet roll, its grasp site ")
+        .and_then(|r| r.split(" mm along the pads").next())
+        .and_then(|mm| mm.parse().ok())
+        .unwrap_or_else(|| panic!("{grasp}"));
+    // The site is on the roll's axis; the TCP is `drawn` off it the other way.
+    assert!((along + drawn).abs() <= 1.0, "{grasp}: drawn {drawn} mm");
+    let release = &events[1].1;
+    let off: f64 = release
+        .strip_prefix("released the small toilet roll: let go ")
+        .and_then(|r| r.split(" mm from the spindle's axis").next())
+        .and_then(|mm| mm.parse().ok())
+        .unwrap_or_else(|| panic!("{release}"));
+    assert!(off < 1.0, "{release}");
+    assert!(
+        release.contains("the spindle in its hole")
+            && release.ends_with("it slid down onto the spindle"),
+        "{release}"
+    );
 }
 
 /// The full HIL validation: every variation over EQUACT_HIL_SEEDS seeds (default 3), at
