@@ -401,16 +401,18 @@ fn off_the_holder(task: &TaskInstance, size: RollSize, centre: &Vector3<f64>) ->
         away = Vector3::x();
     }
     let away = away.normalize();
-    // Outward in millimetre steps: the pedestal's half-diagonal plus the lying roll's disc
-    // is at most ~14 cm, so this ends within ~140 steps.
+    // Outward in millimetre steps. A disc centred beyond the pedestal's half-diagonal plus
+    // its radius is clear, which bounds the walk (~140 steps), also for a non-finite pose.
+    let limit = PEDESTAL_HALF * std::f64::consts::SQRT_2 + lying;
     let mut r = local.x.hypot(local.y);
-    loop {
+    while r < limit {
         r += 0.001;
         let p = f * Point3::from(away * r);
         if !over_pedestal(task, lying, &p.coords) {
             return p.coords;
         }
     }
+    (f * Point3::from(away * limit)).coords
 }
 
 /// The roll (body 1) let go at `pose`, in words: how far from the spindle's axis, its tilt
@@ -737,6 +739,10 @@ mod tests {
             assert!(gap - lying < 0.0011, "seed {seed}: {gap}");
             assert!(!t.stands_free(1, &rest), "seed {seed}");
         }
+        // A non-finite pose (a broken TCP) ends the walk off the holder rather than hanging.
+        let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), 0, -0.06);
+        let broken = Isometry3::translation(f64::NAN, 0.0, 0.0);
+        assert!(t.released_pose(1, &broken).translation.x.is_nan());
         // Let go well away from the holder, it lands upright where it was, to be grasped
         // again: not lost.
         let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), 1, -0.06);
