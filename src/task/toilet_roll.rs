@@ -286,6 +286,7 @@ impl OverSpindle {
         };
         // The spindle's axis (0, 0, z), z in [0, SPINDLE_HEIGHT], is inside the roll where
         // its position along the roll's axis is within ±h: z·a_z − c·a within ±h.
+        // Leaning more than ~75° (a_z < 0.25), the roll is on its side: no hole to speak of.
         let fit = if a.z < 0.25 {
             SpindleFit::Away
         } else {
