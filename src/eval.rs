@@ -294,8 +294,11 @@ pub fn evaluate(
                 recording: report.recording,
             };
             // One line per episode as it ends, so that a long run killed midway keeps what
-            // it measured.
-            append_json_line(&log_path, &summary)?;
+            // it measured. A failed write (disk full) is reported and the evaluation goes on:
+            // the table and the recordings still hold the episode.
+            if let Err(e) = append_json_line(&log_path, &summary) {
+                progress(&format!("warning: {e:#}"));
+            }
             row.runs.push(summary);
         }
         table.rows.push(row);

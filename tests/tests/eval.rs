@@ -130,3 +130,36 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
     assert!(format!("{err:#}").contains("pick_fruit/peach"), "{err:#}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// An episode summary that cannot be written (here the log's path is a folder; on a cell,
+/// a full disk) is reported, and the evaluation goes on: the table still counts it.
+#[test]
+fn an_unwritable_episode_log_is_reported_and_the_evaluation_goes_on() {
+    let cfg = CellConfig::simulated().unwrap();
+    let dir = std::env::temp_dir().join(format!("equact-eval-log-{}", std::process::id()));
+    std::fs::create_dir_all(dir.join(EPISODE_LOG)).unwrap();
+    let mut lines = Vec::new();
+    let table = evaluate(
+        &cfg,
+        &EvalPlan {
+            kinds: vec![TaskKind::PickFruit(Fruit::Strawberry)],
+            episodes: 1,
+            seed: EVAL_SEED,
+        },
+        &mut ExpertEval::default(),
+        &dir,
+        &Arc::new(AtomicBool::new(false)),
+        &mut |l| lines.push(l.to_string()),
+    )
+    .unwrap();
+    assert_eq!(table.rows[0].successes, 1, "{lines:?}");
+    assert_eq!(table.rows[0].runs.len(), 1);
+    assert!(
+        lines.iter().any(
+            |l| l.starts_with("warning: appending an episode's summary to ")
+                && l.contains(EPISODE_LOG)
+        ),
+        "{lines:?}"
+    );
+    let _ = std::fs::remove_dir_all(&dir);
+}
