@@ -338,27 +338,65 @@ pub(crate) fn released(
         return *pose;
     }
     let h = size.half_height();
-    if OverSpindle::measure(task, size, pose).seats() {
-        let local = task.base_from_fixture.inverse() * pose;
-        let x = local.rotation * Vector3::x();
-        let yaw = x.y.atan2(x.x);
-        return task.base_from_fixture
-            * Isometry3::from_parts(
-                Translation3::new(0.0, 0.0, h),
-                UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
-            );
-    }
     let x = pose.rotation * Vector3::x();
     let heading = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), x.y.atan2(x.x));
     let c = pose.translation.vector;
-    if !over_pedestal(task, size.radius(), &c) {
-        return Isometry3::from_parts(Translation3::new(c.x, c.y, task.table_height + h), heading);
+    match Landing::of(task, size, pose, &OverSpindle::measure(task, size, pose)) {
+        Landing::OnSpindle => {
+            let local = task.base_from_fixture.inverse() * pose;
+            let x = local.rotation * Vector3::x();
+            let yaw = x.y.atan2(x.x);
+            task.base_from_fixture
+                * Isometry3::from_parts(
+                    Translation3::new(0.0, 0.0, h),
+                    UnitQuaternion::from_axis_angle(&Vector3::z_axis(), yaw),
+                )
+        }
+        Landing::OnTheTable => {
+            Isometry3::from_parts(Translation3::new(c.x, c.y, task.table_height + h), heading)
+        }
+        Landing::OffTheHolder => {
+            let beside = off_the_holder(task, size, &c);
+            Isometry3::from_parts(
+                Translation3::new(beside.x, beside.y, task.table_height + size.radius()),
+                heading * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), FRAC_PI_2),
+            )
+        }
     }
-    let beside = off_the_holder(task, size, &c);
-    Isometry3::from_parts(
-        Translation3::new(beside.x, beside.y, task.table_height + size.radius()),
-        heading * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), FRAC_PI_2),
-    )
+}
+
+/// Where a released roll ends up: the one decision [`released`] acts on and
+/// [`describe_release`] puts in words.
+#[derive(Copy, Clone, Debug, PartialEq, Eq)]
+enum Landing {
+    /// It slid down onto the spindle.
+    OnSpindle,
+    /// Over the holder but not onto the spindle: it falls off onto its side.
+    OffTheHolder,
+    /// Away from the holder: it falls upright to the table.
+    OnTheTable,
+}
+
+impl Landing {
+    /// Where a roll of `size` let go at `pose`, measured as `m`, ends up.
+    fn of(task: &TaskInstance, size: RollSize, pose: &Isometry3<f64>, m: &OverSpindle) -> Self {
+        if m.seats() {
+            Landing::OnSpindle
+        } else if over_pedestal(task, size.radius(), &pose.translation.vector) {
+            Landing::OffTheHolder
+        } else {
+            Landing::OnTheTable
+        }
+    }
+
+    /// The landing in words.
+    fn words(self) -> &'static str {
+        match self {
+            Landing::OnSpindle => "it slid down onto the spindle",
+            Landing::OffTheHolder => "it fell off the holder onto its side",
+            Landing::OnTheTable => "it fell onto the table",
+        }
+    }
 }
 
 /// The roll lying on its side on the table (where [`released`] puts one that fell off the
@@ -447,13 +485,7 @@ pub(crate) fn describe_release(
         ),
         SpindleFit::Away => "its hole not around the spindle".to_string(),
     };
-    let outcome = if m.seats() {
-        "it slid down onto the spindle"
-    } else if over_pedestal(task, size.radius(), &pose.translation.vector) {
-        "it fell off the holder onto its side"
-    } else {
-        "it fell onto the table"
-    };
+    let outcome = Landing::of(task, size, pose, &m).words();
     // How far the roll and the spindle lean from the vertical: a roll let go upright over a
     // leaning holder is tilted from the spindle by the holder's lean.
     let up = Vector3::z();
