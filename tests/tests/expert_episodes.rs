@@ -70,6 +70,14 @@ fn expert_plucks_the_bottom_flower() {
     assert_success(TaskKind::PluckFlower(FlowerLevel::Bottom), 1);
 }
 
+/// The number in `text` between `prefix` (which `text` must start with) and `suffix`.
+fn number_between(text: &str, prefix: &str, suffix: &str) -> f64 {
+    text.strip_prefix(prefix)
+        .and_then(|r| r.split(suffix).next())
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("no number between {prefix:?} and {suffix:?} in {text:?}"))
+}
+
 /// Through the simulated arm and gripper, the report of each gripper event reaches the
 /// episode: the expert's grasp at its drawn offset along the pads, its release on the
 /// spindle's axis.
@@ -88,19 +96,19 @@ fn expert_installs_the_small_toilet_roll() {
     );
     let drawn = (toilet_roll::expert_grasp_offset(&task) * 1e3).round();
     let grasp = &events[0].1;
-    let along: f64 = grasp
-        .strip_prefix("grasped the small toilet roll, its grasp site ")
-        .and_then(|r| r.split(" mm along the pads").next())
-        .and_then(|mm| mm.parse().ok())
-        .unwrap_or_else(|| panic!("{grasp}"));
+    let along = number_between(
+        grasp,
+        "grasped the small toilet roll, its grasp site ",
+        " mm along the pads",
+    );
     // The site is on the roll's axis; the TCP is `drawn` off it the other way.
     assert!((along + drawn).abs() <= 1.0, "{grasp}: drawn {drawn} mm");
     let release = &events[1].1;
-    let off: f64 = release
-        .strip_prefix("released the small toilet roll: let go ")
-        .and_then(|r| r.split(" mm from the spindle's axis").next())
-        .and_then(|mm| mm.parse().ok())
-        .unwrap_or_else(|| panic!("{release}"));
+    let off = number_between(
+        release,
+        "released the small toilet roll: let go ",
+        " mm from the spindle's axis",
+    );
     assert!(off < 1.0, "{release}");
     assert!(
         release.contains("the spindle in its hole")
