@@ -282,6 +282,16 @@ impl TaskInstance {
         }
     }
 
+    /// The axis (body frame) of body `index` that the expert holds against the approach, where
+    /// its direction matters: a roll's, which must go down the spindle. The grasp report says
+    /// how far a grasp turned it ([`world::AxisTilt`]).
+    pub fn held_axis(&self, index: usize) -> Option<Vector3<f64>> {
+        match self.kind {
+            TaskKind::InstallToiletRoll(_) if index == toilet_roll::ROLL => Some(Vector3::z()),
+            _ => None,
+        }
+    }
+
     /// Where body `index`, released by the gripper at `pose`, comes to rest.
     pub fn released_pose(&self, index: usize, pose: &Isometry3<f64>) -> Isometry3<f64> {
         match self.kind {

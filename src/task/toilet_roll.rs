@@ -39,6 +39,8 @@ const SEATED_DISTANCE: f64 = 0.01;
 /// places the roll's centre, not the TCP, over the spindle, so its demonstrations show how
 /// to place a roll held off-centre (a learned grasp is a few millimetres off).
 pub const GRASP_ALONG_PADS: f64 = 0.006;
+/// Index of the roll among the task's bodies (the holder is 0).
+pub const ROLL: usize = 1;
 /// The expert's grasp offset is drawn from this stream of the task's seed (the scene uses
 /// stream 0).
 const EXPERT_STREAM: u64 = 1;
@@ -173,7 +175,7 @@ pub fn expert_grasp_offset(task: &TaskInstance) -> f64 {
 /// lifted, the roll's centre above the spindle along the holder's axis, lowered over it and
 /// let go, back up.
 pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
-    let roll = &task.bodies[1].base_from_body;
+    let roll = &task.bodies[ROLL].base_from_body;
     let h = match task.kind {
         TaskKind::InstallToiletRoll(s) => s.half_height(),
         _ => 0.0,
@@ -225,7 +227,7 @@ pub(crate) fn on_table(
     index: usize,
     pose: &Isometry3<f64>,
 ) -> bool {
-    index == 1
+    index == ROLL
         && (pose.translation.vector.z - (task.table_height + size.half_height())).abs() < 1e-3
 }
 
@@ -334,7 +336,7 @@ pub(crate) fn released(
     index: usize,
     pose: &Isometry3<f64>,
 ) -> Isometry3<f64> {
-    if index != 1 {
+    if index != ROLL {
         return *pose;
     }
     let h = size.half_height();
@@ -413,7 +415,7 @@ pub(crate) fn lost(
         format!(
             "the {} fell off the holder onto its side; no demonstration shows how to pick it \
              up from there",
-            task.bodies[1].name
+            task.bodies[ROLL].name
         )
     })
 }
@@ -463,7 +465,7 @@ pub(crate) fn describe_release(
     index: usize,
     pose: &Isometry3<f64>,
 ) -> Option<String> {
-    if index != 1 {
+    if index != ROLL {
         return None;
     }
     let m = OverSpindle::measure(task, size, pose);

@@ -25,6 +25,10 @@ pub enum GripperEvent {
         /// Its grasp site in the TCP frame once the jaws closed (m): x across the jaws,
         /// y along the pads, z along the approach.
         site_in_tcp: Vector3<f64>,
+        /// For a body the expert holds with an axis against the approach (a roll), how far
+        /// that axis is turned from it in the hand ([`AxisTilt`]): a tilted grasp stays in
+        /// the hand and tilts the body wherever it is carried.
+        axis_tilt: Option<AxisTilt>,
     },
     /// Opening fingers let a body go.
     Released {
@@ -35,17 +39,55 @@ pub enum GripperEvent {
     },
 }
 
+/// How far a held body's axis is turned from the way the expert holds it (against the TCP's
+/// approach, z), in degrees: in all, and its parts about the jaws' closing axis (TCP x: a
+/// turn in the pads' plane, which the jaws keep) and about the pads' axis (TCP y).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AxisTilt {
+    /// Angle between the body's axis and the reversed approach (°).
+    pub total_deg: f64,
+    /// Its part about the jaws' closing axis (°, unsigned).
+    pub about_closing_deg: f64,
+    /// Its part about the pads' axis (°, unsigned).
+    pub about_pads_deg: f64,
+}
+
+impl AxisTilt {
+    /// The tilt of `axis_in_tcp` (a body axis, in the TCP frame) from −z.
+    pub fn of(axis_in_tcp: &Vector3<f64>) -> Option<Self> {
+        let u = -axis_in_tcp.try_normalize(1e-12)?;
+        Some(Self {
+            total_deg: u.z.clamp(-1.0, 1.0).acos().to_degrees(),
+            about_closing_deg: u.y.atan2(u.z).abs().to_degrees(),
+            about_pads_deg: u.x.atan2(u.z).abs().to_degrees(),
+        })
+    }
+}
+
 impl fmt::Display for GripperEvent {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            GripperEvent::Grasped { body, site_in_tcp } => {
+            GripperEvent::Grasped {
+                body,
+                site_in_tcp,
+                axis_tilt,
+            } => {
                 let mm = site_in_tcp.map(|v| rounded_mm(v, 0));
                 write!(
                     f,
                     "grasped the {body}, its grasp site {:+.0} mm along the pads, {:+.0} mm across \
                      the jaws, {:+.0} mm along the approach from the TCP",
                     mm.y, mm.x, mm.z
-                )
+                )?;
+                if let Some(t) = axis_tilt {
+                    write!(
+                        f,
+                        ", its axis {:.0}° off the approach ({:.0}° about the jaws' closing \
+                         axis, {:.0}° about the pads' axis)",
+                        t.total_deg, t.about_closing_deg, t.about_pads_deg
+                    )?;
+                }
+                Ok(())
             }
             GripperEvent::Released { body, outcome } => write!(f, "released the {body}: {outcome}"),
         }
@@ -133,6 +175,10 @@ impl TaskWorld {
             Some(GripperEvent::Grasped {
                 body: self.task.bodies[i].name.clone(),
                 site_in_tcp: (tcp_from_body * Point3::from(site.point)).coords,
+                axis_tilt: self
+                    .task
+                    .held_axis(i)
+                    .and_then(|a| AxisTilt::of(&(tcp_from_body.rotation * a))),
             })
         } else if !holding {
             self.between_fingers = None;
@@ -223,19 +269,26 @@ mod tests {
         let Some(GripperEvent::Grasped {
             body,
             site_in_tcp: held_at,
+            axis_tilt,
         }) = &event
         else {
             panic!("{event:?}")
         };
         assert_eq!(body, "small toilet roll");
         assert!((held_at - after).norm() < 1e-12);
+        // The expert's rotation holds the roll's axis against the approach.
+        assert!(
+            axis_tilt.is_some_and(|t| t.total_deg < 1e-6),
+            "{axis_tilt:?}"
+        );
         let words = event.unwrap().to_string();
         let mm = after * 1e3;
         assert_eq!(
             words,
             format!(
                 "grasped the small toilet roll, its grasp site {:+.0} mm along the pads, +0 mm \
-                 across the jaws, -2 mm along the approach from the TCP",
+                 across the jaws, -2 mm along the approach from the TCP, its axis 0° off the \
+                 approach (0° about the jaws' closing axis, 0° about the pads' axis)",
                 mm.y
             )
         );
@@ -253,6 +306,47 @@ mod tests {
         let up = Isometry3::translation(0.0, 0.0, 0.1) * at;
         w.carry(&up);
         assert!((site_in_tcp(&w, 1, &up) - after).norm() < 1e-9);
+    }
+
+    #[test]
+    fn a_tilted_grasp_reports_the_rolls_axis_turned_in_the_hand_and_keeps_it() {
+        let task = TaskInstance::sample(TaskKind::InstallToiletRoll(RollSize::Large), 11, -0.06);
+        let expert = off_centre_grasp(&task, Vector3::zeros());
+        // 12° about the jaws' closing axis (TCP x), then 5° about the pads' axis (TCP y).
+        let turn =
+            |axis: Vector3<f64>, deg: f64| Isometry3::rotation(axis.normalize() * deg.to_radians());
+        let at = expert * turn(Vector3::x(), 12.0) * turn(Vector3::y(), 5.0);
+        let mut w = TaskWorld::new(task.clone());
+        assert!(w.before_close(&at).is_some());
+        let Some(GripperEvent::Grasped {
+            axis_tilt: Some(t), ..
+        }) = w.after_gripper(&at, true)
+        else {
+            panic!("no tilt reported")
+        };
+        // The roll stands upright, so in the TCP frame its axis is turned back by both.
+        assert!((t.about_closing_deg - 12.0).abs() < 0.1, "{t:?}");
+        assert!((t.about_pads_deg - 5.0).abs() < 0.6, "{t:?}");
+        let expected = (12f64.to_radians().cos() * 5f64.to_radians().cos()).acos();
+        assert!((t.total_deg - expected.to_degrees()).abs() < 1e-9, "{t:?}");
+        // Carried upright by the TCP, the roll leans by the grasp's tilt.
+        let up = Isometry3::translation(0.0, 0.0, 0.1) * expert;
+        w.carry(&up);
+        let lean = (w.poses()[1].rotation * Vector3::z()).angle(&Vector3::z());
+        assert!((lean.to_degrees() - t.total_deg).abs() < 1e-6, "{lean}");
+        // Bodies without an axis that matters report none.
+        let fruit = TaskInstance::sample(TaskKind::PickFruit(Fruit::Plum), 1, -0.06);
+        let mut w = TaskWorld::new(fruit.clone());
+        let at = fruit.base_from_object() * Isometry3::translation(0.0, 0.0, 0.021);
+        assert!(w.before_close(&at).is_some());
+        assert!(matches!(
+            w.after_gripper(&at, true),
+            Some(GripperEvent::Grasped {
+                axis_tilt: None,
+                ..
+            })
+        ));
+        assert_eq!(AxisTilt::of(&Vector3::zeros()), None);
     }
 
     #[test]

@@ -79,8 +79,8 @@ fn number_between(text: &str, prefix: &str, suffix: &str) -> f64 {
 }
 
 /// Through the simulated arm and gripper, the report of each gripper event reaches the
-/// episode: the expert's grasp at its drawn offset along the pads, its release on the
-/// spindle's axis.
+/// episode: the expert's grasp at its drawn offset along the pads with the roll's axis
+/// against the approach, its release on the spindle's axis.
 #[test]
 fn expert_installs_the_small_toilet_roll() {
     let kind = TaskKind::InstallToiletRoll(RollSize::Small);
@@ -103,6 +103,13 @@ fn expert_installs_the_small_toilet_roll() {
     );
     // The site is on the roll's axis; the TCP is `drawn` off it the other way.
     assert!((along + drawn).abs() <= 1.0, "{grasp}: drawn {drawn} mm");
+    // The expert's straight-down grasp holds the roll's axis against the approach.
+    let tilt = grasp
+        .split_once(", its axis ")
+        .and_then(|(_, r)| r.split_once("° off the approach"))
+        .and_then(|(n, _)| n.parse::<f64>().ok())
+        .unwrap_or_else(|| panic!("no axis tilt in {grasp:?}"));
+    assert!(tilt <= 1.0, "{grasp}");
     let release = &events[1].1;
     let off = number_between(
         release,
