@@ -33,7 +33,7 @@ use serde::{Deserialize, Serialize};
 use crate::episode::{run_sim_episode, KeyframeSource, Observation, Outcome, ScriptedExpert};
 use crate::recording::EpisodeRecorder;
 use crate::sim_cell::SimCell;
-use crate::task::{TaskInstance, TaskKind};
+use crate::task::{ExpertSettings, TaskInstance, TaskKind};
 
 /// The format written into every shard and the index.
 pub const FORMAT: &str = "equact-demos/1";
@@ -79,6 +79,22 @@ pub enum DemosError {
         /// The cell's sampling.
         cell: Box<PerceptionSection>,
     },
+    /// A collection would mix two experts' demonstrations in one dataset.
+    #[error(
+        "{path} holds demonstrations recorded with the expert's grasp turn up to {recorded}°, \
+         not {asked}°: record into another folder, or pass --grasp-turn {recorded}"
+    )]
+    ExpertMismatch {
+        /// The dataset directory.
+        path: PathBuf,
+        /// The dataset's largest turn (°).
+        recorded: f64,
+        /// The one asked for now (°).
+        asked: f64,
+    },
+    /// The expert's settings are out of range.
+    #[error("the expert's grasp turn must be a number from 0 to 30°, got {0}")]
+    BadExpertSettings(f64),
     /// The simulated cell could not run the episode.
     #[error("episode {task} seed {seed}: {why}")]
     Episode {
@@ -138,6 +154,10 @@ pub struct Index {
     /// they were recorded.
     #[serde(default)]
     pub perception: PerceptionSection,
+    /// How the expert recorded the episodes; absent in older indexes, which the plain
+    /// expert recorded.
+    #[serde(default)]
+    pub expert: ExpertSettings,
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> DemosError + '_ {
@@ -392,16 +412,23 @@ pub fn read_shard(path: &Path) -> Result<DemoEpisode, DemosError> {
     })
 }
 
-/// The expert, recording what it saw and what it emitted at every step.
+/// The expert, recording what it saw and its label at every step while the cell executes
+/// the plan's executed keyframe.
 struct RecordingExpert {
     inner: ScriptedExpert,
+    labels: Vec<Keyframe>,
     steps: Vec<DemoStep>,
 }
 
 impl KeyframeSource for RecordingExpert {
     fn next_keyframe(&mut self, obs: &Observation<'_>) -> anyhow::Result<Option<Keyframe>> {
         let k = self.inner.next_keyframe(obs)?;
-        if let Some(keyframe) = k {
+        if let Some(executed) = k {
+            let keyframe = self
+                .labels
+                .get(self.steps.len())
+                .copied()
+                .unwrap_or(executed);
             let rgb = obs.cloud.rgb.as_ref();
             self.steps.push(DemoStep {
                 cloud_xyz: obs.cloud.points.iter().map(|p| [p.x, p.y, p.z]).collect(),
@@ -442,17 +469,29 @@ pub fn collect(
     episodes: u64,
     first_seed: u64,
     out: &Path,
+    expert: &ExpertSettings,
     interrupt: &Arc<AtomicBool>,
 ) -> Result<CollectSummary, DemosError> {
+    let turn = expert.grasp_turn_deg;
+    if !(0.0..=30.0).contains(&turn) {
+        return Err(DemosError::BadExpertSettings(turn));
+    }
     fs::create_dir_all(out).map_err(io(out))?;
     let mut index = Index::load(out)?;
     if index.episodes.is_empty() {
         index.perception = cfg.perception.clone();
+        index.expert = *expert;
     } else if index.perception != cfg.perception {
         return Err(DemosError::PerceptionMismatch {
             path: out.to_path_buf(),
             recorded: Box::new(index.perception.clone()),
             cell: Box::new(cfg.perception.clone()),
+        });
+    } else if index.expert != *expert {
+        return Err(DemosError::ExpertMismatch {
+            path: out.to_path_buf(),
+            recorded: index.expert.grasp_turn_deg,
+            asked: turn,
         });
     }
     let total = kinds.len() as u64 * episodes;
@@ -485,7 +524,7 @@ pub fn collect(
                     .retain(|x| !(x.task == name && x.seed == seed));
             }
             let t0 = Instant::now();
-            let (outcome, steps) = record_episode(cfg, kind, seed, out, interrupt)?;
+            let (outcome, steps) = record_episode(cfg, kind, seed, out, expert, interrupt)?;
             let file = if outcome == Outcome::Success {
                 let rel = shard_name(kind, seed);
                 let bytes =
@@ -533,6 +572,7 @@ fn record_episode(
     kind: TaskKind,
     seed: u64,
     out: &Path,
+    expert: &ExpertSettings,
     interrupt: &Arc<AtomicBool>,
 ) -> Result<(Outcome, Vec<DemoStep>), DemosError> {
     let err = |why: String| DemosError::Episode {
@@ -552,8 +592,10 @@ fn record_episode(
     ));
     let mut recorder =
         EpisodeRecorder::create(&scratch, &BTreeMap::new()).map_err(|e| err(format!("{e}")))?;
+    let plan = task.expert_plan(expert);
     let mut expert = RecordingExpert {
-        inner: ScriptedExpert::new(task.expert_keyframes()),
+        inner: ScriptedExpert::new(plan.executed),
+        labels: plan.recorded,
         steps: Vec::new(),
     };
     let report = run_sim_episode(
@@ -591,7 +633,7 @@ mod tests {
         cfg.perception.gripper_points = 256;
         let kinds = [TaskKind::parse("install_toilet_roll/large").unwrap()];
         let stop = Arc::new(AtomicBool::new(false));
-        let err = collect(&cfg, &kinds, 1, 0, &dir, &stop).unwrap_err();
+        let err = collect(&cfg, &kinds, 1, 0, &dir, &ExpertSettings::default(), &stop).unwrap_err();
         match &err {
             DemosError::PerceptionMismatch { recorded, cell, .. } => {
                 assert_eq!(recorded.gripper_points, 0);
@@ -607,7 +649,8 @@ mod tests {
         ] {
             let mut cfg = CellConfig::simulated().unwrap();
             change(&mut cfg);
-            let err = collect(&cfg, &kinds, 1, 0, &dir, &stop).unwrap_err();
+            let err =
+                collect(&cfg, &kinds, 1, 0, &dir, &ExpertSettings::default(), &stop).unwrap_err();
             assert!(
                 matches!(err, DemosError::PerceptionMismatch { .. }),
                 "{err}"

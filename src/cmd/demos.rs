@@ -41,6 +41,12 @@ pub struct CollectArgs {
     /// The cell configuration; the built-in simulated cell when omitted.
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Toilet roll: execute each grasp turned about the jaws' closing axis by a random angle
+    /// up to this many degrees (0-30), record the clean grasp as the label, and place the
+    /// turned roll's axis along the spindle; shows a policy how to place a roll its own grasp
+    /// left turned in the hand. 0, the plain expert, by default; the dataset's index records it.
+    #[arg(long, default_value_t = 0.0)]
+    pub grasp_turn: f64,
 }
 
 /// The task variations `--task` names.
@@ -79,6 +85,9 @@ pub fn run(args: DemosArgs) -> anyhow::Result<()> {
         args.episodes,
         args.seed,
         &args.out,
+        &equact::task::ExpertSettings {
+            grasp_turn_deg: args.grasp_turn,
+        },
         &interrupt,
     )?;
     println!(

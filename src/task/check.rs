@@ -13,7 +13,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::world::TaskWorld;
-use super::TaskInstance;
+use super::{ExpertSettings, TaskInstance};
 use crate::episode::MAX_KEYFRAMES;
 
 /// Spacing of the sampled surface points (m), about the fusion's voxel.
@@ -166,8 +166,14 @@ pub fn planning_cloud(world: &TaskWorld, q: &Joints, opening: f64, seed: u64) ->
     }
 }
 
-/// Runs `task`'s expert kinematically from the home pose with `planner`.
-pub fn kinematic_episode(task: &TaskInstance, planner: &Planner) -> KinematicReport {
+/// Runs `task`'s expert (recording under `settings`: what it executes) kinematically from
+/// the home pose with `planner`.
+pub fn kinematic_episode(
+    task: &TaskInstance,
+    settings: &ExpertSettings,
+    planner: &Planner,
+) -> KinematicReport {
+    let keyframes = task.expert_plan(settings).executed;
     let mut world = TaskWorld::new(task.clone());
     let table = Obstacle::table(task.table_height);
     let mut q = HOME_Q;
@@ -178,12 +184,7 @@ pub fn kinematic_episode(task: &TaskInstance, planner: &Planner) -> KinematicRep
         steps,
         failure: Some(why),
     };
-    for (step, kf) in task
-        .expert_keyframes()
-        .iter()
-        .enumerate()
-        .take(MAX_KEYFRAMES)
-    {
+    for (step, kf) in keyframes.iter().enumerate().take(MAX_KEYFRAMES) {
         let cloud = planning_cloud(&world, &q, opening, step as u64);
         let scene = match World::from_cloud(&cloud, &CloudParams::default()) {
             Ok(w) => w.with_obstacle(table.clone()),
@@ -215,7 +216,7 @@ pub fn kinematic_episode(task: &TaskInstance, planner: &Planner) -> KinematicRep
             };
         }
     }
-    let n = task.expert_keyframes().len();
+    let n = keyframes.len();
     fail(
         n,
         format!(

@@ -28,6 +28,7 @@ use hil_sim::scene::{Primitive, HOME_Q};
 use nalgebra::{Isometry3, Matrix3, Rotation3, Translation3, UnitQuaternion, Vector3};
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
 
 pub use flower::FlowerLevel;
 pub use pick_fruit::{Fruit, GRASP_HEIGHT_ABOVE_CENTRE, LIFT_SUCCESS_HEIGHT};
@@ -229,6 +230,25 @@ impl TaskInstance {
             .iter()
             .find(|b| b.grasp.is_some())
             .map_or(self.base_from_fixture, |b| b.base_from_body)
+    }
+
+    /// The scripted expert's episode under `settings`: what it records as demonstration
+    /// labels and what it executes, which differ only where the settings inject a
+    /// perturbation into the execution (a turned toilet-roll grasp).
+    pub fn expert_plan(&self, settings: &ExpertSettings) -> ExpertPlan {
+        match self.kind {
+            TaskKind::InstallToiletRoll(_) => toilet_roll::expert_turned(
+                self,
+                toilet_roll::expert_grasp_turn(self, settings.grasp_turn_deg.to_radians()),
+            ),
+            _ => {
+                let executed = self.expert_keyframes();
+                ExpertPlan {
+                    recorded: executed.clone(),
+                    executed,
+                }
+            }
+        }
     }
 
     /// The scripted expert: keyframes from the true body poses.
@@ -464,6 +484,29 @@ pub(crate) fn keyframe_through(p: Vector3<f64>, r: UnitQuaternion<f64>, open: bo
         ignore_collisions: true,
         ..keyframe(p, r, open)
     }
+}
+
+/// How the scripted expert records demonstrations (`equact demos collect`); the default is
+/// the plain expert.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ExpertSettings {
+    /// Largest turn (°) of the executed toilet-roll grasp about the jaws' closing axis; each
+    /// episode draws its own from the seed. The recorded grasp stays the clean one and the
+    /// later keyframes place the turned roll's axis along the spindle, so the demonstrations
+    /// show how to place a roll held turned, as a learned grasp leaves it (the idea of
+    /// DART: perturb the execution, keep the expert's labels). 0 by default; other tasks
+    /// ignore it.
+    #[serde(default)]
+    pub grasp_turn_deg: f64,
+}
+
+/// An expert episode: the keyframes recorded as labels and those executed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ExpertPlan {
+    /// The labels, one per step.
+    pub recorded: Vec<Keyframe>,
+    /// What the arm is sent, one per step.
+    pub executed: Vec<Keyframe>,
 }
 
 /// Half a turn, for the yaw ranges.

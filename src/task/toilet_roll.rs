@@ -16,7 +16,7 @@ use rand_chacha::ChaCha8Rng;
 
 use super::{
     angle_between, grasp_rotation, keyframe, keyframe_through, pedestal, rounded_mm,
-    sample_fixture, Body, BodyPart, GraspSite, TaskInstance, TaskKind, HALF_TURN,
+    sample_fixture, Body, BodyPart, ExpertPlan, GraspSite, TaskInstance, TaskKind, HALF_TURN,
 };
 
 /// Radius of the holder's spindle (m).
@@ -41,6 +41,8 @@ const SEATED_DISTANCE: f64 = 0.01;
 pub const GRASP_ALONG_PADS: f64 = 0.006;
 /// Index of the roll among the task's bodies (the holder is 0).
 pub const ROLL: usize = 1;
+/// The expert's grasp turn is drawn from this stream of the task's seed.
+const TURN_STREAM: u64 = 2;
 /// The expert's grasp offset is drawn from this stream of the task's seed (the scene uses
 /// stream 0).
 const EXPERT_STREAM: u64 = 1;
@@ -171,11 +173,31 @@ pub fn expert_grasp_offset(task: &TaskInstance) -> f64 {
     rng.random_range(-GRASP_ALONG_PADS..=GRASP_ALONG_PADS)
 }
 
+/// The expert's turn of an executed grasp (rad) about the jaws' closing axis, within
+/// ±`max_turn` ([`super::ExpertSettings::grasp_turn_deg`]); 0 when `max_turn` is 0.
+pub fn expert_grasp_turn(task: &TaskInstance, max_turn: f64) -> f64 {
+    if max_turn <= 0.0 {
+        return 0.0;
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(task.seed);
+    rng.set_stream(TURN_STREAM);
+    rng.random_range(-max_turn..=max_turn)
+}
+
 /// Above the roll (open), around its top (close) at [`expert_grasp_offset`] along the pads,
 /// lifted, the roll's centre above the spindle along the holder's axis, lowered over it and
 /// let go, back up.
 pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
-    let roll = &task.bodies[ROLL].base_from_body;
+    expert_turned(task, 0.0).executed
+}
+
+/// The expert's episode with its grasp executed turned by `turn` (rad) about the jaws'
+/// closing axis, through the TCP, where the recorded grasp stays the clean one; the held roll
+/// keeps the turn, and the keyframes after the grasp (recorded as executed) lift the TCP as
+/// it is and place the roll's axis, not the TCP's, along the spindle. With `turn` 0 both
+/// lists are the plain expert's.
+pub(crate) fn expert_turned(task: &TaskInstance, turn: f64) -> ExpertPlan {
+    let roll = task.bodies[ROLL].base_from_body;
     let h = match task.kind {
         TaskKind::InstallToiletRoll(s) => s.half_height(),
         _ => 0.0,
@@ -184,25 +206,43 @@ pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
     let r = grasp_rotation(-axis, roll.rotation * Vector3::x());
     let along = expert_grasp_offset(task);
     let grasp = roll.translation.vector + axis * (h - GRASP_BELOW_TOP) + r * Vector3::y() * along;
+    let clean = Isometry3::from_parts(Translation3::from(grasp), r);
+    // Turning about TCP x through the TCP keeps the grasp site centred across the jaws, so
+    // the jaws do not slide the roll and it sits in the hand as here.
+    let held = clean * Isometry3::rotation(Vector3::x() * turn);
+    let tcp_from_roll = held.inverse() * roll;
     let fz = task.base_from_fixture.rotation * Vector3::z();
     let r_place = grasp_rotation(-fz, r * Vector3::x());
-    // The TCP when the roll's bottom is `s` above the seat: the held roll's centre is
-    // h − GRASP_BELOW_TOP below the TCP along the TCP z and `along` behind it along the
-    // TCP y (the jaws keep the grasp's offset along the pads).
+    // On the spindle the roll is turned as the clean grasp would place it.
+    let roll_placed = r_place * (clean.inverse() * roll).rotation;
+    // The TCP when the roll's bottom is `s` above the seat.
     let place = |s: f64| {
-        seated_centre(task, h) + fz * (s + h - GRASP_BELOW_TOP) + r_place * Vector3::y() * along
+        let roll_at = Isometry3::from_parts(
+            Translation3::from(seated_centre(task, h) + fz * s),
+            roll_placed,
+        );
+        roll_at * tcp_from_roll.inverse()
     };
+    let above = place(SPINDLE_HEIGHT + 0.03);
     let release = place(RELEASE_HEIGHT);
-    vec![
+    let back_up = Translation3::from(fz * 0.10) * release;
+    let lift = Translation3::new(0.0, 0.0, 0.15) * held;
+    let at = |p: &Isometry3<f64>, open: bool| keyframe(p.translation.vector, p.rotation, open);
+    let through =
+        |p: &Isometry3<f64>, open: bool| keyframe_through(p.translation.vector, p.rotation, open);
+    let executed = vec![
         keyframe(grasp + Vector3::z() * 0.10, r, true),
-        keyframe(grasp, r, false),
-        keyframe(grasp + Vector3::z() * 0.15, r, false),
-        keyframe(place(SPINDLE_HEIGHT + 0.03), r_place, false),
+        at(&held, false),
+        at(&lift, false),
+        at(&above, false),
         // Down over the spindle and back up are planned without the cloud: the carried
         // roll's own points lie where the gripper goes.
-        keyframe_through(release, r_place, true),
-        keyframe_through(release + fz * 0.10, r_place, true),
-    ]
+        through(&release, true),
+        through(&back_up, true),
+    ];
+    let mut recorded = executed.clone();
+    recorded[1] = at(&clean, false);
+    ExpertPlan { recorded, executed }
 }
 
 /// The roll is not held and sits on the holder: its centre within 1 cm of its seated place
@@ -551,6 +591,70 @@ mod tests {
             lo < -GRASP_ALONG_PADS / 2.0 && hi > GRASP_ALONG_PADS / 2.0,
             "{offsets:?}"
         );
+    }
+
+    #[test]
+    fn a_turned_grasp_is_executed_the_clean_one_recorded_and_the_roll_still_seats() {
+        use crate::task::world::{GripperEvent, TaskWorld};
+        use crate::task::ExpertSettings;
+        let settings = ExpertSettings {
+            grasp_turn_deg: 12.0,
+        };
+        let mut turns = Vec::new();
+        for seed in 0..40 {
+            let size = RollSize::ALL[seed as usize % 2];
+            let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), seed, -0.06);
+            // The plain expert is the plan with no turn, recorded as executed.
+            let plain = t.expert_plan(&ExpertSettings::default());
+            assert_eq!(plain.recorded, plain.executed);
+            assert_eq!(plain.executed, t.expert_keyframes());
+            let turn = expert_grasp_turn(&t, 12f64.to_radians());
+            assert_eq!(
+                turn,
+                expert_grasp_turn(&t, 12f64.to_radians()),
+                "drawn from the seed"
+            );
+            assert!(turn.abs() <= 12f64.to_radians());
+            turns.push(turn);
+            let plan = t.expert_plan(&settings);
+            let pose = |k: &[Keyframe], i: usize| *k[i].base_from_tcp.isometry();
+            // Only the grasp's label differs from what is executed: the clean grasp, turned
+            // about its own x through the TCP.
+            for i in 0..plan.executed.len() {
+                assert_eq!(plan.recorded[i] == plan.executed[i], i != 1 || turn == 0.0);
+            }
+            assert_eq!(plan.recorded[1], plain.executed[1]);
+            let (clean, held) = (pose(&plan.recorded, 1), pose(&plan.executed, 1));
+            let d = clean.inverse() * held;
+            assert!(d.translation.vector.norm() < 1e-9);
+            assert!((d.rotation.scaled_axis() - Vector3::x() * turn).norm() < 1e-9);
+            // Executed: the grasp leaves the turn in the hand ...
+            let mut w = TaskWorld::new(t.clone());
+            assert!(w.before_close(&held).is_some());
+            let Some(GripperEvent::Grasped {
+                axis_tilt: Some(tilt),
+                ..
+            }) = w.after_gripper(&held, true)
+            else {
+                panic!("seed {seed}: no grasp")
+            };
+            assert!((tilt.about_closing_deg - turn.abs().to_degrees()).abs() < 1e-6);
+            assert!(tilt.about_pads_deg < 1e-6);
+            // ... and the release holds the roll's axis along the spindle's, its centre on it.
+            let release = pose(&plan.executed, 4);
+            w.carry(&release);
+            let on_holder = t.base_from_fixture.inverse() * w.poses()[ROLL];
+            let c = on_holder.translation.vector;
+            assert!(c.x.hypot(c.y) < 1e-6, "seed {seed}: {c:?} off the axis");
+            assert!((c.z - size.half_height() - RELEASE_HEIGHT).abs() < 1e-6);
+            assert!((on_holder.rotation * Vector3::z()).angle(&Vector3::z()) < 1e-9);
+            w.after_gripper(&release, false);
+            assert!(w.success(), "seed {seed}");
+        }
+        let (lo, hi) = turns
+            .iter()
+            .fold((f64::MAX, f64::MIN), |(lo, hi), &v| (lo.min(v), hi.max(v)));
+        assert!(lo < -0.1 && hi > 0.1, "{turns:?}");
     }
 
     #[test]

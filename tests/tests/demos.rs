@@ -8,7 +8,7 @@ use std::sync::Arc;
 
 use cell_types::config::CellConfig;
 use equact::demos::{collect, read_shard, Index};
-use equact::task::{PipePart, TaskInstance, TaskKind};
+use equact::task::{ExpertSettings, PipePart, TaskInstance, TaskKind};
 
 #[test]
 fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it() {
@@ -17,7 +17,7 @@ fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it()
     let _ = std::fs::remove_dir_all(&out);
     let kind = TaskKind::DisassemblePipe(PipePart::FirstLink);
     let stop = Arc::new(AtomicBool::new(false));
-    let s = collect(&cfg, &[kind], 1, 7, &out, &stop).unwrap();
+    let s = collect(&cfg, &[kind], 1, 7, &out, &ExpertSettings::default(), &stop).unwrap();
     assert_eq!((s.recorded, s.skipped, s.failed), (1, 0, 0));
 
     let index = Index::load(&out).unwrap();
@@ -58,7 +58,7 @@ fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it()
     // A rerun skips the finished episode and leaves its shard untouched.
     let shard = out.join(entry.file.as_ref().unwrap());
     let before = std::fs::metadata(&shard).unwrap().modified().unwrap();
-    let s = collect(&cfg, &[kind], 1, 7, &out, &stop).unwrap();
+    let s = collect(&cfg, &[kind], 1, 7, &out, &ExpertSettings::default(), &stop).unwrap();
     assert_eq!((s.recorded, s.skipped), (0, 1));
     assert_eq!(
         std::fs::metadata(&shard).unwrap().modified().unwrap(),
@@ -97,7 +97,7 @@ fn a_focus_box_raised_off_the_table_samples_the_objects_instead_of_the_table_top
             std::process::id()
         ));
         let _ = std::fs::remove_dir_all(&out);
-        let s = collect(&cfg, &[kind], 1, 3, &out, &stop).unwrap();
+        let s = collect(&cfg, &[kind], 1, 3, &out, &ExpertSettings::default(), &stop).unwrap();
         assert_eq!(s.recorded, 1);
         let index = Index::load(&out).unwrap();
         assert_eq!(index.perception, cfg.perception);
@@ -117,4 +117,66 @@ fn a_focus_box_raised_off_the_table_samples_the_objects_instead_of_the_table_top
         "{raised} of {of_raised} against {plain}"
     );
     assert!(of_raised - raised >= 200, "{raised} of {of_raised}");
+}
+
+/// `--grasp-turn`: the arm executes the toilet-roll grasp turned in the pads' plane while the
+/// shard records the clean grasp as the label; the index keeps the setting, and a dataset
+/// is not resumed with another (or with a turn out of range).
+#[test]
+fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
+    use equact::demos::DemosError;
+    use equact::task::{toilet_roll, RollSize};
+    let cfg = CellConfig::simulated().unwrap();
+    let planner = equact::episode::planner_from_config(&cfg).unwrap();
+    let kind = TaskKind::InstallToiletRoll(RollSize::Small);
+    let table = cfg.workspace.table_height;
+    let turned = ExpertSettings {
+        grasp_turn_deg: 12.0,
+    };
+    // A seed whose drawn turn is large enough to tell from tracking error.
+    let (seed, turn) = (0..50)
+        .map(|s| {
+            let t = TaskInstance::sample(kind, s, table);
+            (s, toilet_roll::expert_grasp_turn(&t, 12f64.to_radians()))
+        })
+        .find(|(_, t)| t.abs().to_degrees() > 6.0)
+        .unwrap();
+    let out = std::env::temp_dir().join(format!("equact-demos-turn-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&out);
+    let stop = Arc::new(AtomicBool::new(false));
+    let s = collect(&cfg, &[kind], 1, seed, &out, &turned, &stop).unwrap();
+    assert_eq!((s.recorded, s.failed), (1, 0));
+    let index = Index::load(&out).unwrap();
+    assert_eq!(index.expert, turned);
+    let demo = read_shard(&out.join(index.episodes[0].file.as_ref().unwrap())).unwrap();
+    let plain = TaskInstance::sample(kind, seed, table).expert_keyframes();
+    // The label is the clean grasp ...
+    let label = demo.steps[1].keyframe.base_from_tcp;
+    assert!(
+        label
+            .rotation()
+            .angle_to(&plain[1].base_from_tcp.rotation())
+            < 1e-9
+    );
+    // ... and the arm stood turned by the drawn angle after executing it.
+    let reached = planner.model.fk_tcp(&demo.steps[2].joints);
+    let off = reached.rotation().angle_to(&label.rotation()).to_degrees();
+    assert!(
+        (off - turn.abs().to_degrees()).abs() < 0.5,
+        "{off}° against {}°",
+        turn.to_degrees()
+    );
+    // A resume with the plain expert, or a turn out of range, is refused.
+    let plain_settings = ExpertSettings::default();
+    let err = collect(&cfg, &[kind], 2, seed, &out, &plain_settings, &stop).unwrap_err();
+    assert!(matches!(err, DemosError::ExpertMismatch { .. }), "{err}");
+    assert!(err.to_string().contains("--grasp-turn 12"), "{err}");
+    for bad in [f64::NAN, -1.0, 45.0] {
+        let settings = ExpertSettings {
+            grasp_turn_deg: bad,
+        };
+        let err = collect(&cfg, &[kind], 1, seed, &out, &settings, &stop).unwrap_err();
+        assert!(matches!(err, DemosError::BadExpertSettings(_)), "{err}");
+    }
+    let _ = std::fs::remove_dir_all(&out);
 }

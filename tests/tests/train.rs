@@ -13,7 +13,7 @@ use cell_types::config::CellConfig;
 use equact::demos::{collect, read_shard, Index};
 use equact::eval::{evaluate, EvalPlan, LearnedEval, EVAL_SEED};
 use equact::learned::{for_cell, LearnedPolicy};
-use equact::task::{Fruit, TaskKind};
+use equact::task::{ExpertSettings, Fruit, TaskKind};
 use equact::train::{load_samples, Instructions};
 use policy::init::random_weights;
 use policy::optim::AdamWConfig;
@@ -40,7 +40,16 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     let demos = root.join("demos");
     let kind = TaskKind::PickFruit(Fruit::Peach);
     let stop = Arc::new(AtomicBool::new(false));
-    let s = collect(&cfg, &[kind], 1, 3, &demos, &stop).unwrap();
+    let s = collect(
+        &cfg,
+        &[kind],
+        1,
+        3,
+        &demos,
+        &ExpertSettings::default(),
+        &stop,
+    )
+    .unwrap();
     assert_eq!(s.recorded, 1);
 
     let minilm = tests::minilm_model_dir().unwrap();
