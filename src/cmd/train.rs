@@ -213,6 +213,11 @@ struct RunSettings {
     /// `run` and `eval` compare it with the cell's.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     perception: Option<cell_types::config::PerceptionSection>,
+    /// How the expert recorded the demonstrations, when not the plain way (their index's
+    /// `expert`: a turned toilet-roll grasp); runs from before the field, and plain ones,
+    /// leave it out.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    expert: Option<equact::task::ExpertSettings>,
 }
 
 fn one() -> f32 {
@@ -287,7 +292,8 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     // The network's focus box follows its demonstrations': where their fusion gave the
     // objects the focus box's share, the network keeps them instead of thinning them to
     // the table's spacing.
-    let recorded = equact::demos::Index::load(&args.demos)?.perception;
+    let index = equact::demos::Index::load(&args.demos)?;
+    let recorded = index.perception;
     if let Some(h) = recorded.focus_above_table_m {
         policy_cfg = policy_cfg.with_focus_above_table(h);
         println!("focus box floor {h} m above the table, as the demonstrations were sampled");
@@ -332,6 +338,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         points: args.points,
         near_gripper_points: args.near_gripper_points,
         perception: equact::learned::recorded_perception(&recorded),
+        expert: (index.expert != equact::task::ExpertSettings::default()).then_some(index.expert),
     };
     let (mut trainer, before) = open_run(&args.out, cfg, &settings)?;
     let interrupt = super::args::interrupt_flag("saving a checkpoint after the current step")?;
@@ -634,11 +641,30 @@ mod tests {
         assert_eq!(s.points, None);
         assert_eq!(s.near_gripper_points, 0);
         assert_eq!(s.perception, None);
+        assert_eq!(s.expert, None);
         assert_eq!(s.conditioning_lr_scale, 1.0);
         assert_eq!(s.init, None);
-        // A plain run writes no perception key: its settings read as before the field.
+        // A plain run writes no perception or expert key: its settings read as before the
+        // fields.
         let plain = serde_json::to_string(&s).unwrap();
-        assert!(!plain.contains("perception"), "{plain}");
+        assert!(
+            !plain.contains("perception") && !plain.contains("expert"),
+            "{plain}"
+        );
+        // Demonstrations with turned grasps are named in the run's settings and read back.
+        let turned = RunSettings {
+            expert: Some(equact::task::ExpertSettings {
+                grasp_turn_deg: 15.0,
+            }),
+            ..serde_json::from_str(old).unwrap()
+        };
+        let text = serde_json::to_string(&turned).unwrap();
+        assert!(
+            text.contains(r#""expert":{"grasp_turn_deg":15.0}"#),
+            "{text}"
+        );
+        let back: RunSettings = serde_json::from_str(&text).unwrap();
+        assert_eq!(back.expert, turned.expert);
         // The cosine schedule spans the run's iterations; a resume asking for more steps
         // has other settings, so it cannot silently restart the decay.
         let c = ScheduleArg::Cosine.schedule(100, 2400);
@@ -709,6 +735,7 @@ mod tests {
             points: None,
             near_gripper_points: 0,
             perception: None,
+            expert: None,
         };
         let history = |dir: &Path| {
             policy::weights::Weights::from_file(&dir.join(WEIGHTS_FILE))
