@@ -81,8 +81,10 @@ pub enum DemosError {
     },
     /// A collection would mix two experts' demonstrations in one dataset.
     #[error(
-        "{path} holds demonstrations recorded with the expert's grasp turn up to {recorded}°, \
-         not {asked}°: record into another folder, or pass --grasp-turn {recorded}"
+        "{path} holds demonstrations recorded by {}, not {}: record into another folder, or \
+         pass --grasp-turn {recorded}",
+        expert_words(*.recorded),
+        expert_words(*.asked)
     )]
     ExpertMismatch {
         /// The dataset directory.
@@ -158,6 +160,15 @@ pub struct Index {
     /// expert recorded.
     #[serde(default)]
     pub expert: ExpertSettings,
+}
+
+/// The expert that a largest grasp turn (°) stands for, in words.
+fn expert_words(grasp_turn_deg: f64) -> String {
+    if grasp_turn_deg == 0.0 {
+        "the plain expert".into()
+    } else {
+        format!("the expert with grasp turns up to {grasp_turn_deg}°")
+    }
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> DemosError + '_ {

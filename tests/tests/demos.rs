@@ -170,7 +170,12 @@ fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
     let plain_settings = ExpertSettings::default();
     let err = collect(&cfg, &[kind], 2, seed, &out, &plain_settings, &stop).unwrap_err();
     assert!(matches!(err, DemosError::ExpertMismatch { .. }), "{err}");
-    assert!(err.to_string().contains("--grasp-turn 12"), "{err}");
+    assert!(
+        err.to_string()
+            .contains("by the expert with grasp turns up to 12°, not the plain expert")
+            && err.to_string().contains("--grasp-turn 12"),
+        "{err}"
+    );
     for bad in [f64::NAN, -1.0, 45.0] {
         let settings = ExpertSettings {
             grasp_turn_deg: bad,
