@@ -448,7 +448,7 @@ pub(crate) fn lost(
     size: RollSize,
     poses: &[Isometry3<f64>],
 ) -> Option<String> {
-    let p = &poses[1];
+    let p = &poses[ROLL];
     let on_side = (p.translation.vector.z - (task.table_height + size.radius())).abs() < 1e-6
         && angle_between(&(p.rotation * Vector3::z()), &Vector3::z()) > FRAC_PI_4;
     on_side.then(|| {

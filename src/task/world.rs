@@ -7,7 +7,7 @@ use std::fmt;
 
 use nalgebra::{Isometry3, Point3, Translation3, Vector3};
 
-use super::{rounded_mm, GraspSite, TaskInstance};
+use super::{angle_between, rounded_mm, GraspSite, TaskInstance};
 
 /// Grasp distance: a body is caught when its grasp site is this close to the TCP as the
 /// fingers close (m).
@@ -57,7 +57,7 @@ impl AxisTilt {
     pub fn of(axis_in_tcp: &Vector3<f64>) -> Option<Self> {
         let u = -axis_in_tcp.try_normalize(1e-12)?;
         Some(Self {
-            total_deg: u.z.clamp(-1.0, 1.0).acos().to_degrees(),
+            total_deg: angle_between(&u, &Vector3::z()).to_degrees(),
             about_closing_deg: u.y.atan2(u.z).abs().to_degrees(),
             about_pads_deg: u.x.atan2(u.z).abs().to_degrees(),
         })

@@ -104,11 +104,8 @@ fn expert_installs_the_small_toilet_roll() {
     // The site is on the roll's axis; the TCP is `drawn` off it the other way.
     assert!((along + drawn).abs() <= 1.0, "{grasp}: drawn {drawn} mm");
     // The expert's straight-down grasp holds the roll's axis against the approach.
-    let tilt = grasp
-        .split_once(", its axis ")
-        .and_then(|(_, r)| r.split_once("° off the approach"))
-        .and_then(|(n, _)| n.parse::<f64>().ok())
-        .unwrap_or_else(|| panic!("no axis tilt in {grasp:?}"));
+    let at = grasp.find(", its axis ").unwrap_or(0);
+    let tilt = number_between(&grasp[at..], ", its axis ", "° off the approach");
     assert!(tilt <= 1.0, "{grasp}");
     let release = &events[1].1;
     let off = number_between(
