@@ -35,6 +35,9 @@ use crate::recording::EpisodeRecorder;
 use crate::sim_cell::SimCell;
 use crate::task::{ExpertSettings, TaskInstance, TaskKind};
 
+mod merge;
+pub use merge::{merge, MergeSummary, Replacement};
+
 /// The format written into every shard and the index.
 pub const FORMAT: &str = "equact-demos/1";
 
@@ -93,6 +96,28 @@ pub enum DemosError {
         recorded: f64,
         /// The one asked for now (°).
         asked: f64,
+    },
+    /// A folder given as a dataset holds none.
+    #[error(
+        "{0} holds no index.json, so it is not a demonstration dataset; pass the folder that \
+         `equact demos collect --out` wrote"
+    )]
+    NotADataset(PathBuf),
+    /// `demos merge` was pointed at a folder that already holds a dataset.
+    #[error(
+        "{0} already holds a dataset (index.json); merge writes a new one: pass an --out \
+         folder without an index.json, other than the sources"
+    )]
+    MergeInto(PathBuf),
+    /// Two datasets cannot become one.
+    #[error("{other} cannot join {first} in one dataset: {why}; leave one of them out")]
+    MergeMismatch {
+        /// The first source that set the dataset's kind.
+        first: PathBuf,
+        /// The source that differs.
+        other: PathBuf,
+        /// How they differ.
+        why: String,
     },
     /// The expert's settings are out of range.
     #[error("the expert's grasp turn must be a number from 0 to 30°, got {0}")]
@@ -163,7 +188,7 @@ pub struct Index {
 }
 
 /// The expert that a largest grasp turn (°) stands for, in words.
-fn expert_words(grasp_turn_deg: f64) -> String {
+pub(crate) fn expert_words(grasp_turn_deg: f64) -> String {
     if grasp_turn_deg == 0.0 {
         "the plain expert".into()
     } else {
@@ -317,12 +342,17 @@ pub struct DemoEpisode {
 
 /// Reads a shard written by [`shard_bytes`], checking every tensor's type and shape.
 pub fn read_shard(path: &Path) -> Result<DemoEpisode, DemosError> {
+    let bytes = fs::read(path).map_err(io(path))?;
+    parse_shard(path, &bytes)
+}
+
+/// Parses the bytes of the shard at `path` (named in errors) as [`read_shard`] does.
+fn parse_shard(path: &Path, bytes: &[u8]) -> Result<DemoEpisode, DemosError> {
     let bad = |why: String| DemosError::BadShard {
         path: path.to_path_buf(),
         why,
     };
-    let bytes = fs::read(path).map_err(io(path))?;
-    let (_, header) = SafeTensors::read_metadata(&bytes).map_err(|e| bad(e.to_string()))?;
+    let (_, header) = SafeTensors::read_metadata(bytes).map_err(|e| bad(e.to_string()))?;
     let metadata: BTreeMap<String, String> = header
         .metadata()
         .clone()
@@ -335,7 +365,7 @@ pub fn read_shard(path: &Path) -> Result<DemoEpisode, DemosError> {
             metadata.get("format")
         )));
     }
-    let st = SafeTensors::deserialize(&bytes).map_err(|e| bad(e.to_string()))?;
+    let st = SafeTensors::deserialize(bytes).map_err(|e| bad(e.to_string()))?;
     let get =
         |name: &str, dtype: Dtype, tail: &[usize]| -> Result<(Vec<usize>, Vec<u8>), DemosError> {
             let t = st

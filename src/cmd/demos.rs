@@ -21,6 +21,21 @@ pub struct DemosArgs {
 pub enum DemosCommand {
     /// Record expert demonstrations in the simulated cell.
     Collect(CollectArgs),
+    /// Write one dataset holding the episodes of several (shards checked and copied; an
+    /// episode listed by two sources is taken from the later one).
+    Merge(MergeArgs),
+}
+
+/// Arguments of `equact demos merge`.
+#[derive(Args, Debug)]
+pub struct MergeArgs {
+    /// The new dataset's folder (it must not hold an index.json yet).
+    #[arg(long)]
+    pub out: PathBuf,
+    /// The datasets to merge, in order: where two list the same task variation and seed,
+    /// the later one's episode is kept (unless it failed where the earlier succeeded).
+    #[arg(required = true, num_args = 1..)]
+    pub sources: Vec<PathBuf>,
 }
 
 /// Arguments of `equact demos collect`.
@@ -62,7 +77,36 @@ pub fn kinds_for(task: &str) -> anyhow::Result<Vec<TaskKind>> {
 
 /// Runs `equact demos`.
 pub fn run(args: DemosArgs) -> anyhow::Result<()> {
-    let DemosCommand::Collect(args) = args.command;
+    match args.command {
+        DemosCommand::Collect(args) => collect(args),
+        DemosCommand::Merge(args) => merge(args),
+    }
+}
+
+/// Runs `equact demos merge`.
+fn merge(args: MergeArgs) -> anyhow::Result<()> {
+    let s = equact::demos::merge(&args.sources, &args.out)?;
+    for r in &s.replaced {
+        println!(
+            "{}: {} episode(s) of {} replaced by those of {}",
+            r.task,
+            r.episodes,
+            r.earlier.display(),
+            r.later.display()
+        );
+    }
+    println!(
+        "{} episodes ({} demonstrations) from {} dataset(s) in {}",
+        s.episodes,
+        s.shards,
+        args.sources.len(),
+        args.out.display()
+    );
+    Ok(())
+}
+
+/// Runs `equact demos collect`.
+fn collect(args: CollectArgs) -> anyhow::Result<()> {
     let cfg = super::config::load(args.config.as_ref())?;
     if cfg.robot.backend != cell_types::config::RobotBackend::Sim {
         anyhow::bail!(

@@ -500,6 +500,14 @@ pub struct ExpertSettings {
     pub grasp_turn_deg: f64,
 }
 
+impl ExpertSettings {
+    /// Whether the settings change the expert's demonstrations of `kind` (the grasp turn:
+    /// the toilet roll's only).
+    pub fn apply_to(kind: TaskKind) -> bool {
+        matches!(kind, TaskKind::InstallToiletRoll(_))
+    }
+}
+
 /// An expert episode: the keyframes recorded as labels and those executed.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ExpertPlan {
