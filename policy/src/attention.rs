@@ -15,7 +15,7 @@ use crate::layers::{
     check_len, rows_of, separable_s2_activation, smooth_leaky_relu, EdgeFeatures, EdgeFeaturesRef,
     GaussianRbf, LayerNorm, So3Linear,
 };
-use crate::so2_conv::{CoefficientMapping, EdgeWigners, So2Conv};
+use crate::so2_conv::{CoefficientMapping, EdgeWigners, MProducts, So2Conv};
 use crate::so3::{num_coefficients, WignerCalculator};
 use crate::weights::Scope;
 
@@ -231,6 +231,8 @@ pub struct GraphAttention {
     conv1_sources: Option<So2Conv>,
     /// Threads of a forward pass ([`GraphAttention::set_threads`]).
     threads: usize,
+    /// How the SO(2) convolutions compute their m > 0 blocks.
+    products: MProducts,
 }
 
 impl GraphAttention {
@@ -296,6 +298,7 @@ impl GraphAttention {
             proj,
             conv1_sources: None,
             threads: 1,
+            products: MProducts::Gauss,
         })
     }
 
@@ -420,6 +423,12 @@ impl GraphAttention {
         self.threads = threads.max(1);
     }
 
+    /// How the SO(2) convolutions compute their m > 0 blocks (Gauss's three products by
+    /// default; the plain four are the benchmark's baseline).
+    pub fn set_m_products(&mut self, products: MProducts) {
+        self.products = products;
+    }
+
     /// The message, attention and aggregation of one chunk of edges (whole destination
     /// groups), added into `agg` `[Nd, K, heads·value]`.
     #[allow(clippy::too_many_arguments)]
@@ -465,7 +474,7 @@ impl GraphAttention {
             (x_src, src),
             x_dst.map(|x| (x, dst)),
         )?;
-        let (h, extra) = conv1.forward_features(&x_rot, Some(attr))?;
+        let (h, extra) = conv1.forward_with(&x_rot, Some(attr), self.products)?;
         let n_alpha = cfg.num_heads * cfg.alpha_channels;
         let n_extra = n_alpha + cfg.hidden_channels;
         let mut alpha_in = Vec::with_capacity(ne * n_alpha);
@@ -475,7 +484,7 @@ impl GraphAttention {
             gating.extend_from_slice(&row[n_alpha..]);
         }
         let h = separable_s2_activation(&self.grid, &gating, &h, cfg.hidden_channels)?;
-        let (mut v, _) = self.conv2.forward(&h, None)?;
+        let (mut v, _) = self.conv2.forward_with(&h, None, self.products)?;
 
         // Attention logits and the softmax over each destination's edges.
         self.alpha_norm.apply(&mut alpha_in);

@@ -250,6 +250,11 @@ impl Linear {
         Ok(Self::new(inp, out, w, b))
     }
 
+    /// The weight `[out, inp]`, row-major.
+    pub fn weights(&self) -> &[f32] {
+        &self.w
+    }
+
     /// The layer restricted to the inputs `keep` (the others taken as always zero).
     pub fn select_inputs(&self, keep: &[usize]) -> Result<Self> {
         if let Some(&bad) = keep.iter().find(|&&i| i >= self.inp) {

@@ -17,6 +17,7 @@ use policy::attention::{EdgeSet, GraphAttention};
 use policy::fixtures::{StoredTensor, TensorData};
 use policy::layers::GaussianRbf;
 use policy::predict::PolicyConfig;
+use policy::so2_conv::MProducts;
 use policy::so3::WignerCalculator;
 use policy::weights::Weights;
 use rand::{Rng, SeedableRng};
@@ -86,21 +87,31 @@ pub fn run(a: AttentionBenchArgs) -> anyhow::Result<()> {
         .collect();
 
     let mut ours = serde_json::Map::new();
+    let mut plain = serde_json::Map::new();
+    let mut gauss_speedups = serde_json::Map::new();
     let mut y = Vec::new();
     for &t in &a.threads {
         layer.set_threads(t);
-        y = layer.forward(&x, &x, &edges)?;
-        let mut times = Vec::with_capacity(a.reps);
-        for _ in 0..a.reps {
-            let t0 = Instant::now();
-            y = layer.forward(&x, &x, &edges)?;
-            times.push(t0.elapsed().as_secs_f64());
+        // Gauss's three products in the SO(2) convolutions (ours) against the plain four
+        // (the reference's form), alternating so that both see the same machine.
+        let mut times = [Vec::with_capacity(a.reps), Vec::with_capacity(a.reps)];
+        for rep in 0..=a.reps {
+            for (products, times) in [MProducts::Plain, MProducts::Gauss].iter().zip(&mut times) {
+                layer.set_m_products(*products);
+                let t0 = Instant::now();
+                y = layer.forward(&x, &x, &edges)?;
+                // The first pass of each warms the caches and is not counted.
+                if rep > 0 {
+                    times.push(t0.elapsed().as_secs_f64());
+                }
+            }
         }
-        eprintln!("ours, {t} threads: {times:.4?} s");
-        ours.insert(
-            t.to_string(),
-            serde_json::json!({"median_s": median(&mut times)}),
-        );
+        let [mut plain_times, mut gauss_times] = times;
+        eprintln!("ours, {t} threads: {gauss_times:.4?} s (plain m products {plain_times:.4?} s)");
+        let (p, g) = (median(&mut plain_times), median(&mut gauss_times));
+        ours.insert(t.to_string(), serde_json::json!({"median_s": g}));
+        plain.insert(t.to_string(), serde_json::json!({"median_s": p}));
+        gauss_speedups.insert(t.to_string(), serde_json::json!(p / g));
     }
     let mut out = serde_json::json!({
         "layer": format!("{PREFIX}transblock.ga (SO2EquivariantGraphAttention, parity grid)"),
@@ -111,6 +122,8 @@ pub fn run(a: AttentionBenchArgs) -> anyhow::Result<()> {
         "channels": c,
         "timing": "wall-clock seconds of one forward pass (edges, frames and radial features given)",
         "ours": ours,
+        "ours_plain_m_products": plain,
+        "speedup_gauss_vs_plain_m_products": gauss_speedups,
     });
     if let Some(py) = &a.torch {
         let dir =
