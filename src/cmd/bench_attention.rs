@@ -1,6 +1,8 @@
 //! `equact bench attention`: one equivariant graph attention layer of the physical network
 //! (the first U-net block: 2048 nodes, 16 neighbours, l_max 3, m_max 2, 32 channels, parity
-//! mode's reference S2 grid) timed against the same layer in PyTorch on CPU in the same run.
+//! mode's reference S2 grid) timed against the same layer in PyTorch on CPU in the same run,
+//! and against itself with the plain four products in its SO(2) convolutions' m > 0 blocks
+//! instead of Gauss's three (alternating passes).
 //!
 //! The PyTorch side (`policy/benches/torch_attention.py`) is EquiformerV2's layer written with
 //! the reference's buffers (read from the `graph_attention` fixture); it gets our inputs, our

@@ -5,7 +5,7 @@
 
 use std::collections::HashMap;
 use std::fs;
-use std::path::{Path, PathBuf};
+use std::path::{Component, Path, PathBuf};
 
 use super::{expert_words, io, parse_shard, write_atomic, DemosError, Index, IndexEntry};
 use crate::task::{ExpertSettings, TaskKind};
@@ -117,6 +117,19 @@ pub fn merge(sources: &[PathBuf], out: &Path) -> Result<MergeSummary, DemosError
     let mut shards = 0;
     for k in &kept {
         let Some(file) = &k.entry.file else { continue };
+        // A shard path must stay inside its dataset (and the copy inside `out`).
+        let inside = Path::new(file)
+            .components()
+            .all(|c| matches!(c, Component::Normal(_)));
+        if !inside {
+            return Err(DemosError::BadIndex {
+                path: sources[k.source].join("index.json"),
+                why: format!(
+                    "episode {} seed {} names its shard {file:?}, a path outside the dataset",
+                    k.entry.task, k.entry.seed
+                ),
+            });
+        }
         let from = sources[k.source].join(file);
         let bytes = fs::read(&from).map_err(io(&from))?;
         let demo = parse_shard(&from, &bytes)?;
@@ -380,6 +393,18 @@ mod tests {
                 && err
                     .to_string()
                     .contains("lists it for pick_fruit/peach seed 4"),
+            "{err}"
+        );
+
+        // Nor one whose index points outside its dataset.
+        let mut index = Index::load(&e).unwrap();
+        index.episodes[0].seed = 3;
+        index.episodes[0].file = Some("../a/index.json".into());
+        index.save(&e).unwrap();
+        let err = merge(std::slice::from_ref(&e), &root.join("out5")).unwrap_err();
+        assert!(
+            matches!(err, DemosError::BadIndex { .. })
+                && err.to_string().contains("a path outside the dataset"),
             "{err}"
         );
 
