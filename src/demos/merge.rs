@@ -115,8 +115,20 @@ pub fn merge(sources: &[PathBuf], out: &Path) -> Result<MergeSummary, DemosError
     let expert = kept_expert(sources, &indexes, &kept)?;
     fs::create_dir_all(out).map_err(io(out))?;
     let mut shards = 0;
+    let mut written: HashMap<&str, &IndexEntry> = HashMap::new();
     for k in &kept {
         let Some(file) = &k.entry.file else { continue };
+        // Two sources may name different episodes' shards alike: one would overwrite the other.
+        if let Some(other) = written.insert(file, &k.entry) {
+            return Err(DemosError::BadIndex {
+                path: sources[k.source].join("index.json"),
+                why: format!(
+                    "episode {} seed {} names its shard {file:?}, as another source's {} seed {} \
+                     does; rename one of them and its index entry",
+                    k.entry.task, k.entry.seed, other.task, other.seed
+                ),
+            });
+        }
         // A shard path must stay inside its dataset (and the copy inside `out`).
         let inside = Path::new(file)
             .components()
@@ -405,6 +417,19 @@ mod tests {
         assert!(
             matches!(err, DemosError::BadIndex { .. })
                 && err.to_string().contains("a path outside the dataset"),
+            "{err}"
+        );
+
+        // Nor two sources whose different episodes name the same shard.
+        let f = root.join("f");
+        dataset(&f, sampling.clone(), plain, 0.07, &[(fruit, 9, true)]);
+        let mut index = Index::load(&f).unwrap();
+        index.episodes[0].file = Some(shard_name(TaskKind::parse(fruit).unwrap(), 0));
+        index.save(&f).unwrap();
+        let err = merge(&[a.clone(), f.clone()], &root.join("out7")).unwrap_err();
+        assert!(
+            matches!(err, DemosError::BadIndex { .. })
+                && err.to_string().contains("pick_fruit/peach seed 0 does"),
             "{err}"
         );
 
