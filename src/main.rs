@@ -179,4 +179,21 @@ mod tests {
             );
         }
     }
+
+    /// `demos merge` takes its sources in order after `--out`, at least one.
+    #[test]
+    fn demos_merge_takes_its_sources_in_order() {
+        let cli =
+            Cli::try_parse_from(["equact", "demos", "merge", "--out", "o", "a", "b"]).unwrap();
+        let Command::Demos(d) = cli.command else {
+            panic!("not demos")
+        };
+        let cmd::demos::DemosCommand::Merge(m) = d.command else {
+            panic!("not merge")
+        };
+        assert_eq!(m.out, std::path::PathBuf::from("o"));
+        assert_eq!(m.sources, ["a", "b"].map(std::path::PathBuf::from));
+        let err = Cli::try_parse_from(["equact", "demos", "merge", "--out", "o"]).unwrap_err();
+        assert_eq!(err.kind(), clap::error::ErrorKind::MissingRequiredArgument);
+    }
 }
