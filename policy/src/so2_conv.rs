@@ -610,16 +610,18 @@ impl So2Conv {
                 }
             }
             roff += width;
-            let [a, b] = halves;
+            let [mut a, b] = halves;
             om.push(match products {
                 MProducts::Gauss => {
-                    let sum: Vec<f32> = a.iter().zip(&b).map(|(a, b)| a + b).collect();
-                    let k1 = gauss.r.forward(&sum)?;
-                    drop(sum);
-                    let (k2, k3) = (gauss.i_minus_r.forward(&a)?, gauss.r_plus_i.forward(&b)?);
-                    let plus = k1.iter().zip(&k3).map(|(k1, k3)| k1 - k3).collect();
-                    let minus = k1.iter().zip(&k2).map(|(k1, k2)| k1 + k2).collect();
-                    (plus, minus)
+                    // In place where the buffers allow: a becomes a + b once k2 is taken,
+                    // k3 becomes out(+m) = k1 − k3 and k2 out(−m) = k1 + k2.
+                    let mut k2 = gauss.i_minus_r.forward(&a)?;
+                    let mut k3 = gauss.r_plus_i.forward(&b)?;
+                    a.iter_mut().zip(&b).for_each(|(a, b)| *a += b);
+                    let k1 = gauss.r.forward(&a)?;
+                    k3.iter_mut().zip(&k1).for_each(|(k3, k1)| *k3 = k1 - *k3);
+                    k2.iter_mut().zip(&k1).for_each(|(k2, k1)| *k2 += k1);
+                    (k3, k2)
                 }
                 MProducts::Plain => {
                     let (oa, ob) = (fc.forward(&a)?, fc.forward(&b)?);
