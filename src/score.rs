@@ -4,7 +4,7 @@
 //! sampling) can be judged on held-out demonstrations in minutes instead of an hour of
 //! closed-loop episodes; the closed loop (`equact eval`) stays the measure of success.
 
-use std::collections::BTreeSet;
+use std::collections::BTreeMap;
 
 use anyhow::Context;
 use cell_types::Keyframe;
@@ -166,6 +166,10 @@ pub fn quantile(v: &[f64], q: f64) -> f64 {
 pub struct ScoreTable {
     /// One row per task variation (sorted by name), then `all`.
     pub rows: Vec<ScoreRow>,
+    /// One row per task variation and step index (`pick_fruit/plum step 2`), in that order:
+    /// which keyframe of a task is imprecise, and whether sampling or the field is to blame
+    /// there (a whole-variation row averages the place above the spindle with the grasps).
+    pub by_step: Vec<ScoreRow>,
     /// Every step, in the order scored.
     pub steps: Vec<ScoredStep>,
 }
@@ -179,31 +183,41 @@ impl ScoreTable {
 }
 
 impl ScoreTable {
-    /// The rows as a Markdown table.
+    /// The rows as a Markdown table, then the rows per step as a second one (when any).
     pub fn markdown(&self) -> String {
-        let mut s = String::from(
-            "| variation | steps | position median / p90 (mm) | within 1 cm | rotation median / p90 (deg) | open agrees | off > 1 cm: missed by sampling |\n|---|---|---|---|---|---|---|\n",
-        );
-        for r in &self.rows {
-            s.push_str(&format!(
-                "| {} | {} | {:.1} / {:.1} | {:.0} % | {:.1} / {:.1} | {:.0} % | {} |\n",
-                r.name,
-                r.steps,
-                r.position_median_m * 1e3,
-                r.position_p90_m * 1e3,
-                r.within_1cm * 100.0,
-                r.rotation_median_deg,
-                r.rotation_p90_deg,
-                r.open_agrees * 100.0,
-                if r.missed_by_sampling.is_nan() {
-                    "none off".to_string()
-                } else {
-                    format!("{:.0} %", r.missed_by_sampling * 100.0)
-                }
-            ));
+        let mut s = markdown_rows("variation", &self.rows);
+        if !self.by_step.is_empty() {
+            s.push('\n');
+            s.push_str(&markdown_rows("variation, step", &self.by_step));
         }
         s
     }
+}
+
+/// `rows` as a Markdown table whose first column is headed `first`.
+fn markdown_rows(first: &str, rows: &[ScoreRow]) -> String {
+    let mut s = format!(
+        "| {first} | steps | position median / p90 (mm) | within 1 cm | rotation median / p90 (deg) | open agrees | off > 1 cm: missed by sampling |\n|---|---|---|---|---|---|---|\n",
+    );
+    for r in rows {
+        s.push_str(&format!(
+            "| {} | {} | {:.1} / {:.1} | {:.0} % | {:.1} / {:.1} | {:.0} % | {} |\n",
+            r.name,
+            r.steps,
+            r.position_median_m * 1e3,
+            r.position_p90_m * 1e3,
+            r.within_1cm * 100.0,
+            r.rotation_median_deg,
+            r.rotation_p90_deg,
+            r.open_agrees * 100.0,
+            if r.missed_by_sampling.is_nan() {
+                "none off".to_string()
+            } else {
+                format!("{:.0} %", r.missed_by_sampling * 100.0)
+            }
+        ));
+    }
+    s
 }
 
 /// For a step more than [`FAR_M`] off, which of sampling and field is to blame, with the
@@ -274,20 +288,36 @@ pub fn score(
         ));
         steps.push(step);
     }
-    // The steps of one variation (`None`: all of them).
-    let steps_of = |name: Option<&str>| -> Vec<&ScoredStep> {
-        steps
+    Ok(ScoreTable::of_steps(steps))
+}
+
+impl ScoreTable {
+    /// The table of `steps`: rows per variation and `all`, and rows per variation and step.
+    pub fn of_steps(steps: Vec<ScoredStep>) -> Self {
+        let mut variations: BTreeMap<&str, Vec<&ScoredStep>> = BTreeMap::new();
+        let mut by_index: BTreeMap<(&str, usize), Vec<&ScoredStep>> = BTreeMap::new();
+        for s in &steps {
+            variations.entry(&s.variation).or_default().push(s);
+            by_index.entry((&s.variation, s.step)).or_default().push(s);
+        }
+        let mut rows: Vec<ScoreRow> = variations
             .iter()
-            .filter(|s| name.is_none_or(|n| s.variation == n))
-            .collect()
-    };
-    let names: BTreeSet<&str> = steps.iter().map(|s| s.variation.as_str()).collect();
-    let mut rows: Vec<ScoreRow> = names
-        .into_iter()
-        .map(|n| ScoreRow::of_steps(n.to_string(), &steps_of(Some(n))))
-        .collect();
-    rows.push(ScoreRow::of_steps("all".into(), &steps_of(None)));
-    Ok(ScoreTable { rows, steps })
+            .map(|(n, v)| ScoreRow::of_steps(n.to_string(), v))
+            .collect();
+        rows.push(ScoreRow::of_steps(
+            "all".into(),
+            &steps.iter().collect::<Vec<_>>(),
+        ));
+        let by_step = by_index
+            .iter()
+            .map(|((n, i), v)| ScoreRow::of_steps(format!("{n} step {i}"), v))
+            .collect();
+        Self {
+            rows,
+            by_step,
+            steps,
+        }
+    }
 }
 
 #[cfg(test)]
@@ -361,11 +391,70 @@ mod tests {
         assert!(none_off.missed_by_sampling.is_nan());
         let table = ScoreTable {
             rows: vec![r, none_off],
+            by_step: vec![],
             steps: vec![],
         };
         let md = table.markdown();
         assert!(
             md.contains("| 50 % |") && md.contains("| none off |"),
+            "{md}"
+        );
+    }
+
+    #[test]
+    fn steps_are_summarised_per_variation_and_per_step() {
+        let step = |variation: &str, index: usize, position_m: f64| ScoredStep {
+            variation: variation.into(),
+            seed: 7,
+            step: index,
+            error: KeyframeError {
+                position_m,
+                offset_m: [position_m, 0.0, 0.0],
+                rotation_deg: 1.0,
+                open_agrees: true,
+            },
+            prediction_cpu_s: 0.5,
+            predicted_logit: 50.0,
+            // Far steps here are sampling misses: the field prefers the expert's position.
+            expert_logit: 55.0,
+        };
+        let steps = vec![
+            step("pick_fruit/plum", 1, 0.002),
+            step("install_toilet_roll/small", 3, 0.020),
+            step("pick_fruit/plum", 0, 0.004),
+            step("install_toilet_roll/small", 3, 0.030),
+            step("install_toilet_roll/small", 0, 0.006),
+        ];
+        let t = ScoreTable::of_steps(steps.clone());
+        assert_eq!(t.steps, steps, "every step is kept in the order scored");
+        let names: Vec<&str> = t.rows.iter().map(|r| r.name.as_str()).collect();
+        assert_eq!(
+            names,
+            ["install_toilet_roll/small", "pick_fruit/plum", "all"]
+        );
+        assert_eq!(
+            t.rows.iter().map(|r| r.steps).collect::<Vec<_>>(),
+            [3, 2, 5]
+        );
+        let names: Vec<&str> = t.by_step.iter().map(|r| r.name.as_str()).collect();
+        assert_eq!(
+            names,
+            [
+                "install_toilet_roll/small step 0",
+                "install_toilet_roll/small step 3",
+                "pick_fruit/plum step 0",
+                "pick_fruit/plum step 1"
+            ]
+        );
+        let third = &t.by_step[1];
+        assert_eq!(third.steps, 2);
+        assert!((third.position_median_m - 0.020).abs() < 1e-12, "{third:?}");
+        assert!((third.missed_by_sampling - 1.0).abs() < 1e-12, "{third:?}");
+        assert!(t.by_step[0].missed_by_sampling.is_nan(), "none off");
+        let md = t.markdown();
+        assert!(md.contains("| variation, step |"), "{md}");
+        assert!(
+            md.contains("| install_toilet_roll/small step 3 | 2 | 20.0 / 30.0 | 0 % |"),
             "{md}"
         );
     }
