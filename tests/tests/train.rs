@@ -98,6 +98,14 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
         );
     }
     assert!(table.rows[0].open_agrees == 1.0 && table.rows[0].steps == samples.len());
+    // One row per keyframe of the one demonstration, in step order.
+    assert_eq!(table.by_step.len(), samples.len());
+    for (i, r) in table.by_step.iter().enumerate() {
+        assert_eq!(
+            (r.name.clone(), r.steps),
+            (format!("{} step {i}", kind.name()), 1)
+        );
+    }
 
     let mut net = for_cell(PolicyConfig::tiny(), &cfg).with_mode(PolicyMode::Gated);
     net.extra.token_dim = policy::minilm::HIDDEN;
