@@ -175,14 +175,39 @@ pub struct ScoreTable {
 }
 
 impl ScoreTable {
+    /// The table of `steps`: rows per variation and `all`, and rows per variation and step.
+    pub fn of_steps(steps: Vec<ScoredStep>) -> Self {
+        let mut variations: BTreeMap<&str, Vec<&ScoredStep>> = BTreeMap::new();
+        let mut by_index: BTreeMap<(&str, usize), Vec<&ScoredStep>> = BTreeMap::new();
+        for s in &steps {
+            variations.entry(&s.variation).or_default().push(s);
+            by_index.entry((&s.variation, s.step)).or_default().push(s);
+        }
+        let mut rows: Vec<ScoreRow> = variations
+            .iter()
+            .map(|(n, v)| ScoreRow::of_steps(n.to_string(), v))
+            .collect();
+        rows.push(ScoreRow::of_steps(
+            "all".into(),
+            &steps.iter().collect::<Vec<_>>(),
+        ));
+        let by_step = by_index
+            .iter()
+            .map(|((n, i), v)| ScoreRow::of_steps(format!("{n} step {i}"), v))
+            .collect();
+        Self {
+            rows,
+            by_step,
+            steps,
+        }
+    }
+
     /// Median CPU seconds of one prediction (NaN for none).
     pub fn prediction_cpu_median_s(&self) -> f64 {
         let t: Vec<f64> = self.steps.iter().map(|s| s.prediction_cpu_s).collect();
         quantile(&t, 0.5)
     }
-}
 
-impl ScoreTable {
     /// The rows as a Markdown table, then the rows per step as a second one (when any).
     pub fn markdown(&self) -> String {
         let mut s = markdown_rows("variation", &self.rows);
@@ -289,35 +314,6 @@ pub fn score(
         steps.push(step);
     }
     Ok(ScoreTable::of_steps(steps))
-}
-
-impl ScoreTable {
-    /// The table of `steps`: rows per variation and `all`, and rows per variation and step.
-    pub fn of_steps(steps: Vec<ScoredStep>) -> Self {
-        let mut variations: BTreeMap<&str, Vec<&ScoredStep>> = BTreeMap::new();
-        let mut by_index: BTreeMap<(&str, usize), Vec<&ScoredStep>> = BTreeMap::new();
-        for s in &steps {
-            variations.entry(&s.variation).or_default().push(s);
-            by_index.entry((&s.variation, s.step)).or_default().push(s);
-        }
-        let mut rows: Vec<ScoreRow> = variations
-            .iter()
-            .map(|(n, v)| ScoreRow::of_steps(n.to_string(), v))
-            .collect();
-        rows.push(ScoreRow::of_steps(
-            "all".into(),
-            &steps.iter().collect::<Vec<_>>(),
-        ));
-        let by_step = by_index
-            .iter()
-            .map(|((n, i), v)| ScoreRow::of_steps(format!("{n} step {i}"), v))
-            .collect();
-        Self {
-            rows,
-            by_step,
-            steps,
-        }
-    }
 }
 
 #[cfg(test)]
