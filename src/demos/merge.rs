@@ -113,35 +113,11 @@ pub fn merge(sources: &[PathBuf], out: &Path) -> Result<MergeSummary, DemosError
     }
 
     let expert = kept_expert(sources, &indexes, &kept)?;
+    check_shard_paths(sources, &kept)?;
     fs::create_dir_all(out).map_err(io(out))?;
     let mut shards = 0;
-    let mut written: HashMap<&str, &IndexEntry> = HashMap::new();
     for k in &kept {
         let Some(file) = &k.entry.file else { continue };
-        // Two sources may name different episodes' shards alike: one would overwrite the other.
-        if let Some(other) = written.insert(file, &k.entry) {
-            return Err(DemosError::BadIndex {
-                path: sources[k.source].join("index.json"),
-                why: format!(
-                    "episode {} seed {} names its shard {file:?}, as another source's {} seed {} \
-                     does; rename one of them and its index entry",
-                    k.entry.task, k.entry.seed, other.task, other.seed
-                ),
-            });
-        }
-        // A shard path must stay inside its dataset (and the copy inside `out`).
-        let inside = Path::new(file)
-            .components()
-            .all(|c| matches!(c, Component::Normal(_)));
-        if !inside {
-            return Err(DemosError::BadIndex {
-                path: sources[k.source].join("index.json"),
-                why: format!(
-                    "episode {} seed {} names its shard {file:?}, a path outside the dataset",
-                    k.entry.task, k.entry.seed
-                ),
-            });
-        }
         let from = sources[k.source].join(file);
         let bytes = fs::read(&from).map_err(io(&from))?;
         let demo = parse_shard(&from, &bytes)?;
@@ -222,6 +198,40 @@ fn same_dir(a: &Path, b: &Path) -> bool {
         (Ok(a), Ok(b)) => a == b,
         _ => a == b,
     }
+}
+
+/// Refuses, before anything is copied, kept episodes whose shard paths would collide in the
+/// merged dataset or leave their own.
+fn check_shard_paths(sources: &[PathBuf], kept: &[Kept]) -> Result<(), DemosError> {
+    let mut named: HashMap<&str, &IndexEntry> = HashMap::new();
+    for k in kept {
+        let Some(file) = &k.entry.file else { continue };
+        // Two sources may name different episodes' shards alike: one would overwrite the other.
+        if let Some(other) = named.insert(file, &k.entry) {
+            return Err(DemosError::BadIndex {
+                path: sources[k.source].join("index.json"),
+                why: format!(
+                    "episode {} seed {} names its shard {file:?}, as another source's {} seed {} \
+                     does; rename one of them and its index entry",
+                    k.entry.task, k.entry.seed, other.task, other.seed
+                ),
+            });
+        }
+        // A shard path must stay inside its dataset (and the copy inside `out`).
+        let inside = Path::new(file)
+            .components()
+            .all(|c| matches!(c, Component::Normal(_)));
+        if !inside {
+            return Err(DemosError::BadIndex {
+                path: sources[k.source].join("index.json"),
+                why: format!(
+                    "episode {} seed {} names its shard {file:?}, a path outside the dataset",
+                    k.entry.task, k.entry.seed
+                ),
+            });
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]
@@ -413,11 +423,15 @@ mod tests {
         index.episodes[0].seed = 3;
         index.episodes[0].file = Some("../a/index.json".into());
         index.save(&e).unwrap();
-        let err = merge(std::slice::from_ref(&e), &root.join("out5")).unwrap_err();
+        let err = merge(std::slice::from_ref(&e), &root.join("out_outside")).unwrap_err();
         assert!(
             matches!(err, DemosError::BadIndex { .. })
                 && err.to_string().contains("a path outside the dataset"),
             "{err}"
+        );
+        assert!(
+            !root.join("out_outside").exists(),
+            "refused before anything is written"
         );
 
         // Nor two sources whose different episodes name the same shard.
@@ -431,6 +445,10 @@ mod tests {
             matches!(err, DemosError::BadIndex { .. })
                 && err.to_string().contains("pick_fruit/peach seed 0 does"),
             "{err}"
+        );
+        assert!(
+            !root.join("out7").exists(),
+            "refused before anything is written"
         );
 
         // Nothing is written over a dataset or into a source; a folder without an index is
