@@ -231,6 +231,23 @@ impl Index {
                 why: format!("format `{}`, expected `{FORMAT}`", index.format),
             });
         }
+        // A shard path must stay inside its dataset, so that no reader (train, merge, score)
+        // opens, and no merge writes, a file elsewhere because of a hand-edited index.
+        for entry in &index.episodes {
+            let Some(file) = &entry.file else { continue };
+            let inside = Path::new(file)
+                .components()
+                .all(|c| matches!(c, std::path::Component::Normal(_)));
+            if !inside {
+                return Err(DemosError::BadIndex {
+                    path,
+                    why: format!(
+                        "episode {} seed {} names its shard {file:?}, a path outside the dataset",
+                        entry.task, entry.seed
+                    ),
+                });
+            }
+        }
         Ok(index)
     }
 
@@ -730,6 +747,47 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(err.contains("[perception] points"), "{err}");
+        let _ = fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn an_index_whose_shard_paths_leave_the_dataset_is_refused() {
+        let dir = std::env::temp_dir().join(format!("equact-demos-paths-{}", std::process::id()));
+        fs::create_dir_all(&dir).unwrap();
+        let entry = |file: &str| IndexEntry {
+            task: "pick_fruit/peach".into(),
+            instruction: "pick the peach".into(),
+            seed: 7,
+            outcome: "success".into(),
+            steps: 2,
+            file: Some(file.into()),
+        };
+        let mut index = Index {
+            format: FORMAT.into(),
+            episodes: vec![entry("pick_fruit-peach/seed_000007.safetensors")],
+            ..Index::default()
+        };
+        index.save(&dir).unwrap();
+        assert_eq!(
+            Index::load(&dir).unwrap(),
+            index,
+            "a relative path inside is kept"
+        );
+        for bad in [
+            "../other/seed_000007.safetensors",
+            "/etc/passwd",
+            "a/./../../b",
+        ] {
+            index.episodes[0] = entry(bad);
+            index.save(&dir).unwrap();
+            let err = Index::load(&dir).unwrap_err();
+            assert!(
+                matches!(err, DemosError::BadIndex { .. })
+                    && err.to_string().contains("pick_fruit/peach seed 7")
+                    && err.to_string().contains("a path outside the dataset"),
+                "{bad}: {err}"
+            );
+        }
         let _ = fs::remove_dir_all(&dir);
     }
 }
