@@ -85,17 +85,18 @@ pub enum DemosError {
     /// A collection would mix two experts' demonstrations in one dataset.
     #[error(
         "{path} holds demonstrations recorded by {}, not {}: record into another folder, or \
-         pass --grasp-turn {recorded}",
-        expert_words(*.recorded),
-        expert_words(*.asked)
+         pass {}",
+        expert_words(recorded),
+        expert_words(asked),
+        expert_flags(recorded)
     )]
     ExpertMismatch {
         /// The dataset directory.
         path: PathBuf,
-        /// The dataset's largest turn (°).
-        recorded: f64,
-        /// The one asked for now (°).
-        asked: f64,
+        /// The dataset's expert.
+        recorded: ExpertSettings,
+        /// The one asked for now.
+        asked: ExpertSettings,
     },
     /// A folder given as a dataset holds none.
     #[error(
@@ -187,13 +188,29 @@ pub struct Index {
     pub expert: ExpertSettings,
 }
 
-/// The expert that a largest grasp turn (°) stands for, in words.
-pub(crate) fn expert_words(grasp_turn_deg: f64) -> String {
-    if grasp_turn_deg == 0.0 {
+/// The expert that `settings` stand for, in words.
+pub(crate) fn expert_words(settings: &ExpertSettings) -> String {
+    let mut changes = Vec::new();
+    if settings.grasp_turn_deg != 0.0 {
+        changes.push(format!("grasp turns up to {}°", settings.grasp_turn_deg));
+    }
+    if settings.centred_grasp_labels {
+        changes.push("centred grasp labels".to_string());
+    }
+    if changes.is_empty() {
         "the plain expert".into()
     } else {
-        format!("the expert with grasp turns up to {grasp_turn_deg}°")
+        format!("the expert with {}", changes.join(" and "))
     }
+}
+
+/// The `demos collect` options that record with `settings`.
+fn expert_flags(settings: &ExpertSettings) -> String {
+    let mut flags = format!("--grasp-turn {}", settings.grasp_turn_deg);
+    if settings.centred_grasp_labels {
+        flags.push_str(" --centred-grasp-labels");
+    }
+    flags
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> DemosError + '_ {
@@ -548,8 +565,8 @@ pub fn collect(
     } else if index.expert != *expert {
         return Err(DemosError::ExpertMismatch {
             path: out.to_path_buf(),
-            recorded: index.expert.grasp_turn_deg,
-            asked: turn,
+            recorded: index.expert,
+            asked: *expert,
         });
     }
     let total = kinds.len() as u64 * episodes;
@@ -748,6 +765,26 @@ mod tests {
         .to_string();
         assert!(err.contains("[perception] points"), "{err}");
         let _ = fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn an_expert_mismatch_names_both_experts_and_the_options_that_resume() {
+        let centred = ExpertSettings {
+            centred_grasp_labels: true,
+            ..ExpertSettings::default()
+        };
+        let err = DemosError::ExpertMismatch {
+            path: PathBuf::from("d"),
+            recorded: centred,
+            asked: ExpertSettings::default(),
+        }
+        .to_string();
+        assert_eq!(
+            err,
+            "d holds demonstrations recorded by the expert with centred grasp labels, not the \
+             plain expert: record into another folder, or pass --grasp-turn 0 \
+             --centred-grasp-labels"
+        );
     }
 
     #[test]

@@ -62,6 +62,13 @@ pub struct CollectArgs {
     /// left turned in the hand. 0, the plain expert, by default; the dataset's index records it.
     #[arg(long, default_value_t = 0.0)]
     pub grasp_turn: f64,
+    /// Toilet roll: record the approach and the grasp centred along the pads while the arm
+    /// executes them at the episode's random offset along the pads (up to 6 mm); the release
+    /// still places the off-centre roll over the spindle. Keeps the offset, which no
+    /// observation shows before the grasp, out of the grasp labels. Off by default; the
+    /// dataset's index records it.
+    #[arg(long)]
+    pub centred_grasp_labels: bool,
 }
 
 /// The task variations `--task` names.
@@ -131,6 +138,7 @@ fn collect(args: CollectArgs) -> anyhow::Result<()> {
         &args.out,
         &equact::task::ExpertSettings {
             grasp_turn_deg: args.grasp_turn,
+            centred_grasp_labels: args.centred_grasp_labels,
         },
         &interrupt,
     )?;

@@ -655,6 +655,7 @@ mod tests {
         let turned = RunSettings {
             expert: Some(equact::task::ExpertSettings {
                 grasp_turn_deg: 15.0,
+                ..Default::default()
             }),
             ..serde_json::from_str(old).unwrap()
         };

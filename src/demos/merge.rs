@@ -45,7 +45,7 @@ struct Kept {
 /// An episode (task variation and seed) listed by two sources is taken from the later one,
 /// unless the later one only failed where the earlier recorded a demonstration. The sources
 /// must have sampled their clouds alike, and the experts of the episodes kept must agree
-/// where their settings matter (the toilet roll's grasp turn). `out` must not hold a dataset
+/// where their settings matter (the toilet roll's grasp turn and grasp labels). `out` must not hold a dataset
 /// yet; its index is written last, after every shard, so an interrupted merge leaves no
 /// index and can be run again.
 pub fn merge(sources: &[PathBuf], out: &Path) -> Result<MergeSummary, DemosError> {
@@ -182,8 +182,8 @@ fn kept_expert(
                     why: format!(
                         "its {} episodes were recorded by {}, the other's by {}",
                         k.entry.task,
-                        expert_words(this.grasp_turn_deg),
-                        expert_words(indexes[s].expert.grasp_turn_deg)
+                        expert_words(this),
+                        expert_words(&indexes[s].expert)
                     ),
                 })
             }
@@ -289,6 +289,7 @@ mod tests {
         let (a, b, out) = (root.join("a"), root.join("b"), root.join("out"));
         let turned = ExpertSettings {
             grasp_turn_deg: 10.0,
+            ..ExpertSettings::default()
         };
         let (fruit, roll) = ("pick_fruit/peach", "install_toilet_roll/large");
         let plain = ExpertSettings::default();

@@ -240,6 +240,7 @@ impl TaskInstance {
             TaskKind::InstallToiletRoll(_) => toilet_roll::expert_turned(
                 self,
                 toilet_roll::expert_grasp_turn(self, settings.grasp_turn_deg.to_radians()),
+                settings.centred_grasp_labels,
             ),
             _ => {
                 let executed = self.expert_keyframes();
@@ -498,11 +499,20 @@ pub struct ExpertSettings {
     /// ignore it.
     #[serde(default)]
     pub grasp_turn_deg: f64,
+    /// Toilet roll: record the approach above the roll and the grasp centred along the pads,
+    /// while the arm still executes them at the episode's offset along the pads (within
+    /// [`toilet_roll::GRASP_ALONG_PADS`]) and the release still places the off-centre roll
+    /// over the spindle. The offset is drawn from the seed and cannot be seen before the
+    /// grasp, so recording it makes the grasp labels noise of ±6 mm that a network learns to
+    /// spread its grasp over; recording the centred grasp keeps the demonstrations of placing a
+    /// roll held off-centre without that noise (DART again). Off in older indexes.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub centred_grasp_labels: bool,
 }
 
 impl ExpertSettings {
-    /// Whether the settings change the expert's demonstrations of `kind` (the grasp turn:
-    /// the toilet roll's only).
+    /// Whether the settings change the expert's demonstrations of `kind` (the grasp turn and
+    /// the centred grasp labels: the toilet roll's only).
     pub fn apply_to(kind: TaskKind) -> bool {
         matches!(kind, TaskKind::InstallToiletRoll(_))
     }

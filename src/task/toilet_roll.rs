@@ -188,15 +188,17 @@ pub fn expert_grasp_turn(task: &TaskInstance, max_turn: f64) -> f64 {
 /// lifted, the roll's centre above the spindle along the holder's axis, lowered over it and
 /// let go, back up.
 pub(crate) fn expert(task: &TaskInstance) -> Vec<Keyframe> {
-    expert_turned(task, 0.0).executed
+    expert_turned(task, 0.0, false).executed
 }
 
 /// The expert's episode with its grasp executed turned by `turn` (rad) about the jaws'
 /// closing axis, through the TCP, where the recorded grasp stays the clean one; the held roll
 /// keeps the turn, and the keyframes after the grasp (recorded as executed) lift the TCP as
-/// it is and place the roll's axis, not the TCP's, along the spindle. With `turn` 0 both
-/// lists are the plain expert's.
-pub(crate) fn expert_turned(task: &TaskInstance, turn: f64) -> ExpertPlan {
+/// it is and place the roll's axis, not the TCP's, along the spindle. With `centred_labels`
+/// the approach above the roll and the grasp are recorded as if the offset along the pads
+/// were 0 ([`super::ExpertSettings::centred_grasp_labels`]). With `turn` 0 and no
+/// `centred_labels` both lists are the plain expert's.
+pub(crate) fn expert_turned(task: &TaskInstance, turn: f64, centred_labels: bool) -> ExpertPlan {
     let roll = task.bodies[ROLL].base_from_body;
     let h = match task.kind {
         TaskKind::InstallToiletRoll(s) => s.half_height(),
@@ -242,6 +244,11 @@ pub(crate) fn expert_turned(task: &TaskInstance, turn: f64) -> ExpertPlan {
     ];
     let mut recorded = executed.clone();
     recorded[1] = at(&clean, false);
+    if centred_labels {
+        let centred = grasp - r * Vector3::y() * along;
+        recorded[0] = keyframe(centred + Vector3::z() * 0.10, r, true);
+        recorded[1] = keyframe(centred, r, false);
+    }
     ExpertPlan { recorded, executed }
 }
 
@@ -594,11 +601,67 @@ mod tests {
     }
 
     #[test]
+    fn centred_grasp_labels_record_the_grasp_on_the_axis_and_execute_the_offset_one() {
+        use crate::task::world::{GripperEvent, TaskWorld};
+        use crate::task::ExpertSettings;
+        let settings = ExpertSettings {
+            centred_grasp_labels: true,
+            ..ExpertSettings::default()
+        };
+        for seed in 0..20 {
+            let size = RollSize::ALL[seed as usize % 2];
+            let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), seed, -0.06);
+            let plain = t.expert_plan(&ExpertSettings::default());
+            let plan = t.expert_plan(&settings);
+            // The arm does what the plain expert does; only the approach's and the grasp's
+            // labels change, and the later labels place the roll the offset grasp carries.
+            assert_eq!(plan.executed, plain.executed);
+            for i in 0..plan.executed.len() {
+                assert_eq!(
+                    plan.recorded[i] == plan.executed[i],
+                    i > 1,
+                    "seed {seed} step {i}"
+                );
+            }
+            let pose = |k: &[Keyframe], i: usize| *k[i].base_from_tcp.isometry();
+            let along = expert_grasp_offset(&t);
+            let axis_point = Point3::from(t.bodies[ROLL].base_from_body.translation.vector);
+            for i in [0, 1] {
+                // The label sits on the roll's axis, the executed keyframe `along` off it,
+                // in the same orientation and open state.
+                let (label, done) = (pose(&plan.recorded, i), pose(&plan.executed, i));
+                assert_eq!(plan.recorded[i].gripper_open, plan.executed[i].gripper_open);
+                assert!(label.rotation.angle_to(&done.rotation) < 1e-12);
+                let local = label.inverse() * axis_point;
+                assert!(
+                    local.x.hypot(local.y) < 1e-9,
+                    "seed {seed} step {i}: {local:?}"
+                );
+                let shift = done.inverse() * Point3::from(label.translation.vector);
+                assert!(
+                    (shift.y + along).abs() < 1e-9 && shift.x.abs() < 1e-9,
+                    "{shift:?}"
+                );
+            }
+            // Executing the label would grasp the roll centred along the pads.
+            let label = pose(&plan.recorded, 1);
+            let mut w = TaskWorld::new(t.clone());
+            assert!(w.before_close(&label).is_some());
+            let Some(GripperEvent::Grasped { site_in_tcp, .. }) = w.after_gripper(&label, true)
+            else {
+                panic!("seed {seed}: no grasp")
+            };
+            assert!(site_in_tcp.y.abs() < 1e-9, "seed {seed}: {site_in_tcp:?}");
+        }
+    }
+
+    #[test]
     fn a_turned_grasp_is_executed_the_clean_one_recorded_and_the_roll_still_seats() {
         use crate::task::world::{GripperEvent, TaskWorld};
         use crate::task::ExpertSettings;
         let settings = ExpertSettings {
             grasp_turn_deg: 12.0,
+            ..ExpertSettings::default()
         };
         let mut turns = Vec::new();
         for seed in 0..40 {

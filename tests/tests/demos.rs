@@ -132,6 +132,7 @@ fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
     let table = cfg.workspace.table_height;
     let turned = ExpertSettings {
         grasp_turn_deg: 12.0,
+        ..ExpertSettings::default()
     };
     // A seed whose drawn turn is large enough to tell from tracking error.
     let (seed, turn) = (0..50)
@@ -176,9 +177,23 @@ fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
             && err.to_string().contains("--grasp-turn 12"),
         "{err}"
     );
+    // So is one that would also record centred grasp labels.
+    let centred = ExpertSettings {
+        centred_grasp_labels: true,
+        ..turned
+    };
+    let err = collect(&cfg, &[kind], 2, seed, &out, &centred, &stop).unwrap_err();
+    assert!(
+        err.to_string().contains(
+            "not the expert with grasp turns up to 12° and centred grasp labels: record into \
+             another folder, or pass --grasp-turn 12"
+        ),
+        "{err}"
+    );
     for bad in [f64::NAN, -1.0, 45.0] {
         let settings = ExpertSettings {
             grasp_turn_deg: bad,
+            ..ExpertSettings::default()
         };
         let err = collect(&cfg, &[kind], 1, seed, &out, &settings, &stop).unwrap_err();
         assert!(matches!(err, DemosError::BadExpertSettings(_)), "{err}");

@@ -67,6 +67,7 @@ fn the_turned_grasp_toilet_roll_expert_succeeds_kinematically() {
     let n = seeds();
     let turned = ExpertSettings {
         grasp_turn_deg: 12.0,
+        ..ExpertSettings::default()
     };
     for size in RollSize::ALL {
         let kind = TaskKind::InstallToiletRoll(size);
