@@ -112,13 +112,14 @@ pub fn check_dataset_perception(
     )
 }
 
-/// The training samples of a dataset: every step of every successful episode, with the
-/// episode's task variation, seed and step index.
+/// A dataset's index and its training samples: every step of every successful episode, with
+/// the episode's task variation, seed and step index. The index is read once, so the samples
+/// and the recording settings it lists (perception, expert) come from the same file.
 pub fn load_samples(
     dir: &Path,
     cfg: &CellConfig,
     instructions: &Instructions<'_>,
-) -> anyhow::Result<Vec<DemoSample>> {
+) -> anyhow::Result<(Index, Vec<DemoSample>)> {
     // `Index::load` reads a folder without an index as a new, empty dataset (what `demos
     // collect` starts from); here that is a wrong path, and saying so beats "no demonstration".
     if !dir.join("index.json").is_file() {
@@ -187,7 +188,7 @@ pub fn load_samples(
             dir.display()
         );
     }
-    Ok(out)
+    Ok((index, out))
 }
 
 /// For each sample, the other samples of the same scene: the same task, seed and step under

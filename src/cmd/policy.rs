@@ -339,13 +339,13 @@ fn load_scoring<'a>(a: &'a ScoreArgs, what: &str) -> anyhow::Result<Scoring<'a>>
         a.instruction_embeddings.as_deref(),
         a.minilm.as_deref(),
     );
-    let samples = equact::train::load_samples(&a.demos, &cfg, &instructions)?;
+    let (index, samples) = equact::train::load_samples(&a.demos, &cfg, &instructions)?;
     let network = a.sampling.apply(super::run::network_config(
         a.model.as_deref(),
         a.network,
         a.heads,
     )?);
-    let recorded = equact::demos::Index::load(&a.demos)?.perception;
+    let recorded = index.perception;
     equact::train::check_dataset_perception(&recorded, &a.demos, &network)?;
     super::run::note_perception(
         a.model.as_deref(),

@@ -256,7 +256,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         args.minilm.as_deref(),
     );
     eprintln!("reading demonstrations from {}", args.demos.display());
-    let mut samples = load_samples(&args.demos, &cell, &instructions)?;
+    let (index, mut samples) = load_samples(&args.demos, &cell, &instructions)?;
     if args.sibling_negatives {
         let with =
             equact::grounding::add_sibling_negatives(&mut samples, cell.workspace.table_height);
@@ -292,7 +292,6 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     // The network's focus box follows its demonstrations': where their fusion gave the
     // objects the focus box's share, the network keeps them instead of thinning them to
     // the table's spacing.
-    let index = equact::demos::Index::load(&args.demos)?;
     let recorded = index.perception;
     if let Some(h) = recorded.focus_above_table_m {
         policy_cfg = policy_cfg.with_focus_above_table(h);

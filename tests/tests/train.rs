@@ -53,8 +53,8 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     assert_eq!(s.recorded, 1);
 
     let minilm = tests::minilm_model_dir().unwrap();
-    let samples = load_samples(&demos, &cfg, &Instructions::MiniLm(&minilm)).unwrap();
-    let index = Index::load(&demos).unwrap();
+    let (index, samples) = load_samples(&demos, &cfg, &Instructions::MiniLm(&minilm)).unwrap();
+    assert_eq!(index, Index::load(&demos).unwrap());
     let shard = read_shard(&demos.join(index.episodes[0].file.as_ref().unwrap())).unwrap();
     assert_eq!(samples.len(), shard.steps.len());
     for (i, (demo, step)) in samples.iter().zip(&shard.steps).enumerate() {
