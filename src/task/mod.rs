@@ -503,9 +503,10 @@ pub struct ExpertSettings {
     /// while the arm still executes them at the episode's offset along the pads (within
     /// [`toilet_roll::GRASP_ALONG_PADS`]) and the release still places the off-centre roll
     /// over the spindle. The offset is drawn from the seed and cannot be seen before the
-    /// grasp, so recording it makes the grasp labels noise of ±6 mm that a network learns to
-    /// spread its grasp over; recording the centred grasp keeps the demonstrations of placing a
-    /// roll held off-centre without that noise (DART again). Off in older indexes.
+    /// grasp, so the plain expert's grasp labels carry it as noise; these labels do not (DART
+    /// again). A 600-step fine-tune on 15 such demonstrations per roll grasped further off
+    /// the middle than one on the plain labels (README, "Centred grasp labels"), so it is off
+    /// by default, and in older indexes.
     #[serde(default, skip_serializing_if = "std::ops::Not::not")]
     pub centred_grasp_labels: bool,
 }
