@@ -65,8 +65,9 @@ pub struct CollectArgs {
     /// Toilet roll: record the approach and the grasp centred along the pads while the arm
     /// executes them at the episode's random offset along the pads (up to 6 mm); the release
     /// still places the off-centre roll over the spindle. Keeps the offset, which no
-    /// observation shows before the grasp, out of the grasp labels. Off by default; the
-    /// dataset's index records it.
+    /// observation shows before the grasp, out of the grasp labels. Off by default (a
+    /// fine-tune on such demonstrations grasped further off-centre; README, "Centred grasp
+    /// labels"); the dataset's index records it.
     #[arg(long)]
     pub centred_grasp_labels: bool,
 }
