@@ -45,9 +45,9 @@ struct Kept {
 /// An episode (task variation and seed) listed by two sources is taken from the later one,
 /// unless the later one only failed where the earlier recorded a demonstration. The sources
 /// must have sampled their clouds alike, and the experts of the episodes kept must agree
-/// where their settings matter (the toilet roll's grasp turn and grasp labels). `out` must not hold a dataset
-/// yet; its index is written last, after every shard, so an interrupted merge leaves no
-/// index and can be run again.
+/// where their settings matter (the toilet roll's grasp turn and grasp labels). `out` must
+/// not hold a dataset yet; its index is written last, after every shard, so an interrupted
+/// merge leaves no index and can be run again.
 pub fn merge(sources: &[PathBuf], out: &Path) -> Result<MergeSummary, DemosError> {
     if out.join("index.json").exists() || sources.iter().any(|s| same_dir(s, out)) {
         return Err(DemosError::MergeInto(out.to_path_buf()));
