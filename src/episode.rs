@@ -25,6 +25,7 @@ use serde_json::json;
 
 use crate::recording::{self, EpisodeRecorder, LogLevel};
 use crate::sim_cell::{SimCell, SimWorld};
+use crate::task::world::GripperEvent;
 
 /// Most keyframes one episode may take (the keyframe-policy literature's limit).
 pub const MAX_KEYFRAMES: usize = 25;
@@ -104,9 +105,9 @@ pub trait TaskMonitor {
     /// The gripper is about to close at `q`.
     fn before_close(&mut self, _q: &Joints) {}
     /// The gripper finished moving at `q`; `holding` as the gripper reports. Returns what
-    /// happened to an object, in words, where the cell knows (simulation: "released the large
-    /// toilet roll: let go 14.2 mm from the spindle's axis ..."); `None` on a real cell.
-    fn after_gripper(&mut self, _q: &Joints, _holding: bool) -> Option<String> {
+    /// happened to an object where the cell knows (simulation: the roll released 14.2 mm
+    /// from the spindle's axis, measured; its words in the log); `None` on a real cell.
+    fn after_gripper(&mut self, _q: &Joints, _holding: bool) -> Option<GripperEvent> {
         None
     }
 }
@@ -127,8 +128,8 @@ impl TaskMonitor for SimWorld {
     fn before_close(&mut self, q: &Joints) {
         SimWorld::before_close(self, q);
     }
-    fn after_gripper(&mut self, q: &Joints, holding: bool) -> Option<String> {
-        SimWorld::after_gripper(self, q, holding).map(|e| e.to_string())
+    fn after_gripper(&mut self, q: &Joints, holding: bool) -> Option<GripperEvent> {
+        SimWorld::after_gripper(self, q, holding)
     }
 }
 
@@ -224,9 +225,9 @@ pub struct EpisodeReport {
     pub steps: usize,
     /// What happened, in words.
     pub detail: String,
-    /// What the gripper did to objects, in words, with the keyframe (index from 0) at which
+    /// What the gripper did to objects, measured, with the keyframe (index from 0) at which
     /// it happened; empty on a real cell, which cannot tell.
-    pub gripper_events: Vec<(usize, String)>,
+    pub gripper_events: Vec<(usize, GripperEvent)>,
     /// The recording.
     pub recording: PathBuf,
     /// Messages recorded per topic.
@@ -429,7 +430,7 @@ fn episode_steps(
     clock: &dyn Clock,
     seed: u64,
     steps: &mut usize,
-    gripper_events: &mut Vec<(usize, String)>,
+    gripper_events: &mut Vec<(usize, GripperEvent)>,
 ) -> anyhow::Result<(Outcome, String)> {
     let planner = planner_from_config(cfg)?;
     let fusion = FusionPipeline::new(cell.calibration.clone(), fusion_params(cfg, seed))?;

@@ -20,6 +20,7 @@ use crate::episode::{run_sim_episode, KeyframeSource, ScriptedExpert};
 use crate::learned::LearnedPolicy;
 use crate::recording::EpisodeRecorder;
 use crate::sim_cell::SimCell;
+use crate::task::world::GripperEvent;
 use crate::task::{TaskInstance, TaskKind};
 
 /// First evaluation seed by default (demonstrations use 0, 1, ...).
@@ -59,6 +60,10 @@ pub struct EpisodeSummary {
     pub detail: String,
     /// What the gripper did to objects: (keyframe, words).
     pub gripper_events: Vec<(usize, String)>,
+    /// The same events measured (grasp offsets in the hand, a roll's release against the
+    /// spindle): what `equact eval report` tabulates. Absent from logs written before
+    /// 2026-12-06.
+    pub gripper_measures: Vec<(usize, GripperEvent)>,
     /// The episode's MCAP recording.
     pub recording: std::path::PathBuf,
 }
@@ -290,7 +295,12 @@ pub fn evaluate(
                 outcome: report.outcome.label(),
                 steps: report.steps,
                 detail: report.detail,
-                gripper_events: report.gripper_events,
+                gripper_events: report
+                    .gripper_events
+                    .iter()
+                    .map(|(k, e)| (*k, e.to_string()))
+                    .collect(),
+                gripper_measures: report.gripper_events,
                 recording: report.recording,
             };
             // One line per episode as it ends, so that a long run killed midway keeps what
@@ -328,7 +338,7 @@ const EVENTS_SHOWN: usize = 3;
 
 /// A failed episode's gripper events for its progress line: ` | keyframe K: event` for the
 /// first three, then how many more; empty without events.
-pub fn gripper_summary(events: &[(usize, String)]) -> String {
+pub fn gripper_summary(events: &[(usize, impl std::fmt::Display)]) -> String {
     let mut s: String = events
         .iter()
         .take(EVENTS_SHOWN)
@@ -349,7 +359,7 @@ mod tests {
 
     #[test]
     fn a_failed_episodes_line_shows_its_first_gripper_events() {
-        assert_eq!(gripper_summary(&[]), "");
+        assert_eq!(gripper_summary(&[] as &[(usize, String)]), "");
         let events: Vec<(usize, String)> = (0..5).map(|k| (2 * k, format!("event {k}"))).collect();
         assert_eq!(gripper_summary(&events[..1]), " | keyframe 0: event 0");
         assert_eq!(

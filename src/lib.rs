@@ -10,6 +10,7 @@ pub mod calibrate_capture;
 pub mod demos;
 pub mod episode;
 pub mod eval;
+pub mod eval_report;
 pub mod grounding;
 pub mod learned;
 pub mod plot;

@@ -196,4 +196,42 @@ mod tests {
         let err = Cli::try_parse_from(["equact", "demos", "merge", "--out", "o"]).unwrap_err();
         assert_eq!(err.kind(), clap::error::ErrorKind::MissingRequiredArgument);
     }
+
+    /// `eval report` takes its logs in order, at least one; without the subcommand `eval`
+    /// runs episodes as before, and episode options do not mix with `report`.
+    #[test]
+    fn eval_report_is_a_subcommand_beside_the_episode_options() {
+        let report = |args: &[&str]| {
+            let cli = Cli::try_parse_from(args).unwrap_or_else(|e| panic!("{args:?}: {e}"));
+            let Command::Eval(e) = cli.command else {
+                panic!("not eval")
+            };
+            e
+        };
+        let e = report(&[
+            "equact",
+            "eval",
+            "report",
+            "a",
+            "b/episodes.jsonl",
+            "--json",
+        ]);
+        let Some(cmd::eval::EvalAction::Report(r)) = e.action else {
+            panic!("not report: {e:?}")
+        };
+        assert_eq!(
+            r.logs,
+            ["a", "b/episodes.jsonl"].map(std::path::PathBuf::from)
+        );
+        assert!(r.json);
+        let e = report(&["equact", "eval", "--task", "pick_fruit", "--episodes", "3"]);
+        assert!(e.action.is_none());
+        assert_eq!((e.task.as_str(), e.episodes), ("pick_fruit", 3));
+        for bad in [
+            &["equact", "eval", "report"][..],
+            &["equact", "eval", "--episodes", "3", "report", "a"][..],
+        ] {
+            assert!(Cli::try_parse_from(bad).is_err(), "{bad:?}");
+        }
+    }
 }

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::sync::atomic::Ordering;
 
 use anyhow::Context;
-use clap::Args;
+use clap::{Args, Subcommand};
 use equact::eval::{evaluate, EpisodePolicy, EvalPlan, ExpertEval, LearnedEval, EVAL_SEED};
 use equact::learned::LearnedPolicy;
 use equact::train::Instructions;
@@ -15,7 +15,11 @@ use super::run::{NetworkSize, PolicyChoice};
 
 /// Arguments of `equact eval`.
 #[derive(Args, Debug)]
+#[command(args_conflicts_with_subcommands = true)]
 pub struct EvalArgs {
+    /// Without a subcommand, `eval` runs the episodes.
+    #[command(subcommand)]
+    pub action: Option<EvalAction>,
     /// `task/variation`, a task name (all its variations) or `all`.
     #[arg(long, default_value = "all")]
     pub task: String,
@@ -72,8 +76,31 @@ pub struct EvalArgs {
     pub json: bool,
 }
 
+/// What `equact eval` does besides running episodes.
+#[derive(Subcommand, Debug)]
+pub enum EvalAction {
+    /// Tabulate evaluation logs (`episodes.jsonl`) without running an episode: outcomes per
+    /// task variation, and the toilet roll's first releases against how far along the pads
+    /// the roll was held.
+    Report(ReportArgs),
+}
+
+/// Arguments of `equact eval report`.
+#[derive(Args, Debug)]
+pub struct ReportArgs {
+    /// Folders `equact eval --out` wrote (or their `episodes.jsonl` files), read together.
+    #[arg(required = true)]
+    pub logs: Vec<PathBuf>,
+    /// Print the report as JSON instead of Markdown.
+    #[arg(long)]
+    pub json: bool,
+}
+
 /// Runs `equact eval`.
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
+    if let Some(EvalAction::Report(report)) = args.action {
+        return run_report(&report);
+    }
     let cfg = super::config::load(args.config.as_ref())?;
     if cfg.robot.backend != cell_types::config::RobotBackend::Sim {
         anyhow::bail!(
@@ -149,6 +176,18 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
     }
     if interrupt.load(Ordering::SeqCst) {
         anyhow::bail!("interrupted by Ctrl-C; the table above holds the episodes run");
+    }
+    Ok(())
+}
+
+/// Runs `equact eval report`.
+fn run_report(args: &ReportArgs) -> anyhow::Result<()> {
+    let episodes = equact::eval_report::read_logs(&args.logs)?;
+    let report = equact::eval_report::EvalReport::of(&episodes);
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", report.markdown());
     }
     Ok(())
 }

@@ -315,36 +315,64 @@ impl TaskInstance {
 
     /// Where body `index`, released by the gripper at `pose`, comes to rest.
     pub fn released_pose(&self, index: usize, pose: &Isometry3<f64>) -> Isometry3<f64> {
-        match self.kind {
-            TaskKind::PickFruit(f) => pick_fruit::released(self, f, pose),
-            TaskKind::DisassemblePipe(_) => pipe::released(self, pose),
-            TaskKind::PluckFlower(_) => flower::released(self, pose),
-            TaskKind::InstallToiletRoll(s) => toilet_roll::released(self, s, index, pose),
-        }
+        self.release(index, pose).0
     }
 
-    /// In words, where body `index` was let go at `let_go` (relative to where the task needs
-    /// it, where that matters) and where it came to rest at `rest`.
-    pub fn describe_release(
+    /// Body `index` let go by the gripper at `let_go`: where it comes to rest, and what
+    /// happened, measured ([`ReleaseOutcome`]).
+    pub fn release(
         &self,
         index: usize,
         let_go: &Isometry3<f64>,
-        rest: &Isometry3<f64>,
-    ) -> String {
-        if let TaskKind::InstallToiletRoll(s) = self.kind {
-            if let Some(words) = toilet_roll::describe_release(self, s, index, let_go) {
-                return words;
-            }
-        }
-        let drop = let_go.translation.vector.z - rest.translation.vector.z;
+    ) -> (Isometry3<f64>, ReleaseOutcome) {
+        let rest = match self.kind {
+            TaskKind::PickFruit(f) => pick_fruit::released(self, f, let_go),
+            TaskKind::DisassemblePipe(_) => pipe::released(self, let_go),
+            TaskKind::PluckFlower(_) => flower::released(self, let_go),
+            TaskKind::InstallToiletRoll(s) => match toilet_roll::released(self, s, index, let_go) {
+                Some((rest, roll)) => return (rest, ReleaseOutcome::Roll(roll)),
+                None => *let_go,
+            },
+        };
         let p = rest.translation.vector;
-        format!(
-            "it fell {:.0} mm and came to rest at [{:.3}, {:.3}, {:.3}] m",
-            rounded_mm(drop, 0),
-            p.x,
-            p.y,
-            p.z
-        )
+        let outcome = ReleaseOutcome::Fell {
+            drop_mm: (let_go.translation.vector.z - p.z) * 1e3,
+            rest_m: [p.x, p.y, p.z],
+        };
+        (rest, outcome)
+    }
+}
+
+/// What letting go of a body did: for a toilet roll, how it met the holder's spindle; for
+/// any other body, how far it fell and where it came to rest. Its
+/// [`Display`](std::fmt::Display) is the words an episode's log shows.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum ReleaseOutcome {
+    /// A toilet roll, measured against the holder.
+    Roll(toilet_roll::RollRelease),
+    /// Any other body.
+    Fell {
+        /// Height it fell (mm).
+        drop_mm: f64,
+        /// Where it came to rest: its origin in the base frame (m).
+        rest_m: [f64; 3],
+    },
+}
+
+impl std::fmt::Display for ReleaseOutcome {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            ReleaseOutcome::Roll(roll) => roll.fmt(f),
+            ReleaseOutcome::Fell { drop_mm, rest_m } => write!(
+                f,
+                "it fell {:.0} mm and came to rest at [{:.3}, {:.3}, {:.3}] m",
+                rounded(*drop_mm, 0),
+                rest_m[0],
+                rest_m[1],
+                rest_m[2]
+            ),
+        }
     }
 }
 
@@ -467,9 +495,15 @@ pub(crate) fn lying_on_table(
 /// A length (m) in millimetres rounded to `decimals` places, for reports: a value that
 /// rounds to zero prints as 0, never "-0".
 pub(crate) fn rounded_mm(m: f64, decimals: i32) -> f64 {
+    rounded(m * 1e3, decimals)
+}
+
+/// `v` rounded to `decimals` places, for reports: a value that rounds to zero prints as 0,
+/// never "-0".
+pub(crate) fn rounded(v: f64, decimals: i32) -> f64 {
     let scale = 10f64.powi(decimals);
     // Adding 0.0 turns the −0.0 that rounding a small negative value gives into 0.0.
-    (m * 1e3 * scale).round() / scale + 0.0
+    (v * scale).round() / scale + 0.0
 }
 
 /// Angle between two unit vectors (rad).

@@ -7,16 +7,18 @@
 //! lets go. Variations: a large or a small roll.
 
 use std::f64::consts::{FRAC_PI_2, FRAC_PI_4};
+use std::fmt;
 
 use cell_types::Keyframe;
 use hil_sim::scene::Primitive;
 use nalgebra::{Isometry3, Point3, Translation3, UnitQuaternion, Vector3};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
 
 use super::{
-    angle_between, grasp_rotation, keyframe, keyframe_through, pedestal, rounded_mm,
-    sample_fixture, Body, BodyPart, ExpertPlan, GraspSite, TaskInstance, TaskKind, HALF_TURN,
+    angle_between, grasp_rotation, keyframe, keyframe_through, pedestal, rounded, sample_fixture,
+    Body, BodyPart, ExpertPlan, GraspSite, TaskInstance, TaskKind, HALF_TURN,
 };
 
 /// Radius of the holder's spindle (m).
@@ -377,20 +379,25 @@ impl OverSpindle {
 /// leaning on the spindle, upright or not) is not modelled; on its side is the conservative
 /// choice, as no demonstration shows how to pick a roll up from there. A roll let go
 /// elsewhere falls upright to the table below, where it can be grasped again.
+///
+/// Returns where the roll comes to rest and the measurements the decision was made on;
+/// `None` for another body (the holder is never held).
 pub(crate) fn released(
     task: &TaskInstance,
     size: RollSize,
     index: usize,
     pose: &Isometry3<f64>,
-) -> Isometry3<f64> {
+) -> Option<(Isometry3<f64>, RollRelease)> {
     if index != ROLL {
-        return *pose;
+        return None;
     }
     let h = size.half_height();
     let x = pose.rotation * Vector3::x();
     let heading = UnitQuaternion::from_axis_angle(&Vector3::z_axis(), x.y.atan2(x.x));
     let c = pose.translation.vector;
-    match Landing::of(task, size, pose, &OverSpindle::measure(task, size, pose)) {
+    let m = OverSpindle::measure(task, size, pose);
+    let landing = Landing::of(task, size, pose, &m);
+    let rest = match landing {
         Landing::OnSpindle => {
             let local = task.base_from_fixture.inverse() * pose;
             let x = local.rotation * Vector3::x();
@@ -411,13 +418,15 @@ pub(crate) fn released(
                 heading * UnitQuaternion::from_axis_angle(&Vector3::x_axis(), FRAC_PI_2),
             )
         }
-    }
+    };
+    Some((rest, RollRelease::of(task, pose, &m, landing)))
 }
 
-/// Where a released roll ends up: the one decision [`released`] acts on and
-/// [`describe_release`] puts in words.
-#[derive(Copy, Clone, Debug, PartialEq, Eq)]
-enum Landing {
+/// Where a released roll ends up: the one decision the release acts on and
+/// [`RollRelease`] reports.
+#[derive(Copy, Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Landing {
     /// It slid down onto the spindle.
     OnSpindle,
     /// Over the holder but not onto the spindle: it falls off onto its side.
@@ -503,53 +512,113 @@ fn off_the_holder(task: &TaskInstance, size: RollSize, centre: &Vector3<f64>) ->
     (f * Point3::from(away * limit)).coords
 }
 
-/// The roll (body 1) let go at `pose`, in words: how far from the spindle's axis, its tilt
-/// and height, how the spindle sits in its hole against the hole's play, and where it went;
-/// `None` for another body.
-pub(crate) fn describe_release(
-    task: &TaskInstance,
-    size: RollSize,
-    index: usize,
-    pose: &Isometry3<f64>,
-) -> Option<String> {
-    if index != ROLL {
-        return None;
+/// A roll let go, measured: what an episode's log keeps of each release (`episodes.jsonl`),
+/// so that a run's releases can be counted against how the roll was held (`equact eval
+/// report`) without parsing its words. Its [`Display`](fmt::Display) is the words.
+/// Lengths in millimetres, angles in degrees, unrounded.
+#[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct RollRelease {
+    /// Distance of the roll's centre from the spindle's axis (mm).
+    pub off_axis_mm: f64,
+    /// Angle between the roll's axis and the spindle's (°).
+    pub tilt_deg: f64,
+    /// The roll's lean from the vertical (°).
+    pub roll_lean_deg: f64,
+    /// The spindle's lean from the vertical (°): a roll let go upright over a leaning
+    /// holder is tilted from the spindle by the holder's lean.
+    pub spindle_lean_deg: f64,
+    /// Height of the middle of the roll's bottom face above the holder's seat (mm).
+    pub bottom_mm: f64,
+    /// Where the spindle was relative to the roll's hole.
+    pub fit: HoleFit,
+    /// Where the roll came to rest.
+    pub landing: Landing,
+}
+
+/// Where the spindle was relative to a released roll's hole, against the hole's play
+/// ([`HOLE_PLAY_MM`]).
+#[derive(Copy, Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum HoleFit {
+    /// The spindle reaches into the hole, its axis at most `off_mm` from the hole's: within
+    /// the play the roll slides down it; beyond, the roll's wall cuts through the spindle
+    /// (the held roll was carried into it).
+    Inside {
+        /// Largest distance of the spindle's axis from the hole's over the length inside (mm).
+        off_mm: f64,
+    },
+    /// The roll is above the spindle's tip.
+    Above {
+        /// Distance of the spindle's tip from the hole's axis (mm).
+        off_mm: f64,
+    },
+    /// The hole is not around the spindle (the roll on its side, or below the seat).
+    Away,
+}
+
+/// The hole's play around the spindle (mm): [`HOLE_RADIUS`] less [`SPINDLE_RADIUS`].
+pub const HOLE_PLAY_MM: f64 = (HOLE_RADIUS - SPINDLE_RADIUS) * 1e3;
+
+impl RollRelease {
+    /// The report of a roll let go at `pose`, measured as `m`, that ended up at `landing`.
+    fn of(task: &TaskInstance, pose: &Isometry3<f64>, m: &OverSpindle, landing: Landing) -> Self {
+        let up = Vector3::z();
+        let lean = |axis: Vector3<f64>| angle_between(&axis, &up).min(angle_between(&-axis, &up));
+        let fit = match m.fit {
+            SpindleFit::Around(off) => HoleFit::Inside { off_mm: off * 1e3 },
+            SpindleFit::Above(off) => HoleFit::Above { off_mm: off * 1e3 },
+            SpindleFit::Away => HoleFit::Away,
+        };
+        Self {
+            off_axis_mm: m.radial * 1e3,
+            tilt_deg: m.tilt.to_degrees(),
+            roll_lean_deg: lean(pose.rotation * up).to_degrees(),
+            spindle_lean_deg: lean(task.base_from_fixture.rotation * up).to_degrees(),
+            bottom_mm: m.bottom * 1e3,
+            fit,
+            landing,
+        }
     }
-    let m = OverSpindle::measure(task, size, pose);
-    let play = rounded_mm(HOLE_PLAY, 0);
-    let fit = match m.fit {
-        SpindleFit::Around(off) if off < HOLE_PLAY => format!(
-            "the spindle in its hole, at most {:.1} mm off the hole's axis (fits within {play:.0} mm)",
-            rounded_mm(off, 1)
-        ),
-        SpindleFit::Around(off) => format!(
-            "the spindle cutting through its wall, {:.1} mm off the hole's axis (fits within \
-             {play:.0} mm; the held roll was carried into the spindle)",
-            rounded_mm(off, 1)
-        ),
-        SpindleFit::Above(off) => format!(
-            "above the spindle, its tip {:.1} mm off the hole's axis (a falling roll goes over it \
-             within {play:.0} mm, tilted less than {DROP_TILT_DEG:.0}°)",
-            rounded_mm(off, 1)
-        ),
-        SpindleFit::Away => "its hole not around the spindle".to_string(),
-    };
-    let outcome = Landing::of(task, size, pose, &m).words();
-    // How far the roll and the spindle lean from the vertical: a roll let go upright over a
-    // leaning holder is tilted from the spindle by the holder's lean.
-    let up = Vector3::z();
-    let lean = |axis: Vector3<f64>| angle_between(&axis, &up).min(angle_between(&-axis, &up));
-    let spindle_lean = lean(task.base_from_fixture.rotation * up);
-    let roll_lean = lean(pose.rotation * up);
-    Some(format!(
-        "let go {:.1} mm from the spindle's axis, tilted {:.0}° from it (the roll {:.0}° from \
-         the vertical, the spindle {:.0}°), its bottom {:.0} mm above the seat, {fit}; {outcome}",
-        rounded_mm(m.radial, 1),
-        m.tilt.to_degrees(),
-        roll_lean.to_degrees(),
-        spindle_lean.to_degrees(),
-        rounded_mm(m.bottom, 0),
-    ))
+}
+
+impl fmt::Display for RollRelease {
+    /// How far from the spindle's axis, its tilt and height, how the spindle sits in its hole
+    /// against the hole's play, and where the roll went.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let play = HOLE_PLAY_MM.round();
+        write!(
+            f,
+            "let go {:.1} mm from the spindle's axis, tilted {:.0}° from it (the roll {:.0}° from \
+             the vertical, the spindle {:.0}°), its bottom {:.0} mm above the seat, ",
+            rounded(self.off_axis_mm, 1),
+            self.tilt_deg,
+            self.roll_lean_deg,
+            self.spindle_lean_deg,
+            rounded(self.bottom_mm, 0),
+        )?;
+        match self.fit {
+            HoleFit::Inside { off_mm } if off_mm < HOLE_PLAY_MM => write!(
+                f,
+                "the spindle in its hole, at most {:.1} mm off the hole's axis (fits within \
+                 {play:.0} mm)",
+                rounded(off_mm, 1)
+            )?,
+            HoleFit::Inside { off_mm } => write!(
+                f,
+                "the spindle cutting through its wall, {:.1} mm off the hole's axis (fits within \
+                 {play:.0} mm; the held roll was carried into the spindle)",
+                rounded(off_mm, 1)
+            )?,
+            HoleFit::Above { off_mm } => write!(
+                f,
+                "above the spindle, its tip {:.1} mm off the hole's axis (a falling roll goes over \
+                 it within {play:.0} mm, tilted less than {DROP_TILT_DEG:.0}°)",
+                rounded(off_mm, 1)
+            )?,
+            HoleFit::Away => write!(f, "its hole not around the spindle")?,
+        }
+        write!(f, "; {}", self.landing.words())
+    }
 }
 
 #[cfg(test)]
@@ -759,9 +828,9 @@ mod tests {
 
     /// Released, then: its words, and whether it sits on the spindle.
     fn release(t: &TaskInstance, size: RollSize, pose: &Isometry3<f64>) -> (String, bool) {
-        let rest = t.released_pose(1, pose);
+        let (rest, outcome) = t.release(1, pose);
         let seated = (rest.translation.vector - seated_centre(t, size.half_height())).norm() < 1e-9;
-        let words = t.describe_release(1, pose, &rest);
+        let words = outcome.to_string();
         assert_eq!(
             seated,
             words.ends_with("it slid down onto the spindle"),
@@ -949,15 +1018,17 @@ mod tests {
         // again: not lost.
         let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), 1, -0.06);
         let far = t.bodies[1].base_from_body * Isometry3::translation(0.0, 0.0, 0.05);
-        let rest = t.released_pose(1, &far);
+        let (rest, outcome) = t.release(1, &far);
         assert!(
             (rest.translation.vector - t.bodies[1].base_from_body.translation.vector).norm()
                 < 1e-12
         );
         assert!(t.stands_free(1, &rest));
         assert_eq!(t.lost(&[t.bodies[0].base_from_body, rest]), None);
-        assert!(t
-            .describe_release(1, &far, &rest)
-            .ends_with("; it fell onto the table"));
+        assert!(outcome.to_string().ends_with("; it fell onto the table"));
+        assert!(
+            matches!(outcome, crate::task::ReleaseOutcome::Roll(r) if r.landing == Landing::OnTheTable),
+            "{outcome:?}"
+        );
     }
 }

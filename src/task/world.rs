@@ -6,8 +6,9 @@
 use std::fmt;
 
 use nalgebra::{Isometry3, Point3, Translation3, Vector3};
+use serde::{Deserialize, Serialize};
 
-use super::{angle_between, rounded_mm, GraspSite, TaskInstance};
+use super::{angle_between, rounded_mm, GraspSite, ReleaseOutcome, TaskInstance};
 
 /// Grasp distance: a body is caught when its grasp site is this close to the TCP as the
 /// fingers close (m).
@@ -15,8 +16,10 @@ pub const GRASP_RADIUS: f64 = 0.03;
 
 /// What a gripper motion did to a body: what an episode's log says after the step, so that a
 /// failed episode shows how it failed (a roll grasped far off-centre, let go beside the
-/// spindle) without a debugger.
-#[derive(Clone, Debug, PartialEq)]
+/// spindle) without a debugger. Its [`Display`](fmt::Display) is the words; serialised, the
+/// measurements (`episodes.jsonl`'s `gripper_measures`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(tag = "event", rename_all = "snake_case")]
 pub enum GripperEvent {
     /// Closing fingers caught a body.
     Grasped {
@@ -24,6 +27,7 @@ pub enum GripperEvent {
         body: String,
         /// Its grasp site in the TCP frame once the jaws closed (m): x across the jaws,
         /// y along the pads, z along the approach.
+        #[serde(rename = "site_in_tcp_m")]
         site_in_tcp: Vector3<f64>,
         /// For a body the expert holds with an axis against the approach (a roll), how far
         /// that axis is turned from it in the hand ([`AxisTilt`]): a tilted grasp stays in
@@ -34,15 +38,15 @@ pub enum GripperEvent {
     Released {
         /// The body's name.
         body: String,
-        /// Where it was let go and where it came to rest ([`TaskInstance::describe_release`]).
-        outcome: String,
+        /// Where it was let go and where it came to rest ([`TaskInstance::release`]).
+        outcome: ReleaseOutcome,
     },
 }
 
 /// How far a held body's axis is turned from the way the expert holds it (against the TCP's
 /// approach, z), in degrees: in all, and its parts about the jaws' closing axis (TCP x: a
 /// turn in the pads' plane, which the jaws keep) and about the pads' axis (TCP y).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct AxisTilt {
     /// Angle between the body's axis and the reversed approach (°).
     pub total_deg: f64,
@@ -183,11 +187,11 @@ impl TaskWorld {
         } else if !holding {
             self.between_fingers = None;
             let (i, _) = self.held.take()?;
-            let let_go = self.poses[i];
-            self.poses[i] = self.task.released_pose(i, &let_go);
+            let (rest, outcome) = self.task.release(i, &self.poses[i]);
+            self.poses[i] = rest;
             Some(GripperEvent::Released {
                 body: self.task.bodies[i].name.clone(),
-                outcome: self.task.describe_release(i, &let_go, &self.poses[i]),
+                outcome,
             })
         } else {
             None

@@ -138,6 +138,7 @@ fn expert_picks_the_fruit_and_the_recording_checks_out() {
     assert!(
         events[0]
             .1
+            .to_string()
             .starts_with("grasped the strawberry, its grasp site "),
         "{events:?}"
     );

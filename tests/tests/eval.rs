@@ -78,6 +78,18 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
         assert_eq!(line["seed"], r.seed);
         assert_eq!(line["outcome"], "success");
         assert_eq!(line["gripper_events"][0][1], r.gripper_events[0].1.as_str());
+        // Measured too: the grasp site in the hand, within the grasp radius of the TCP.
+        let grasp = &line["gripper_measures"][0];
+        assert_eq!(
+            (&grasp[0], &grasp[1]["event"]),
+            (&r.gripper_events[0].0.into(), &"grasped".into())
+        );
+        assert_eq!(grasp[1]["body"], "plum");
+        let site: Vec<f64> = serde_json::from_value(grasp[1]["site_in_tcp_m"].clone()).unwrap();
+        assert!(
+            site.iter().map(|v| v * v).sum::<f64>().sqrt() < 0.03,
+            "{site:?}"
+        );
     }
 
     let net = for_cell(PolicyConfig::tiny(), &cfg);
@@ -112,6 +124,16 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
     // Appended to the same folder's log.
     let lines = log(3);
     assert_eq!(lines[2]["outcome"], row.runs[0].outcome);
+    // `equact eval report` reads the folder back: all three episodes, by outcome.
+    let logged = equact::eval_report::read_logs(std::slice::from_ref(&dir)).unwrap();
+    let report = equact::eval_report::EvalReport::of(&logged);
+    assert_eq!(report.variations.len(), 1);
+    let v = &report.variations[0];
+    assert_eq!((v.task.as_str(), v.episodes), ("pick_fruit/plum", 3));
+    let learned_ok = u64::from(row.runs[0].outcome == "success");
+    assert_eq!(v.successes, 2 + learned_ok);
+    assert_eq!(v.outcomes.values().sum::<u64>(), 3);
+    assert_eq!(report.roll, None);
 
     // A variation without an embedding is an error, not a silent skip.
     let err = evaluate(

@@ -13,7 +13,11 @@ use cell_types::SystemClock;
 use equact::episode::{run_sim_episode, EpisodeReport, ScriptedExpert};
 use equact::recording::EpisodeRecorder;
 use equact::sim_cell::SimCell;
-use equact::task::{toilet_roll, FlowerLevel, PipePart, RollSize, TaskInstance, TaskKind};
+use equact::task::toilet_roll::{HoleFit, Landing};
+use equact::task::world::GripperEvent;
+use equact::task::{
+    toilet_roll, FlowerLevel, PipePart, ReleaseOutcome, RollSize, TaskInstance, TaskKind,
+};
 
 /// Episodes run in real time against loopback servers: one at a time.
 static SERIAL: Mutex<()> = Mutex::new(());
@@ -70,16 +74,8 @@ fn expert_plucks_the_bottom_flower() {
     assert_success(TaskKind::PluckFlower(FlowerLevel::Bottom), 1);
 }
 
-/// The number in `text` between `prefix` (which `text` must start with) and `suffix`.
-fn number_between(text: &str, prefix: &str, suffix: &str) -> f64 {
-    text.strip_prefix(prefix)
-        .and_then(|r| r.split(suffix).next())
-        .and_then(|n| n.parse().ok())
-        .unwrap_or_else(|| panic!("no number between {prefix:?} and {suffix:?} in {text:?}"))
-}
-
-/// Through the simulated arm and gripper, the report of each gripper event reaches the
-/// episode: the expert's grasp at its drawn offset along the pads with the roll's axis
+/// Through the simulated arm and gripper, the measured report of each gripper event reaches
+/// the episode: the expert's grasp at its drawn offset along the pads with the roll's axis
 /// against the approach, its release on the spindle's axis.
 #[test]
 fn expert_installs_the_small_toilet_roll() {
@@ -87,37 +83,49 @@ fn expert_installs_the_small_toilet_roll() {
     let report = assert_success(kind, 1);
     let events = &report.gripper_events;
     assert_eq!(events.len(), 2, "{events:?}");
-    // The grasp site's offset along the pads, in whole millimetres, is the expert's drawn
-    // one (the arm tracks the keyframe to well under a millimetre).
     let task = TaskInstance::sample(
         kind,
         1,
         CellConfig::simulated().unwrap().workspace.table_height,
     );
-    let drawn = (toilet_roll::expert_grasp_offset(&task) * 1e3).round();
-    let grasp = &events[0].1;
-    let along = number_between(
-        grasp,
-        "grasped the small toilet roll, its grasp site ",
-        " mm along the pads",
-    );
-    // The site is on the roll's axis; the TCP is `drawn` off it the other way.
-    assert!((along + drawn).abs() <= 1.0, "{grasp}: drawn {drawn} mm");
-    // The expert's straight-down grasp holds the roll's axis against the approach.
-    let at = grasp.find(", its axis ").unwrap_or(0);
-    let tilt = number_between(&grasp[at..], ", its axis ", "° off the approach");
-    assert!(tilt <= 1.0, "{grasp}");
-    let release = &events[1].1;
-    let off = number_between(
-        release,
-        "released the small toilet roll: let go ",
-        " mm from the spindle's axis",
-    );
-    assert!(off < 1.0, "{release}");
+    let GripperEvent::Grasped {
+        body,
+        site_in_tcp,
+        axis_tilt,
+    } = &events[0].1
+    else {
+        panic!("{events:?}")
+    };
+    assert_eq!(body, "small toilet roll");
+    // The site is on the roll's axis; the TCP is the drawn offset off it the other way (the
+    // arm tracks the keyframe to well under a millimetre).
+    let drawn = toilet_roll::expert_grasp_offset(&task);
+    assert!(drawn.abs() > 1e-3, "seed 1 draws a visible offset: {drawn}");
     assert!(
-        release.contains("the spindle in its hole")
-            && release.ends_with("it slid down onto the spindle"),
-        "{release}"
+        (site_in_tcp.y + drawn).abs() < 1e-3,
+        "{site_in_tcp:?}: drawn {drawn}"
+    );
+    // The expert's straight-down grasp holds the roll's axis against the approach.
+    assert!(axis_tilt.unwrap().total_deg <= 1.0, "{axis_tilt:?}");
+    let GripperEvent::Released {
+        outcome: ReleaseOutcome::Roll(release),
+        ..
+    } = &events[1].1
+    else {
+        panic!("{events:?}")
+    };
+    assert!(release.off_axis_mm < 1.0, "{release:?}");
+    assert!(
+        matches!(release.fit, HoleFit::Inside { off_mm } if off_mm < toilet_roll::HOLE_PLAY_MM),
+        "{release:?}"
+    );
+    assert_eq!(release.landing, Landing::OnSpindle);
+    // The log's words say the same.
+    let words = events[1].1.to_string();
+    assert!(
+        words.contains("the spindle in its hole")
+            && words.ends_with("it slid down onto the spindle"),
+        "{words}"
     );
 }
 

@@ -17,6 +17,7 @@ use equact::episode::{run_episode, CellIo, OperatorJudged, Outcome, ScriptedExpe
 use equact::real_cell::{connect_gripper, read_calibration, RealCell};
 use equact::recording::EpisodeRecorder;
 use equact::sim_cell::{SimCell, SimWorld};
+use equact::task::world::GripperEvent;
 use equact::task::{Fruit, TaskInstance, TaskKind};
 use firmware_iface::gripper::Gripper;
 use hil_sim::gripper::{GripperSim, SimConfig};
@@ -81,7 +82,7 @@ impl TaskMonitor for RealWorld<'_> {
     fn before_close(&mut self, q: &Joints) {
         self.sim.before_close(q);
     }
-    fn after_gripper(&mut self, q: &Joints, holding: bool) -> Option<String> {
+    fn after_gripper(&mut self, q: &Joints, holding: bool) -> Option<GripperEvent> {
         // The world moves the object, but a real cell cannot see where it went: no report.
         self.sim.after_gripper(q, holding);
         self.judged.after_gripper(q, holding)
