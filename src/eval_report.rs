@@ -155,6 +155,9 @@ pub struct RollTable {
     pub unmeasured: u64,
     /// Of them, measured but without a grasp and a release of the roll.
     pub without_release: u64,
+    /// Quartiles of |offset along the pads| of the grasps that carried the first releases
+    /// (mm); `None` without one.
+    pub along_pads_quartiles_mm: Option<[f64; 3]>,
     /// One row per [`ALONG_PADS_BINS_MM`] band.
     pub by_grasp: Vec<GraspRow>,
     /// First releases within the hole's play of the spindle's axis.
@@ -233,6 +236,11 @@ impl EvalReport {
              the roll).\n\n",
             r.episodes, r.unmeasured, r.without_release
         ));
+        if let Some([q1, q2, q3]) = r.along_pads_quartiles_mm {
+            s.push_str(&format!(
+                "Held along the pads (quartiles): {q1:.1}, {q2:.1}, {q3:.1} mm.\n\n"
+            ));
+        }
         s.push_str(&format!(
             "| held along the pads | episodes | let go off the spindle's axis (median) | within \
              the {HOLE_PLAY_MM:.0} mm play | installed |\n|---|---|---|---|---|\n"
@@ -269,6 +277,7 @@ fn roll_table(rolls: &[&LoggedEpisode]) -> RollTable {
         episodes: rolls.len() as u64,
         unmeasured: 0,
         without_release: 0,
+        along_pads_quartiles_mm: None,
         by_grasp: Vec::new(),
         within_play: Installed::default(),
         beyond_play: Installed::default(),
@@ -284,6 +293,8 @@ fn roll_table(rolls: &[&LoggedEpisode]) -> RollTable {
             None => table.without_release += 1,
         }
     }
+    let mut along: Vec<f64> = measured.iter().map(|(a, _, _)| *a).collect();
+    table.along_pads_quartiles_mm = quartiles(&mut along);
     for (_, r, ok) in &measured {
         let side = if r.off_axis_mm < HOLE_PLAY_MM {
             &mut table.within_play
@@ -321,16 +332,25 @@ fn roll_table(rolls: &[&LoggedEpisode]) -> RollTable {
 
 /// The median of `v` (sorted in place); `None` when empty or not all finite.
 fn median(v: &mut [f64]) -> Option<f64> {
+    quantile(v, 0.5)
+}
+
+/// The lower quartile, median and upper quartile of `v` (sorted in place); `None` when empty
+/// or not all finite.
+fn quartiles(v: &mut [f64]) -> Option<[f64; 3]> {
+    Some([quantile(v, 0.25)?, quantile(v, 0.5)?, quantile(v, 0.75)?])
+}
+
+/// The `q` quantile of `v` (sorted in place), interpolated between the two nearest ranks
+/// (numpy's default); `None` when empty or not all finite.
+fn quantile(v: &mut [f64], q: f64) -> Option<f64> {
     if v.is_empty() || v.iter().any(|x| !x.is_finite()) {
         return None;
     }
     v.sort_by(f64::total_cmp);
-    let n = v.len();
-    Some(if n % 2 == 1 {
-        v[n / 2]
-    } else {
-        0.5 * (v[n / 2 - 1] + v[n / 2])
-    })
+    let at = q * (v.len() - 1) as f64;
+    let (lo, hi) = (at.floor() as usize, at.ceil() as usize);
+    Some(v[lo] + (v[hi] - v[lo]) * (at - lo as f64))
 }
 
 #[cfg(test)]
@@ -456,6 +476,15 @@ mod tests {
             assert_eq!(row.within_play, want, "{row:?}");
         }
         assert_eq!(roll.by_grasp.len(), ALONG_PADS_BINS_MM.len() + 1);
+        let mut all = along.clone();
+        all.push(far_along);
+        let [q1, q2, q3] = roll.along_pads_quartiles_mm.unwrap();
+        let [w1, w2, w3] = quartiles(&mut all).unwrap();
+        // The measured grasps are the drawn offsets to well under a micrometre.
+        for (got, want) in [(q1, w1), (q2, w2), (q3, w3)] {
+            assert!((got - want).abs() < 1e-3, "{got} {want}");
+        }
+        assert!(q1 <= q2 && q2 <= q3 && q3 <= 6.0, "{q1} {q2} {q3}");
         let md = report.markdown();
         assert!(
             md.contains("(7 of 8 episodes; 1 logged before gripper measurements"),
@@ -562,10 +591,16 @@ mod tests {
     }
 
     #[test]
-    fn the_median_of_an_even_count_is_the_middle_pair_mean() {
+    fn quantiles_interpolate_between_the_nearest_ranks() {
         assert_eq!(median(&mut []), None);
         assert_eq!(median(&mut [3.0, 1.0, 2.0]), Some(2.0));
         assert_eq!(median(&mut [4.0, 1.0, 3.0, 2.0]), Some(2.5));
         assert_eq!(median(&mut [1.0, f64::NAN]), None);
+        assert_eq!(
+            quartiles(&mut [4.0, 0.0, 2.0, 1.0, 3.0]),
+            Some([1.0, 2.0, 3.0])
+        );
+        assert_eq!(quartiles(&mut [0.0, 1.0]), Some([0.25, 0.5, 0.75]));
+        assert_eq!(quartiles(&mut []), None);
     }
 }

@@ -556,8 +556,8 @@ pub enum HoleFit {
     Away,
 }
 
-/// The hole's play around the spindle (mm): [`HOLE_RADIUS`] less [`SPINDLE_RADIUS`].
-pub const HOLE_PLAY_MM: f64 = (HOLE_RADIUS - SPINDLE_RADIUS) * 1e3;
+/// The hole's play around the spindle in millimetres, as reports give it.
+pub const HOLE_PLAY_MM: f64 = HOLE_PLAY * 1e3;
 
 impl RollRelease {
     /// The report of a roll let go at `pose`, measured as `m`, that ended up at `landing`.
