@@ -14,7 +14,7 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 use serde::{Deserialize, Serialize};
 
-use crate::eval::EPISODE_LOG;
+use crate::eval::{EpisodeSummary, EvalTable, EPISODE_LOG};
 use crate::task::toilet_roll::{RollRelease, HOLE_PLAY_MM};
 use crate::task::world::GripperEvent;
 use crate::task::ReleaseOutcome;
@@ -59,6 +59,18 @@ impl LoggedEpisode {
             }
         }
         None
+    }
+}
+
+impl From<&EpisodeSummary> for LoggedEpisode {
+    /// An episode just run, as its log line reads back.
+    fn from(e: &EpisodeSummary) -> Self {
+        Self {
+            task: e.task.clone(),
+            seed: e.seed,
+            outcome: e.outcome.to_string(),
+            gripper_measures: Some(e.gripper_measures.clone()),
+        }
     }
 }
 
@@ -205,6 +217,16 @@ impl EvalReport {
         Self { variations, roll }
     }
 
+    /// The report over the episodes of an evaluation just run.
+    pub fn of_table(table: &EvalTable) -> Self {
+        let episodes: Vec<LoggedEpisode> = table
+            .rows
+            .iter()
+            .flat_map(|r| r.runs.iter().map(LoggedEpisode::from))
+            .collect();
+        Self::of(&episodes)
+    }
+
     /// The report as Markdown tables.
     pub fn markdown(&self) -> String {
         let mut s = String::from("| task/variation | success | outcomes |\n|---|---|---|\n");
@@ -219,6 +241,14 @@ impl EvalReport {
                 outcomes.join(", ")
             ));
         }
+        s.push_str(&self.roll_markdown());
+        s
+    }
+
+    /// The toilet-roll part of [`EvalReport::markdown`], starting with a blank line; empty
+    /// without a toilet-roll episode.
+    pub fn roll_markdown(&self) -> String {
+        let mut s = String::new();
         let Some(r) = &self.roll else { return s };
         let measured = r.episodes - r.unmeasured - r.without_release;
         if measured == 0 {

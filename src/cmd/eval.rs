@@ -173,6 +173,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string_pretty(&table)?);
     } else {
         print!("{}", table.markdown());
+        // Why the roll failed, where it ran: `equact eval report` over this run's episodes.
+        print!(
+            "{}",
+            equact::eval_report::EvalReport::of_table(&table).roll_markdown()
+        );
     }
     if interrupt.load(Ordering::SeqCst) {
         anyhow::bail!("interrupted by Ctrl-C; the table above holds the episodes run");

@@ -74,6 +74,12 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
         lines
     };
     let lines = log(2);
+    // The report over the table just run is the report over its log read back; without a
+    // toilet-roll episode it has no roll part.
+    let report = equact::eval_report::EvalReport::of_table(&table);
+    let logged = equact::eval_report::read_logs(std::slice::from_ref(&dir)).unwrap();
+    assert_eq!(report, equact::eval_report::EvalReport::of(&logged));
+    assert_eq!(report.roll_markdown(), "");
     for (line, r) in lines.iter().zip(&row.runs) {
         assert_eq!(line["seed"], r.seed);
         assert_eq!(line["outcome"], "success");
