@@ -313,11 +313,6 @@ impl TaskInstance {
         }
     }
 
-    /// Where body `index`, released by the gripper at `pose`, comes to rest.
-    pub fn released_pose(&self, index: usize, pose: &Isometry3<f64>) -> Isometry3<f64> {
-        self.release(index, pose).0
-    }
-
     /// Body `index` let go by the gripper at `let_go`: where it comes to rest, and what
     /// happened, measured ([`ReleaseOutcome`]).
     pub fn release(

@@ -794,14 +794,14 @@ mod tests {
         let t = TaskInstance::sample(TaskKind::InstallToiletRoll(RollSize::Small), 7, -0.06);
         let h = RollSize::Small.half_height();
         let over = t.base_from_fixture * Isometry3::translation(0.002, 0.0, h + 0.01);
-        let seated = t.released_pose(1, &over);
+        let seated = t.release(1, &over).0;
         let mut poses: Vec<_> = t.bodies.iter().map(|b| b.base_from_body).collect();
         assert!(!t.success(&poses, None));
         poses[1] = seated;
         assert!(t.success(&poses, None));
         assert!(!t.success(&poses, Some(1)));
         let beside = t.base_from_fixture * Isometry3::translation(0.03, 0.0, h + 0.01);
-        poses[1] = t.released_pose(1, &beside);
+        poses[1] = t.release(1, &beside).0;
         assert!(!t.success(&poses, None));
         // Off the holder, on its side.
         let r = RollSize::Small.radius();
@@ -987,7 +987,7 @@ mod tests {
             let tilted = roll_at(&t, size, 0.0, 0.001, 24.0, 0.005);
             let (words, seated) = release(&t, size, &tilted);
             assert!(!seated && words.ends_with("it fell off the holder onto its side"));
-            let rest = t.released_pose(1, &tilted);
+            let rest = t.release(1, &tilted).0;
             let mut poses: Vec<_> = t.bodies.iter().map(|b| b.base_from_body).collect();
             assert_eq!(t.lost(&poses), None, "seed {seed}: the roll as posed");
             poses[1] = rest;
@@ -1013,7 +1013,7 @@ mod tests {
         // A non-finite pose (a broken TCP) ends the walk off the holder rather than hanging.
         let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), 0, -0.06);
         let broken = Isometry3::translation(f64::NAN, 0.0, 0.0);
-        assert!(t.released_pose(1, &broken).translation.x.is_nan());
+        assert!(t.release(1, &broken).0.translation.x.is_nan());
         // Let go well away from the holder, it lands upright where it was, to be grasped
         // again: not lost.
         let t = TaskInstance::sample(TaskKind::InstallToiletRoll(size), 1, -0.06);
