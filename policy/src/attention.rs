@@ -379,7 +379,11 @@ impl GraphAttention {
             }
             Ok(())
         };
-        if self.threads < 2 || chunks.len() < 2 {
+        if self.threads >= 2 && chunks.len() == 1 && edges.src.len() >= 2 * SPLIT_EDGES_PER_THREAD {
+            // One destination group (the rotation head's query: every node attends to it):
+            // its edges' messages on the threads, the softmax and the sums in edge order.
+            self.forward_edges_split((x_src, x_dst), conv1, (ns, nd), edges, &mut agg)?;
+        } else if self.threads < 2 || chunks.len() < 2 {
             run(&chunks, (&mut agg, 0))?;
         } else {
             // More than one chunk means the edges are grouped by ascending destination, so
@@ -434,16 +438,82 @@ impl GraphAttention {
     #[allow(clippy::too_many_arguments)]
     fn forward_edges(
         &self,
+        x: (&[f32], Option<&[f32]>),
+        conv1: &So2Conv,
+        (ns, nd): (usize, usize),
+        (src, dst): (&[usize], &[usize]),
+        (wigners, range): (&EdgeWigners, std::ops::Range<usize>),
+        attr: EdgeFeaturesRef<'_>,
+        agg: (&mut [f32], usize),
+    ) -> Result<()> {
+        let (v, logit) = self.edge_messages(
+            x,
+            conv1,
+            (ns, nd),
+            (src, dst),
+            (wigners, range.clone()),
+            attr,
+        )?;
+        let alpha = grouped_softmax(&logit, dst, nd, self.cfg.num_heads);
+        let back = self.weighted_back(v, &alpha, wigners, range)?;
+        self.aggregate(&back, dst, nd, agg)
+    }
+
+    /// [`GraphAttention::forward_edges`] of all of `edges` as one chunk, its edges split over
+    /// the threads for the per-edge work (messages, logits, the weighted values rotated
+    /// back); the softmax and the sums at the destinations see every edge in order, so the
+    /// values are those of the one-thread pass.
+    fn forward_edges_split(
+        &self,
+        x: (&[f32], Option<&[f32]>),
+        conv1: &So2Conv,
+        (ns, nd): (usize, usize),
+        edges: &EdgeSet,
+        agg: &mut [f32],
+    ) -> Result<()> {
+        let heads = self.cfg.num_heads;
+        let parts = crate::parallel::split_even(edges.src.len(), self.threads);
+        let messages = crate::parallel::run_parts(parts.clone(), |r| {
+            self.edge_messages(
+                x,
+                conv1,
+                (ns, nd),
+                (&edges.src[r.clone()], &edges.dst[r.clone()]),
+                (&*edges.wigners, r.clone()),
+                edges.attr.slice(r),
+            )
+        })
+        .into_iter()
+        .collect::<Result<Vec<_>>>()?;
+        let logit: Vec<f32> = messages
+            .iter()
+            .flat_map(|(_, l)| l.iter().copied())
+            .collect();
+        let alpha = grouped_softmax(&logit, &edges.dst, nd, heads);
+        let items: Vec<_> = parts.iter().cloned().zip(messages).collect();
+        let backs = crate::parallel::run_parts(items, |(r, (v, _))| {
+            self.weighted_back(v, &alpha[r.start * heads..r.end * heads], &edges.wigners, r)
+        });
+        for (r, back) in parts.into_iter().zip(backs) {
+            self.aggregate(&back?, &edges.dst[r], nd, (&mut *agg, 0))?;
+        }
+        Ok(())
+    }
+
+    /// The per-edge half of the attention for the edges `range` of `wigners` (sources
+    /// `src`, destinations `dst`): the values `[E, n_reduced, heads·value]` in the edge
+    /// frames and the attention logits `[E, heads]`.
+    #[allow(clippy::too_many_arguments)]
+    fn edge_messages(
+        &self,
         (x_src, x_dst): (&[f32], Option<&[f32]>),
         conv1: &So2Conv,
         (ns, nd): (usize, usize),
         (src, dst): (&[usize], &[usize]),
         (wigners, range): (&EdgeWigners, std::ops::Range<usize>),
         attr: EdgeFeaturesRef<'_>,
-        (agg, d0): (&mut [f32], usize),
-    ) -> Result<()> {
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
         let cfg = &self.cfg;
-        let k = num_coefficients(cfg.lmax);
         let c = cfg.sphere_channels;
         let ne = src.len();
         // Messages concat(x_src[src], x_dst[dst]) along channels (just x_src[src] when the
@@ -484,9 +554,9 @@ impl GraphAttention {
             gating.extend_from_slice(&row[n_alpha..]);
         }
         let h = separable_s2_activation(&self.grid, &gating, &h, cfg.hidden_channels)?;
-        let (mut v, _) = self.conv2.forward_with(&h, None, self.products)?;
+        let (v, _) = self.conv2.forward_with(&h, None, self.products)?;
 
-        // Attention logits and the softmax over each destination's edges.
+        // Attention logits; the softmax over each destination's edges is the caller's.
         self.alpha_norm.apply(&mut alpha_in);
         let heads = cfg.num_heads;
         let mut logit = vec![0.0f32; ne * heads];
@@ -502,11 +572,25 @@ impl GraphAttention {
                     .sum();
             }
         }
-        let alpha = grouped_softmax(&logit, dst, nd, heads);
+        Ok((v, logit))
+    }
 
-        // Weight each head's values, rotate back, sum at the destinations.
+    /// Each head's values `v` `[E, n_reduced, heads·value]` weighted by its attention `alpha`
+    /// `[E, heads]` and rotated back to the global frame: `[E, K, heads·value]`.
+    fn weighted_back(
+        &self,
+        mut v: Vec<f32>,
+        alpha: &[f32],
+        wigners: &EdgeWigners,
+        range: std::ops::Range<usize>,
+    ) -> Result<Vec<f32>> {
+        let cfg = &self.cfg;
+        let heads = cfg.num_heads;
         let nr = self.map.len();
         let vc = cfg.value_channels;
+        let ne = range.len();
+        check_len("attention values", v.len(), &[ne, nr, heads * vc])?;
+        check_len("attention weights", alpha.len(), &[ne, heads])?;
         for e in 0..ne {
             for r in 0..nr {
                 for hd in 0..heads {
@@ -518,16 +602,28 @@ impl GraphAttention {
                 }
             }
         }
-        let back = wigners.rotate_back_range(range, &self.map, &v, heads * vc)?;
-        let row = k * heads * vc;
-        for e in 0..ne {
-            // `agg` holds the rows from destination d0 on.
-            let d = dst[e]
+        wigners.rotate_back_range(range, &self.map, &v, heads * vc)
+    }
+
+    /// Adds each edge's rotated-back values `back` `[E, K, heads·value]` into its
+    /// destination's row of `agg` (rows from destination `d0` on), in edge order.
+    fn aggregate(
+        &self,
+        back: &[f32],
+        dst: &[usize],
+        nd: usize,
+        (agg, d0): (&mut [f32], usize),
+    ) -> Result<()> {
+        let cfg = &self.cfg;
+        let row = num_coefficients(cfg.lmax) * cfg.num_heads * cfg.value_channels;
+        check_len("attention messages", back.len(), &[dst.len(), row])?;
+        for (e, &dst_e) in dst.iter().enumerate() {
+            let d = dst_e
                 .checked_sub(d0)
                 .filter(|d| (d + 1) * row <= agg.len())
                 .ok_or(PolicyError::IndexOutOfRange {
                     name: "edge_dst of a destination chunk".into(),
-                    value: dst[e] as i64,
+                    value: dst_e as i64,
                     len: nd,
                 })?;
             for (a, b) in agg[d * row..(d + 1) * row]
@@ -540,6 +636,9 @@ impl GraphAttention {
         Ok(())
     }
 }
+
+/// Edges per thread below which one destination's attention stays on one thread.
+const SPLIT_EDGES_PER_THREAD: usize = 256;
 
 /// Edges per chunk of the attention (whole destination groups are never split).
 const EDGE_CHUNK: usize = 512;

@@ -1780,4 +1780,40 @@ mod tests {
         let err = ga.forward(x, x, &edges).unwrap_err();
         assert!(err.to_string().contains("edge_dst"), "{err}");
     }
+
+    #[test]
+    fn one_destination_split_over_threads_equals_one_thread() {
+        // The fixture's 960 edges all into one destination (as the rotation head's query),
+        // then into destinations out of order: one chunk either way, whose edges the threads
+        // split; the values must be those of one thread, bit for bit.
+        let path = concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/fixtures/graph_attention.safetensors"
+        );
+        let fx = FixtureFile::load(Path::new(path)).unwrap();
+        let cfg = attention_config(&fx, "/constructor", None).unwrap();
+        let w = fx.weights();
+        let mut ga = crate::attention::GraphAttention::load(&w.scope("param."), cfg).unwrap();
+        let calc = WignerCalculator::new(cfg.lmax).unwrap();
+        let mut edges = fixture_edges(&fx, &calc, cfg.lmax, "", &mut Vec::new()).unwrap();
+        let x = fx.f32_any("in.x").unwrap().1;
+        let layouts: [fn(usize) -> usize; 2] = [|_| 5, |e| (e * 37) % 64];
+        for destinations in layouts {
+            for (e, d) in edges.dst.iter_mut().enumerate() {
+                *d = destinations(e);
+            }
+            ga.set_threads(1);
+            let one = ga.forward(x, x, &edges).unwrap();
+            assert!(one.iter().any(|v| *v != 0.0));
+            for threads in [2, 3] {
+                ga.set_threads(threads);
+                assert_eq!(ga.forward(x, x, &edges).unwrap(), one, "{threads} threads");
+            }
+        }
+        // A destination past the nodes is still an error, not a panic in a thread.
+        edges.dst[700] = 64;
+        ga.set_threads(2);
+        let err = ga.forward(x, x, &edges).unwrap_err();
+        assert!(err.to_string().contains("edge_src/edge_dst"), "{err}");
+    }
 }

@@ -105,10 +105,11 @@ pub struct FieldHeads {
 }
 
 impl FieldHeads {
-    /// Threads of [`FieldHeads::trans_logits`]: the query batches are split among them (the
-    /// rotation query is one destination, one thread).
+    /// Threads of [`FieldHeads::trans_logits`] (the query batches are split among them) and
+    /// of [`FieldHeads::rot_query`] (its edge frames and its one destination's edges).
     pub fn set_threads(&mut self, threads: usize) {
         self.threads = threads.max(1);
+        self.rot.set_threads(self.threads);
     }
 
     /// Loads `field_distance_expansion`, `trans_field_layer.0`, `rot_field_layer.0` and
@@ -269,19 +270,26 @@ impl FieldHeads {
         let c = self.cfg.field_channels;
         let k = num_coefficients(ROT_LMAX);
         let k_copy = num_coefficients(self.cfg.node_lmax.min(ROT_LMAX)).min(k_node);
-        // Lift to l <= 4, last c channels.
-        let mut x = vec![0.0f32; node_pos.len() * k * c];
+        // Lift to l <= 4, last c channels (the rows above the nodes' degree zero), written
+        // once in order.
+        let mut x = Vec::with_capacity(node_pos.len() * k * c);
         for node in 0..node_pos.len() {
             for i in 0..k_copy {
                 let base = (node * k_node + i) * c_node + (c_node - c);
-                x[(node * k + i) * c..(node * k + i + 1) * c]
-                    .copy_from_slice(&node_emb[base..base + c]);
+                x.extend_from_slice(&node_emb[base..base + c]);
             }
+            x.resize(x.len() + (k - k_copy) * c, 0.0);
         }
         let queries = [query];
         let (src, dst) = Self::rot_edges(node_pos, &queries)?;
-        let edges = EdgeSet::new(
-            &self.calc, ROT_LMAX, node_pos, &queries, src, dst, &self.rbf,
+        let edges = EdgeSet::new_threads(
+            &self.calc,
+            ROT_LMAX,
+            (node_pos, &queries),
+            src,
+            dst,
+            &self.rbf,
+            self.threads,
         )?;
         let zeros = vec![0.0f32; k * c];
         let embedding = self.rot.forward(&x, &zeros, &edges, None)?;

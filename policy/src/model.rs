@@ -20,7 +20,7 @@ use crate::language::InstructionEncoder;
 use crate::layers::{rows_of, GaussianRbf, Linear, RmsNormSh};
 use crate::plain_heads::{PlainHeads, PlainHeadsConfig};
 use crate::points::{
-    check_finite, coefficient_max_pool, farthest_point_sampling, knn_threads, upsample,
+    check_finite, coefficient_max_pool_threads, farthest_point_sampling, knn_threads, upsample,
     upsample_weights, UpsampleDistance,
 };
 use crate::so3::{num_coefficients, WignerCalculator};
@@ -767,7 +767,7 @@ impl EquFieldUnet {
                 Some(v) => v,
                 None => knn_threads(coord, &centres, POOL_NEIGHBOURS, self.threads)?,
             };
-            let pooled = coefficient_max_pool(x, n, lmax, c, &nb)?;
+            let pooled = coefficient_max_pool_threads(x, n, lmax, c, &nb, self.threads)?;
             idx.fps = Some(fps);
             idx.pool_knn = Some(nb);
             (centres, pooled)

@@ -125,8 +125,21 @@ pub fn coefficient_max_pool(
     c: usize,
     neighbours: &[Vec<usize>],
 ) -> Result<Vec<f32>> {
+    coefficient_max_pool_threads(x, n, lmax, c, neighbours, 1)
+}
+
+/// [`coefficient_max_pool`] with the choices made on up to `threads` threads (runs of
+/// centres): the same values for any count.
+pub fn coefficient_max_pool_threads(
+    x: &[f32],
+    n: usize,
+    lmax: usize,
+    c: usize,
+    neighbours: &[Vec<usize>],
+    threads: usize,
+) -> Result<Vec<f32>> {
     let nc = crate::so3::num_coefficients(lmax);
-    let choice = coefficient_max_pool_choices(x, n, lmax, c, neighbours)?;
+    let choice = coefficient_max_pool_choices_threads(x, n, lmax, c, neighbours, threads)?;
     let mut out = vec![0.0f32; neighbours.len() * nc * c];
     for m in 0..neighbours.len() {
         for l in 0..=lmax {
@@ -155,6 +168,22 @@ pub fn coefficient_max_pool_choices(
     c: usize,
     neighbours: &[Vec<usize>],
 ) -> Result<Vec<usize>> {
+    coefficient_max_pool_choices_threads(x, n, lmax, c, neighbours, 1)
+}
+
+/// Centres per thread below which [`coefficient_max_pool_choices_threads`] stays on one.
+const POOL_CENTRES_PER_THREAD: usize = 64;
+
+/// [`coefficient_max_pool_choices`] on up to `threads` threads (runs of centres): the same
+/// choices for any count.
+pub fn coefficient_max_pool_choices_threads(
+    x: &[f32],
+    n: usize,
+    lmax: usize,
+    c: usize,
+    neighbours: &[Vec<usize>],
+    threads: usize,
+) -> Result<Vec<usize>> {
     let nc = crate::so3::num_coefficients(lmax);
     if x.len() != n * nc * c {
         return Err(PolicyError::ShapeMismatch {
@@ -163,37 +192,50 @@ pub fn coefficient_max_pool_choices(
             got: vec![x.len()],
         });
     }
-    let mut out = vec![usize::MAX; neighbours.len() * (lmax + 1) * c];
-    for (m, nb) in neighbours.iter().enumerate() {
-        for &j in nb {
-            if j >= n {
-                return Err(PolicyError::IndexOutOfRange {
-                    name: "max-pool neighbours".into(),
-                    value: j as i64,
-                    len: n,
-                });
-            }
-        }
-        for l in 0..=lmax {
-            for ch in 0..c {
-                let mut best: Option<(f32, usize)> = None;
-                for &j in nb {
-                    let mut s = 0.0f32;
-                    for i in l * l..(l + 1) * (l + 1) {
-                        let v = x[(j * nc + i) * c + ch];
-                        s += v * v;
-                    }
-                    if best.is_none_or(|(bs, _)| s > bs) {
-                        best = Some((s, j));
-                    }
-                }
-                if let Some((_, j)) = best {
-                    out[(m * (lmax + 1) + l) * c + ch] = j;
-                }
-            }
-        }
+    if let Some(&bad) = neighbours.iter().flatten().find(|&&j| j >= n) {
+        return Err(PolicyError::IndexOutOfRange {
+            name: "max-pool neighbours".into(),
+            value: bad as i64,
+            len: n,
+        });
     }
-    Ok(out)
+    let slots = (lmax + 1) * c;
+    let parts = threads.min(neighbours.len() / POOL_CENTRES_PER_THREAD);
+    crate::parallel::map_ranges(neighbours.len(), parts, |centres| {
+        let mut out = Vec::with_capacity(centres.len() * slots);
+        let mut best = vec![0.0f32; slots];
+        let mut norm = vec![0.0f32; c];
+        for nb in &neighbours[centres] {
+            let first = out.len();
+            out.resize(first + slots, usize::MAX);
+            let choice = &mut out[first..];
+            // Neighbours in order, each block's sum of squares over its coefficients in
+            // order, all channels at once (contiguous); the first neighbour is taken, a later
+            // one only when strictly larger (first on ties, a NaN never replaces).
+            for (t, &j) in nb.iter().enumerate() {
+                for l in 0..=lmax {
+                    norm.fill(0.0);
+                    for i in l * l..(l + 1) * (l + 1) {
+                        let row = &x[(j * nc + i) * c..(j * nc + i + 1) * c];
+                        for (s, v) in norm.iter_mut().zip(row) {
+                            *s += v * v;
+                        }
+                    }
+                    let (bs, bj) = (
+                        &mut best[l * c..(l + 1) * c],
+                        &mut choice[l * c..(l + 1) * c],
+                    );
+                    for ((b, j_best), &s) in bs.iter_mut().zip(bj.iter_mut()).zip(&norm) {
+                        if t == 0 || s > *b {
+                            *b = s;
+                            *j_best = j;
+                        }
+                    }
+                }
+            }
+        }
+        Ok(out)
+    })
 }
 
 /// Which distance the up-sampling weights use.

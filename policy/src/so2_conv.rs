@@ -234,20 +234,21 @@ impl EdgeWigners {
         }
         let mc = parts.len() * c;
         let nr = map.len();
-        let mut y = vec![0.0f32; ne * nr * mc];
+        // Appended in output order (edge, reduced row, part): every value is written once,
+        // with no zero fill before.
+        let mut y = Vec::with_capacity(ne * nr * mc);
         for e in 0..ne {
             let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
-            let ye = &mut y[e * nr * mc..(e + 1) * nr * mc];
-            for (p, (x, idx)) in parts.iter().enumerate() {
-                let xe = &x[idx[e] * k * c..(idx[e] + 1) * k * c];
-                for (r, &i) in map.reduced.iter().enumerate() {
-                    let l = degree_of(i);
-                    let block = l * l..(l + 1) * (l + 1);
+            for &i in &map.reduced {
+                let l = degree_of(i);
+                let block = l * l..(l + 1) * (l + 1);
+                for (x, idx) in &parts {
+                    let xe = &x[idx[e] * k * c..(idx[e] + 1) * k * c];
                     combine_rows(
                         &d[i * k + block.start..i * k + block.end],
                         &xe[block.start * c..block.end * c],
                         c,
-                        &mut ye[r * mc + p * c..r * mc + (p + 1) * c],
+                        &mut y,
                     );
                 }
             }
@@ -283,12 +284,12 @@ impl EdgeWigners {
             })
             .collect();
         let rescale: Vec<f32> = (0..k).map(|j| map.rotate_inv_rescale(j)).collect();
-        let mut x = vec![0.0f32; ne * k * c];
+        // Appended in output order (edge, coefficient): no zero fill before.
+        let mut x = Vec::with_capacity(ne * k * c);
         let mut w = [0.0f32; 2 * crate::so3::MAX_DEGREE + 1];
         for e in 0..ne {
             let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
             let ye = &y[e * nr * c..(e + 1) * nr * c];
-            let xe = &mut x[e * k * c..(e + 1) * k * c];
             // Output row j sums its degree's reduced rows in their order, as the
             // row-by-row loop of the transpose added them.
             for j in 0..k {
@@ -297,26 +298,21 @@ impl EdgeWigners {
                 for (wr, &i) in w.iter_mut().zip(&map.reduced[run.clone()]) {
                     *wr = d[i * k + j] * rescale[j];
                 }
-                combine_rows(
-                    w,
-                    &ye[run.start * c..run.end * c],
-                    c,
-                    &mut xe[j * c..(j + 1) * c],
-                );
+                combine_rows(w, &ye[run.start * c..run.end * c], c, &mut x);
             }
         }
         Ok(x)
     }
 }
 
-/// `y = Σ_j w[j] · x[j]` over the rows `x[j] = x[j·c..(j+1)·c]`, the terms added in j order
-/// to 0 as a row-by-row loop of `y += w[j] · x[j]` adds them (the same rounding, bit for
-/// bit), a block of channels at a time held in registers: each output is stored once, not
-/// loaded and stored once per term. `y` is overwritten.
+/// Appends `Σ_j w[j] · x[j]` over the rows `x[j] = x[j·c..(j+1)·c]` (c values) to `y`, the
+/// terms added in j order to 0 as a row-by-row loop of `y += w[j] · x[j]` adds them (the same
+/// rounding, bit for bit), a block of channels at a time held in registers: each output is
+/// stored once, not loaded and stored once per term, and needs no zero fill before.
 #[inline]
-fn combine_rows(w: &[f32], x: &[f32], c: usize, y: &mut [f32]) {
+fn combine_rows(w: &[f32], x: &[f32], c: usize, y: &mut Vec<f32>) {
     const LANES: usize = 16;
-    debug_assert!(x.len() == w.len() * c && y.len() == c);
+    debug_assert!(x.len() == w.len() * c);
     let mut start = 0;
     while start + LANES <= c {
         let mut acc = [0.0f32; LANES];
@@ -326,15 +322,15 @@ fn combine_rows(w: &[f32], x: &[f32], c: usize, y: &mut [f32]) {
                 *a += wj * xv;
             }
         }
-        y[start..start + LANES].copy_from_slice(&acc);
+        y.extend_from_slice(&acc);
         start += LANES;
     }
-    for (t, yt) in y.iter_mut().enumerate().skip(start) {
+    for t in start..c {
         let mut acc = 0.0f32;
         for (j, &wj) in w.iter().enumerate() {
             acc += wj * x[j * c + t];
         }
-        *yt = acc;
+        y.push(acc);
     }
 }
 

@@ -9,7 +9,8 @@ use nalgebra::{DVector, Matrix3, Vector3};
 use policy::grids::{reduced_coefficients, so3_healpix_grid, S2Grid};
 use policy::layers::{rotate_embedding, separable_s2_activation};
 use policy::points::{
-    coefficient_max_pool, farthest_point_sampling, knn, upsample_weights, UpsampleDistance,
+    coefficient_max_pool, coefficient_max_pool_choices, coefficient_max_pool_threads,
+    farthest_point_sampling, knn, upsample_weights, UpsampleDistance,
 };
 use policy::so3::{
     angles_to_matrix, edge_rot_mat, matrix_to_angles, spherical_harmonics, WignerCalculator,
@@ -159,6 +160,74 @@ fn bad_input_is_a_typed_error() {
     ));
     assert!(matches!(
         coefficient_max_pool(&[0.0; 4], 1, 1, 1, &[vec![1]]),
+        Err(PolicyError::IndexOutOfRange { .. })
+    ));
+}
+
+#[test]
+fn max_pool_takes_the_largest_block_by_its_definition_on_any_thread_count() {
+    let mut rng = ChaCha8Rng::seed_from_u64(21);
+    let (n, lmax, c) = (90, 2, 5);
+    let nc = (lmax + 1) * (lmax + 1);
+    // Values from a few levels, so that blocks tie; one NaN block.
+    let mut x: Vec<f32> = (0..n * nc * c)
+        .map(|_| rng.random_range(-2i32..=2) as f32)
+        .collect();
+    x[(7 * nc + 1) * c + 2] = f32::NAN;
+    let mut neighbours: Vec<Vec<usize>> = (0..200)
+        .map(|_| {
+            (0..rng.random_range(1..8))
+                .map(|_| rng.random_range(0..n))
+                .collect()
+        })
+        .collect();
+    neighbours[3] = Vec::new();
+    neighbours[4] = vec![7, 8];
+    // The definition: per centre, degree and channel the first neighbour whose block has
+    // the largest sum of squares (a later one only when strictly larger).
+    let mut want = vec![0.0f32; neighbours.len() * nc * c];
+    for (m, nb) in neighbours.iter().enumerate() {
+        for l in 0..=lmax {
+            for ch in 0..c {
+                let norm = |j: usize| -> f32 {
+                    (l * l..(l + 1) * (l + 1))
+                        .map(|i| x[(j * nc + i) * c + ch].powi(2))
+                        .fold(0.0, |a, b| a + b)
+                };
+                let mut best: Option<usize> = None;
+                for &j in nb {
+                    if best.is_none_or(|b| norm(j) > norm(b)) {
+                        best = Some(j);
+                    }
+                }
+                if let Some(j) = best {
+                    for i in l * l..(l + 1) * (l + 1) {
+                        want[(m * nc + i) * c + ch] = x[(j * nc + i) * c + ch];
+                    }
+                }
+            }
+        }
+    }
+    let one = coefficient_max_pool(&x, n, lmax, c, &neighbours).unwrap();
+    let same = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits());
+    assert_eq!(one.len(), want.len());
+    assert!(same(&one, &want), "the pool is its definition");
+    // The NaN block was the first neighbour of centre 4, degree 1, channel 2: kept.
+    assert!(one[(4 * nc + 1) * c + 2].is_nan());
+    assert!(
+        one[3 * nc * c..4 * nc * c].iter().all(|v| *v == 0.0),
+        "no neighbours: zero"
+    );
+    let choices = coefficient_max_pool_choices(&x, n, lmax, c, &neighbours).unwrap();
+    assert!(choices[3 * (lmax + 1) * c..4 * (lmax + 1) * c]
+        .iter()
+        .all(|j| *j == usize::MAX));
+    for threads in [2, 3, 8] {
+        let pooled = coefficient_max_pool_threads(&x, n, lmax, c, &neighbours, threads).unwrap();
+        assert!(same(&pooled, &one), "{threads} threads");
+    }
+    assert!(matches!(
+        coefficient_max_pool_threads(&x, n, lmax, c, &[vec![0], vec![n]], 2),
         Err(PolicyError::IndexOutOfRange { .. })
     ));
 }
