@@ -11,6 +11,7 @@ pub mod demos;
 pub mod episode;
 pub mod eval;
 pub mod eval_report;
+pub mod follow;
 pub mod grounding;
 pub mod learned;
 pub mod plot;

@@ -54,6 +54,11 @@ pub enum PolicyCommand {
     /// instruction names? Per task, the share that does and the instruction pairs the
     /// network does not tell apart.
     Ground(ScoreArgs),
+    /// Move the gripper and the object it holds a few millimetres sideways, the rest of the
+    /// scene kept, in every recorded step with the gripper closed: does the keyframe stay
+    /// where the scene puts it (a release over the spindle) or move with the hand? Per
+    /// variation and step, the share of the motion followed.
+    Follow(FollowArgs),
     /// Say what a weights file is: its parameters, the cloud points it was trained with and
     /// the training runs that led to it (`equact train` records them in the file).
     Info {
@@ -261,6 +266,17 @@ pub struct ScoreArgs {
     pub json: bool,
 }
 
+/// `equact policy follow`: the scoring options and the motion.
+#[derive(Args, Debug)]
+pub struct FollowArgs {
+    /// The demonstrations, network and sampling, as `policy score`.
+    #[command(flatten)]
+    pub score: ScoreArgs,
+    /// The sideways motion of the gripper and the held object (mm).
+    #[arg(long, default_value_t = equact::follow::DEFAULT_SHIFT_M * 1e3)]
+    pub shift_mm: f64,
+}
+
 /// Overrides of the network's sampling at inference: the cloud points it is fed and its
 /// coarse-to-fine translation queries (training has its own `--points` and `--queries`).
 #[derive(Args, Debug, Clone, Copy, Default)]
@@ -415,6 +431,27 @@ fn ground(a: ScoreArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+fn follow(a: FollowArgs) -> anyhow::Result<()> {
+    let Scoring {
+        samples,
+        mut policy,
+        ..
+    } = load_scoring(&a.score, "moving the held objects for")?;
+    let table = equact::follow::follow(
+        &mut policy,
+        &samples,
+        a.shift_mm * 1e-3,
+        a.score.seed,
+        &mut |l| eprintln!("{l}"),
+    )?;
+    if a.score.json {
+        println!("{}", serde_json::to_string_pretty(&table)?);
+    } else {
+        print!("{}", table.markdown());
+    }
+    Ok(())
+}
+
 /// What `equact policy info` prints about `weights`: size, trained cloud points and one
 /// line per training run (steps, initial weights, then the run's other settings).
 pub(crate) fn weights_info(weights: &policy::weights::Weights) -> anyhow::Result<String> {
@@ -466,6 +503,7 @@ pub fn run(args: PolicyArgs) -> anyhow::Result<()> {
         PolicyCommand::Predict(a) => predict(a),
         PolicyCommand::Score(a) => score(a),
         PolicyCommand::Ground(a) => ground(a),
+        PolicyCommand::Follow(a) => follow(a),
         PolicyCommand::Info { model } => {
             let weights = match &model {
                 Some(path) => policy::weights::Weights::from_file(path)?,
