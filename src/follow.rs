@@ -14,18 +14,14 @@
 //! the spindle) and 1 for one placed relative to the hand.
 
 use anyhow::Context;
-use cell_types::Transform;
 use nalgebra::Vector3;
 use policy::predict::Policy;
 use policy::trainer::TrainSample;
+use policy::training::HELD_RADIUS_M;
 use serde::Serialize;
 
 use crate::score::quantile;
 use crate::train::DemoSample;
-
-/// Cloud points within this distance (m) of a closed gripper's TCP are the held object (a
-/// held roll's centre hangs 3-3.5 cm below the TCP; README, "toilet roll's precision").
-pub const HELD_RADIUS_M: f64 = 0.08;
 
 /// The default sideways motion (m) of the gripper and the held object.
 pub const DEFAULT_SHIFT_M: f64 = 0.01;
@@ -39,20 +35,11 @@ const DIRECTIONS: [[f64; 3]; 4] = [
 ];
 
 /// `sample` with its gripper and the cloud points within [`HELD_RADIUS_M`] of the TCP moved
-/// by `shift` (base frame, m), and how many points moved.
+/// by `shift` (base frame, m; [`policy::training::shift_held`], as the training's
+/// held-object shift moves them), and how many points moved.
 pub fn shift_held(sample: &TrainSample, shift: Vector3<f64>) -> (TrainSample, usize) {
-    let tcp = sample.gripper.base_from_tcp.translation();
-    let mut moved = 0;
     let mut out = sample.clone();
-    let step = shift.cast::<f32>();
-    for p in &mut out.cloud.points {
-        if (p.coords.cast::<f64>() - tcp).norm() <= HELD_RADIUS_M {
-            *p += step;
-            moved += 1;
-        }
-    }
-    out.gripper.base_from_tcp =
-        Transform::from_parts(tcp + shift, sample.gripper.base_from_tcp.rotation());
+    let moved = policy::training::shift_held(&mut out.cloud, &mut out.gripper, shift);
     (out, moved)
 }
 
@@ -247,7 +234,7 @@ mod tests {
     use super::*;
     use crate::task::{TaskInstance, TaskKind};
     use crate::train::Instructions;
-    use cell_types::{FrameId, PointCloud};
+    use cell_types::{FrameId, PointCloud, Transform};
     use nalgebra::{Point3, UnitQuaternion};
 
     const TABLE: f64 = -0.06;
@@ -286,6 +273,7 @@ mod tests {
                 instruction: Instructions::Builtin.embedding(kind).unwrap(),
                 target: scene.expert_keyframes()[step],
                 negatives: Vec::new(),
+                placed_by_scene: kind.placed_by_scene(step),
             },
         }
     }

@@ -492,6 +492,7 @@ mod tests {
                 instruction: Instructions::Builtin.embedding(kind).unwrap(),
                 target: scene.expert_keyframes()[step],
                 negatives: Vec::new(),
+                placed_by_scene: kind.placed_by_scene(step),
             },
         }
     }

@@ -178,6 +178,7 @@ pub fn load_samples(
                     instruction: embedding.clone(),
                     target: step.keyframe,
                     negatives: Vec::new(),
+                    placed_by_scene: kind.placed_by_scene(index),
                 },
             });
         }

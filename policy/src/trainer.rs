@@ -30,8 +30,8 @@ use crate::predict::{
 use crate::rotation_head::RotationHead;
 use crate::so3::WignerCalculator;
 use crate::training::{
-    keyframe_rotation, move_sample, open_loss, rotation_loss, translation_loss,
-    RotationAugmentation,
+    keyframe_rotation, move_sample, open_loss, rotation_loss, shift_held, sideways_in_disc,
+    translation_loss, RotationAugmentation,
 };
 use crate::weights::Weights;
 
@@ -60,6 +60,13 @@ pub struct TrainConfig {
     pub rotation_grid_level: u32,
     /// Apply the paper's rotation augmentation.
     pub augment: bool,
+    /// Largest sideways motion (m) of the gripper and the object it holds in the samples
+    /// whose keyframe the scene places ([`TrainSample::placed_by_scene`]), drawn uniform in
+    /// a horizontal disc per sample and step, the keyframe kept (0: none, the paper's).
+    /// Demonstrations show the hand exactly where the expert put it, so without it the
+    /// network may place such a keyframe relative to the hand and carry every earlier
+    /// step's error into it (`equact policy follow` measures this).
+    pub held_shift_m: f64,
     /// Samples per optimiser step.
     pub batch: usize,
     /// Seed of every random draw (step k uses `seed + k`).
@@ -84,6 +91,10 @@ pub struct TrainSample {
     /// to the first sampling level's queries, so the loss always pushes the field down
     /// there (empty: the paper's loss).
     pub negatives: Vec<Point3<f64>>,
+    /// The keyframe is placed by the scene while the gripper carries a free object (a roll
+    /// carried to the spindle and let go over it): moving the hand and what it holds leaves
+    /// the keyframe where it is, so [`TrainConfig::held_shift_m`] may move them.
+    pub placed_by_scene: bool,
 }
 
 /// The three loss terms (per sample, or averaged over a batch).
@@ -158,6 +169,14 @@ pub fn sample_gradients(
     let (mut cloud, mut gripper, mut target) =
         (sample.cloud.clone(), sample.gripper, sample.target);
     let mut negatives = sample.negatives.clone();
+    if cfg.held_shift_m > 0.0 && sample.placed_by_scene && !gripper.open {
+        // Before the rotation, which then turns the moved sample as a whole.
+        shift_held(
+            &mut cloud,
+            &mut gripper,
+            sideways_in_disc(cfg.held_shift_m, rng),
+        );
+    }
     if cfg.augment {
         let motion = RotationAugmentation::physical(pc.workspace_bounds).sample(rng);
         move_sample(&motion, &mut cloud, &mut gripper, &mut target);
@@ -502,6 +521,7 @@ mod tests {
             cloud_query_share: 0.0,
             rotation_grid_level: 0,
             augment: false,
+            held_shift_m: 0.0,
             batch: 1,
             seed: 3,
             threads: 1,
@@ -518,6 +538,7 @@ mod tests {
             instruction: InstructionEmbedding::random(seed),
             target: Keyframe::new(target, open, false).unwrap(),
             negatives: Vec::new(),
+            placed_by_scene: false,
         }
     }
 
@@ -545,6 +566,45 @@ mod tests {
         // Outside the gripper box, a negative is not a query.
         with.negatives = vec![Point3::new(5.0, 0.0, 0.0)];
         assert_eq!(loss(&with), base);
+    }
+
+    #[test]
+    fn held_shift_draws_only_for_closed_hands_whose_keyframe_the_scene_places() {
+        let mut cfg = config(PolicyMode::Gated);
+        cfg.levels = 1;
+        let weights = random_weights(&cfg.policy.model, &cfg.policy.extra, 5);
+        let grid = LossGrid::new(0).unwrap();
+        let loss = |cfg: &TrainConfig, s: &TrainSample| {
+            let mut rng = ChaCha8Rng::seed_from_u64(4);
+            sample_gradients(&weights, cfg, &grid, s, &mut rng)
+                .unwrap()
+                .0
+        };
+        let mut closed = sample(2, pose(0.6, 0.1, 0.1, 0.3), true);
+        closed.gripper.open = false;
+        let base = loss(&cfg, &closed);
+        let shifting = TrainConfig {
+            held_shift_m: 0.02,
+            ..cfg.clone()
+        };
+        // A keyframe placed relative to the hand: the paper's draws and loss.
+        assert_eq!(loss(&shifting, &closed), base);
+        let placed = TrainSample {
+            placed_by_scene: true,
+            ..closed.clone()
+        };
+        assert_eq!(
+            loss(&cfg, &placed),
+            base,
+            "without the shift, nothing moves"
+        );
+        let moved = loss(&shifting, &placed);
+        assert!(moved.total().is_finite());
+        assert_ne!(moved, base, "the hand moved");
+        // An open hand holds nothing to move.
+        let mut open = placed.clone();
+        open.gripper.open = true;
+        assert_eq!(loss(&shifting, &open), loss(&cfg, &open));
     }
 
     #[test]

@@ -12,6 +12,11 @@
 //! - Augmentation: a rotation about the workspace centre, uniform within ±5°, ±5°, ±45°
 //!   about the base x, y, z axes, applied to the cloud, the current gripper pose and the
 //!   keyframe together (so the sample stays consistent).
+//! - Held-object shift (ours, off by default): where a keyframe is placed by the scene while
+//!   the gripper carries a free object (a roll carried to the spindle and let go over it),
+//!   the gripper and the points of what it holds are moved sideways and the keyframe is kept,
+//!   so the network learns to place it by the scene, not relative to the hand (which every
+//!   demonstration shows exactly where the expert put it).
 //!
 //! Every loss is computed in a numerically stable form (log-sum-exp with the maximum
 //! subtracted; BCE through softplus) and returns the gradient the backward pass starts
@@ -170,6 +175,38 @@ impl RotationAugmentation {
     }
 }
 
+/// Cloud points within this distance (m) of a closed gripper's TCP are the object it holds:
+/// the fusion removes the gripper itself, and a held roll's centre hangs 3-3.5 cm below the
+/// TCP.
+pub const HELD_RADIUS_M: f64 = 0.08;
+
+/// Moves the gripper and the cloud points within [`HELD_RADIUS_M`] of its TCP (what it
+/// holds) by `shift` (base frame, m); the rest of the cloud stays. Returns how many points
+/// moved.
+pub fn shift_held(cloud: &mut PointCloud, gripper: &mut GripperPose, shift: Vector3<f64>) -> usize {
+    let tcp = gripper.base_from_tcp.translation();
+    let step = shift.cast::<f32>();
+    let mut moved = 0;
+    for p in &mut cloud.points {
+        if (p.coords.cast::<f64>() - tcp).norm() <= HELD_RADIUS_M {
+            *p += step;
+            moved += 1;
+        }
+    }
+    gripper.base_from_tcp = Transform::from_parts(tcp + shift, gripper.base_from_tcp.rotation());
+    moved
+}
+
+/// A sideways motion (base x, y) uniform in the disc of radius `radius` (m).
+pub fn sideways_in_disc(radius: f64, rng: &mut impl Rng) -> Vector3<f64> {
+    loop {
+        let (x, y) = (rng.random_range(-1.0..=1.0), rng.random_range(-1.0..=1.0));
+        if x * x + y * y <= 1.0 {
+            return Vector3::new(x * radius, y * radius, 0.0);
+        }
+    }
+}
+
 /// Moves a training sample rigidly: the cloud's points, the current gripper pose and the
 /// keyframe (the colours and the open states are unchanged).
 pub fn move_sample(
@@ -296,6 +333,50 @@ mod tests {
         let g = rotation_loss(&at_labels, &grid, &truth).unwrap();
         assert!(g.grad.iter().all(|v| v.abs() < 1e-9));
         assert!(g.loss <= lg.loss);
+    }
+
+    #[test]
+    fn held_shift_moves_the_hand_and_what_it_holds_sideways_only() {
+        use cell_types::FrameId;
+        let tcp = Vector3::new(0.5, 0.0, 0.3);
+        let rotation = UnitQuaternion::from_euler_angles(3.1, 0.2, 0.7);
+        let mut gripper = GripperPose {
+            base_from_tcp: Transform::from_parts(tcp, rotation),
+            open: false,
+        };
+        // A held object just under the TCP, its edge, and table points far below.
+        let points = vec![
+            Point3::new(0.5f32, 0.0, 0.27),
+            Point3::new(0.5f32, 0.079, 0.3),
+            Point3::new(0.5f32, 0.081, 0.3),
+            Point3::new(0.5f32, 0.0, 0.0),
+        ];
+        let mut cloud = PointCloud {
+            frame: FrameId::Base,
+            points: points.clone(),
+            rgb: None,
+        };
+        let shift = Vector3::new(0.01, -0.02, 0.0);
+        assert_eq!(shift_held(&mut cloud, &mut gripper, shift), 2);
+        let s = shift.cast::<f32>();
+        assert_eq!(
+            cloud.points,
+            [points[0] + s, points[1] + s, points[2], points[3]]
+        );
+        assert!((gripper.base_from_tcp.translation() - (tcp + shift)).norm() < 1e-12);
+        assert_eq!(gripper.base_from_tcp.rotation(), rotation);
+        assert!(!gripper.open);
+
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let draws: Vec<Vector3<f64>> = (0..2000)
+            .map(|_| sideways_in_disc(0.02, &mut rng))
+            .collect();
+        assert!(draws.iter().all(|d| d.z == 0.0 && d.norm() <= 0.02));
+        // Uniform in the disc: a quarter within half the radius, the mean near 0.
+        let inner = draws.iter().filter(|d| d.norm() <= 0.01).count() as f64 / 2000.0;
+        assert!((inner - 0.25).abs() < 0.04, "{inner}");
+        let mean = draws.iter().sum::<Vector3<f64>>() / 2000.0;
+        assert!(mean.norm() < 1e-3, "{mean:?}");
     }
 
     #[test]

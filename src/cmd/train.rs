@@ -103,6 +103,14 @@ pub struct TrainArgs {
     /// only when a random query happens to land there.
     #[arg(long)]
     pub sibling_negatives: bool,
+    /// Largest sideways motion (mm) of the gripper and the object it holds in the steps the
+    /// scene places (the toilet roll carried above the spindle and let go over it), drawn
+    /// per sample and step, the keyframe kept (0: none, the paper's). Every demonstration
+    /// shows the hand exactly where the expert put it, so a network may learn to place the
+    /// release relative to the hand and carry the carry's error into it (`equact policy
+    /// follow` measures how much it does).
+    #[arg(long, default_value_t = 0.0)]
+    pub held_shift_mm: f64,
     /// Factor of the learning rate for the instruction encoder and the FiLM projections
     /// (1: every parameter alike). Fine-tuned weights whose field ignores the instruction
     /// keep its path nearly still at the field's rate.
@@ -208,6 +216,10 @@ struct RunSettings {
     /// Points sampled near the gripper first (runs from before the flag: 0).
     #[serde(default)]
     near_gripper_points: usize,
+    /// Sideways motion of the hand and its held object in the steps the scene places (mm;
+    /// runs from before the flag, and runs without it, leave it out: 0).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    held_shift_mm: f64,
     /// How the demonstrations' clouds were sampled, when not EquAct's plain way (their
     /// index's `[perception]`; runs from before the field, and plain ones, leave it out):
     /// `run` and `eval` compare it with the cell's.
@@ -222,6 +234,10 @@ struct RunSettings {
 
 fn one() -> f32 {
     1.0
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 fn train_levels() -> usize {
@@ -242,6 +258,13 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         anyhow::bail!(
             "--conditioning-lr-scale must be a finite factor of at least 0, got {}",
             args.conditioning_lr_scale
+        );
+    }
+    if !(args.held_shift_mm.is_finite() && (0.0..=50.0).contains(&args.held_shift_mm)) {
+        anyhow::bail!(
+            "--held-shift-mm must be between 0 and 50 (a sideways motion within reach of the \
+             scene's own spacing), got {}",
+            args.held_shift_mm
         );
     }
     if args.paired && args.batch < 2 {
@@ -270,6 +293,25 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
                  another instruction with another target); record pipe or flower \
                  demonstrations with the same seeds for several variations, e.g. `equact \
                  demos collect --task disassemble_pipe`"
+            );
+        }
+    }
+    if args.held_shift_mm > 0.0 {
+        let placed = samples
+            .iter()
+            .filter(|s| s.sample.placed_by_scene && !s.sample.gripper.open)
+            .count();
+        eprintln!(
+            "held-object shift up to {} mm: {placed} of {} samples are placed by the scene \
+             while holding",
+            args.held_shift_mm,
+            samples.len()
+        );
+        if placed == 0 {
+            anyhow::bail!(
+                "--held-shift-mm: no demonstration step is placed by the scene while the \
+                 gripper holds a free object (the toilet roll's carry to the spindle and its \
+                 release); record some with `equact demos collect --task install_toilet_roll`"
             );
         }
     }
@@ -312,6 +354,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         top_k: 10.min(args.queries),
         rotation_grid_level: args.rotation_grid_level,
         augment: !args.no_augment,
+        held_shift_m: args.held_shift_mm * 1e-3,
         batch: args.batch,
         seed: args.seed,
         threads: args.threads,
@@ -336,6 +379,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
         sibling_negatives: args.sibling_negatives,
         points: args.points,
         near_gripper_points: args.near_gripper_points,
+        held_shift_mm: args.held_shift_mm,
         perception: equact::learned::recorded_perception(&recorded),
         expert: (index.expert != equact::task::ExpertSettings::default()).then_some(index.expert),
     };
@@ -639,6 +683,7 @@ mod tests {
         assert!(!s.sibling_negatives);
         assert_eq!(s.points, None);
         assert_eq!(s.near_gripper_points, 0);
+        assert_eq!(s.held_shift_mm, 0.0);
         assert_eq!(s.perception, None);
         assert_eq!(s.expert, None);
         assert_eq!(s.conditioning_lr_scale, 1.0);
@@ -647,7 +692,9 @@ mod tests {
         // fields.
         let plain = serde_json::to_string(&s).unwrap();
         assert!(
-            !plain.contains("perception") && !plain.contains("expert"),
+            !plain.contains("perception")
+                && !plain.contains("expert")
+                && !plain.contains("held_shift"),
             "{plain}"
         );
         // Demonstrations with turned grasps are named in the run's settings and read back.
@@ -710,6 +757,7 @@ mod tests {
             cloud_query_share: 0.0,
             rotation_grid_level: 0,
             augment: false,
+            held_shift_m: 0.0,
             batch: 1,
             seed: 0,
             threads: 1,
@@ -734,6 +782,7 @@ mod tests {
             sibling_negatives: false,
             points: None,
             near_gripper_points: 0,
+            held_shift_mm: 0.0,
             perception: None,
             expert: None,
         };

@@ -145,6 +145,16 @@ impl TaskKind {
         }
     }
 
+    /// Whether the expert's keyframe `step` (0: the first) is placed by the scene while the
+    /// gripper carries a free object, so that the hand and what it holds could be elsewhere
+    /// and the keyframe would stay: the toilet roll carried above the spindle (step 3) and
+    /// lowered over it and let go (step 4). A lift is placed relative to the hand, and a
+    /// pipe link or a flower is held while still attached to the scene (moving the hand would
+    /// move it off its place, which no observation shows), so no other step is.
+    pub fn placed_by_scene(&self, step: usize) -> bool {
+        matches!(self, TaskKind::InstallToiletRoll(_)) && matches!(step, 3 | 4)
+    }
+
     /// The task's name with its variation (`task/variation`).
     pub fn name(&self) -> String {
         format!("{}/{}", self.task_name(), self.variation_name())

@@ -122,6 +122,7 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
         cloud_query_share: 0.5,
         rotation_grid_level: 0,
         augment: true,
+        held_shift_m: 0.0,
         batch: 2,
         seed: 1,
         threads: 2,
