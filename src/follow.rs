@@ -232,50 +232,30 @@ mod tests {
     #![allow(clippy::unwrap_used)]
 
     use super::*;
-    use crate::task::{TaskInstance, TaskKind};
-    use crate::train::Instructions;
-    use cell_types::{FrameId, PointCloud, Transform};
+    use crate::task::TaskKind;
+    use cell_types::Transform;
     use nalgebra::{Point3, UnitQuaternion};
 
     const TABLE: f64 = -0.06;
 
-    /// A toilet-roll step with a grid of table points and, unless `bare`, a small held
-    /// object under the TCP; the gripper closed unless `open`.
+    /// A toilet-roll step with the stand-in table points and, unless `bare`, a small held
+    /// object under the TCP at (0.45, 0, 0.2); the gripper closed unless `open`.
     fn demo(step: usize, open: bool, bare: bool) -> DemoSample {
         let kind = TaskKind::parse("install_toilet_roll/large").unwrap();
-        let scene = TaskInstance::sample(kind, 3, TABLE);
-        let mut points: Vec<Point3<f32>> = (0..400)
-            .map(|i| {
-                let (a, b) = ((i % 20) as f32, (i / 20) as f32);
-                Point3::new(0.35 + 0.015 * a, -0.15 + 0.015 * b, TABLE as f32 + 0.02)
-            })
-            .collect();
+        let mut d = crate::train::stand_in_demo(kind, 3, step, TABLE);
         if !bare {
-            points.extend((0..30).map(|i| Point3::new(0.45 + 0.002 * i as f32, 0.0, 0.17)));
+            let held = (0..30).map(|i| Point3::new(0.45 + 0.002 * i as f32, 0.0, 0.17));
+            d.sample.cloud.points.extend(held);
+            d.sample.cloud.rgb = Some(vec![[120, 120, 120]; d.sample.cloud.points.len()]);
         }
-        DemoSample {
-            kind,
-            seed: 3,
-            step,
-            sample: TrainSample {
-                cloud: PointCloud {
-                    frame: FrameId::Base,
-                    rgb: Some(vec![[120, 120, 120]; points.len()]),
-                    points,
-                },
-                gripper: policy::predict::GripperPose {
-                    base_from_tcp: Transform::from_parts(
-                        Vector3::new(0.45, 0.0, 0.2),
-                        UnitQuaternion::identity(),
-                    ),
-                    open,
-                },
-                instruction: Instructions::Builtin.embedding(kind).unwrap(),
-                target: scene.expert_keyframes()[step],
-                negatives: Vec::new(),
-                placed_by_scene: kind.placed_by_scene(step),
-            },
-        }
+        d.sample.gripper = policy::predict::GripperPose {
+            base_from_tcp: Transform::from_parts(
+                Vector3::new(0.45, 0.0, 0.2),
+                UnitQuaternion::identity(),
+            ),
+            open,
+        };
+        d
     }
 
     #[test]

@@ -464,37 +464,7 @@ mod tests {
 
     /// A demonstration step of `kind`'s scene with `seed`, with a stand-in cloud.
     fn demo(kind: TaskKind, seed: u64, step: usize) -> DemoSample {
-        use cell_types::{FrameId, PointCloud, Transform};
-        let scene = TaskInstance::sample(kind, seed, TABLE);
-        let points: Vec<nalgebra::Point3<f32>> = (0..400)
-            .map(|i| {
-                let (a, b) = ((i % 20) as f32, (i / 20) as f32);
-                nalgebra::Point3::new(0.35 + 0.015 * a, -0.15 + 0.015 * b, TABLE as f32 + 0.02)
-            })
-            .collect();
-        DemoSample {
-            kind,
-            seed,
-            step,
-            sample: policy::trainer::TrainSample {
-                cloud: PointCloud {
-                    frame: FrameId::Base,
-                    rgb: Some(vec![[120, 120, 120]; points.len()]),
-                    points,
-                },
-                gripper: policy::predict::GripperPose {
-                    base_from_tcp: Transform::from_parts(
-                        Vector3::new(0.4, 0.0, 0.3),
-                        nalgebra::UnitQuaternion::identity(),
-                    ),
-                    open: true,
-                },
-                instruction: Instructions::Builtin.embedding(kind).unwrap(),
-                target: scene.expert_keyframes()[step],
-                negatives: Vec::new(),
-                placed_by_scene: kind.placed_by_scene(step),
-            },
-        }
+        crate::train::stand_in_demo(kind, seed, step, TABLE)
     }
 
     #[test]

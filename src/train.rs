@@ -253,6 +253,46 @@ pub fn batch_indices(
     out
 }
 
+/// A demonstration step of `kind`'s scene drawn with `seed`, labelled with the scripted
+/// expert's keyframe `step`, with a stand-in cloud (a grid of points on the table at
+/// `table`) and an open gripper at (0.4, 0, 0.3): for tests of what reads demonstrations.
+#[cfg(test)]
+pub(crate) fn stand_in_demo(kind: TaskKind, seed: u64, step: usize, table: f64) -> DemoSample {
+    use cell_types::Transform;
+    let scene = crate::task::TaskInstance::sample(kind, seed, table);
+    let points: Vec<Point3<f32>> = (0..400)
+        .map(|i| {
+            let (a, b) = ((i % 20) as f32, (i / 20) as f32);
+            Point3::new(0.35 + 0.015 * a, -0.15 + 0.015 * b, table as f32 + 0.02)
+        })
+        .collect();
+    DemoSample {
+        kind,
+        seed,
+        step,
+        sample: TrainSample {
+            cloud: PointCloud {
+                frame: FrameId::Base,
+                rgb: Some(vec![[120, 120, 120]; points.len()]),
+                points,
+            },
+            gripper: GripperPose {
+                base_from_tcp: Transform::from_parts(
+                    nalgebra::Vector3::new(0.4, 0.0, 0.3),
+                    nalgebra::UnitQuaternion::identity(),
+                ),
+                open: true,
+            },
+            instruction: Instructions::Builtin
+                .embedding(kind)
+                .unwrap_or_else(|e| panic!("{e}")),
+            target: scene.expert_keyframes()[step],
+            negatives: Vec::new(),
+            placed_by_scene: kind.placed_by_scene(step),
+        },
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -1754,9 +1754,12 @@ fn check_whole_model(fx: &FixtureFile) -> Result<Vec<Comparison>> {
 mod tests {
     use super::*;
 
-    #[test]
-    fn threaded_attention_equals_one_thread_and_refuses_bad_destinations() {
-        // The `graph_attention` fixture's layer, input and edges (64 nodes, 960 edges).
+    /// The `graph_attention` fixture's layer, edges (64 nodes, 960 edges) and input.
+    fn fixture_attention() -> (
+        crate::attention::GraphAttention,
+        crate::attention::EdgeSet,
+        Vec<f32>,
+    ) {
         let path = concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/fixtures/graph_attention.safetensors"
@@ -1764,10 +1767,17 @@ mod tests {
         let fx = FixtureFile::load(Path::new(path)).unwrap();
         let cfg = attention_config(&fx, "/constructor", None).unwrap();
         let w = fx.weights();
-        let mut ga = crate::attention::GraphAttention::load(&w.scope("param."), cfg).unwrap();
+        let ga = crate::attention::GraphAttention::load(&w.scope("param."), cfg).unwrap();
         let calc = WignerCalculator::new(cfg.lmax).unwrap();
-        let mut edges = fixture_edges(&fx, &calc, cfg.lmax, "", &mut Vec::new()).unwrap();
-        let x = fx.f32_any("in.x").unwrap().1;
+        let edges = fixture_edges(&fx, &calc, cfg.lmax, "", &mut Vec::new()).unwrap();
+        let x = fx.f32_any("in.x").unwrap().1.to_vec();
+        (ga, edges, x)
+    }
+
+    #[test]
+    fn threaded_attention_equals_one_thread_and_refuses_bad_destinations() {
+        let (mut ga, mut edges, x) = fixture_attention();
+        let x = x.as_slice();
         let one = ga.forward(x, x, &edges).unwrap();
         ga.set_threads(2);
         assert_eq!(ga.forward(x, x, &edges).unwrap(), one, "bit for bit");
@@ -1786,17 +1796,8 @@ mod tests {
         // The fixture's 960 edges all into one destination (as the rotation head's query),
         // then into destinations out of order: one chunk either way, whose edges the threads
         // split; the values must be those of one thread, bit for bit.
-        let path = concat!(
-            env!("CARGO_MANIFEST_DIR"),
-            "/tests/fixtures/graph_attention.safetensors"
-        );
-        let fx = FixtureFile::load(Path::new(path)).unwrap();
-        let cfg = attention_config(&fx, "/constructor", None).unwrap();
-        let w = fx.weights();
-        let mut ga = crate::attention::GraphAttention::load(&w.scope("param."), cfg).unwrap();
-        let calc = WignerCalculator::new(cfg.lmax).unwrap();
-        let mut edges = fixture_edges(&fx, &calc, cfg.lmax, "", &mut Vec::new()).unwrap();
-        let x = fx.f32_any("in.x").unwrap().1;
+        let (mut ga, mut edges, x) = fixture_attention();
+        let x = x.as_slice();
         let layouts: [fn(usize) -> usize; 2] = [|_| 5, |e| (e * 37) % 64];
         for destinations in layouts {
             for (e, d) in edges.dst.iter_mut().enumerate() {
