@@ -313,6 +313,13 @@ impl Trainer {
             )));
         }
         check_cloud_query_share(cfg.cloud_query_share)?;
+        if !(cfg.held_shift_m.is_finite() && cfg.held_shift_m >= 0.0) {
+            return Err(PolicyError::BadConfig(format!(
+                "training config: the held-object shift must be a distance of at least 0 m, \
+                 got {}",
+                cfg.held_shift_m
+            )));
+        }
         cfg.policy.check()?;
         // The inference commands read the point count from the file (see `N_POINTS_KEY`).
         weights.set_metadata(
@@ -605,6 +612,17 @@ mod tests {
         let mut open = placed.clone();
         open.gripper.open = true;
         assert_eq!(loss(&shifting, &open), loss(&cfg, &open));
+        for bad in [-0.01, f64::NAN, f64::INFINITY] {
+            let c = TrainConfig {
+                held_shift_m: bad,
+                ..cfg.clone()
+            };
+            let w = random_weights(&c.policy.model, &c.policy.extra, 1);
+            assert!(
+                matches!(Trainer::new(c, w), Err(PolicyError::BadConfig(_))),
+                "{bad}"
+            );
+        }
     }
 
     #[test]
