@@ -387,19 +387,15 @@ impl GraphAttention {
             run(&chunks, (&mut agg, 0))?;
         } else {
             // More than one chunk means the edges are grouped by ascending destination, so
-            // consecutive chunks write consecutive, disjoint rows of `agg`: each thread
-            // gets a run of chunks and the rows from its first destination on.
-            let sizes: Vec<usize> = chunks.iter().map(|r| r.len()).collect();
-            let groups = crate::parallel::split_weighted(&sizes, self.threads);
-            let mut items = Vec::with_capacity(groups.len());
+            // consecutive chunks write consecutive, disjoint rows of `agg`: each chunk gets
+            // the rows from its first destination to the next chunk's, and the threads take
+            // the chunks one at a time until none is left.
+            let mut items = Vec::with_capacity(chunks.len());
             let mut rest = agg.as_mut_slice();
             let mut d0 = 0;
-            for (g, next) in groups
-                .iter()
-                .zip(groups.iter().skip(1).map(Some).chain([None]))
-            {
-                let end = match next {
-                    Some(n) => edges.dst[chunks[n.start].start],
+            for (i, r) in chunks.iter().enumerate() {
+                let end = match chunks.get(i + 1) {
+                    Some(next) => edges.dst[next.start],
                     None => nd,
                 };
                 if end < d0 || end > nd {
@@ -410,11 +406,11 @@ impl GraphAttention {
                     });
                 }
                 let (head, tail) = rest.split_at_mut((end - d0) * row);
-                items.push((&chunks[g.clone()], head, d0));
+                items.push((std::slice::from_ref(r), head, d0));
                 rest = tail;
                 d0 = end;
             }
-            crate::parallel::run_parts(items, |(c, a, d0)| run(c, (a, d0)))
+            crate::parallel::run_dynamic(items, self.threads, |(c, a, d0)| run(c, (a, d0)))
                 .into_iter()
                 .collect::<Result<()>>()?;
         }
@@ -637,8 +633,9 @@ impl GraphAttention {
     }
 }
 
-/// Edges per thread below which one destination's attention stays on one thread.
-const SPLIT_EDGES_PER_THREAD: usize = 256;
+/// Edges per thread below which a single destination chunk stays on one thread (at 128, the
+/// coarsest U-net level's 480 edges, 32 nodes in one chunk, are split too).
+const SPLIT_EDGES_PER_THREAD: usize = 128;
 
 /// Edges per chunk of the attention (whole destination groups are never split).
 const EDGE_CHUNK: usize = 512;

@@ -14,7 +14,8 @@
 //! [`crate::predict::CpuTimer`] includes, so a stage's time stays its whole CPU cost.
 
 use std::ops::Range;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Mutex, PoisonError};
 
 /// Worker CPU time of all finished parts, nanoseconds.
 static WORKER_NANOS: AtomicU64 = AtomicU64::new(0);
@@ -90,6 +91,42 @@ pub fn run_parts<T: Send, R: Send>(items: Vec<T>, work: impl Fn(T) -> R + Sync) 
     })
 }
 
+/// Runs `work` on every item on up to `threads` threads (the caller's and scoped ones,
+/// through [`run_parts`]), each thread taking the next item no thread has taken yet, so a
+/// thread that finishes early takes more instead of waiting for a fixed share to end;
+/// returns the results in item order. Each item runs once, as it would on one thread.
+pub fn run_dynamic<T: Send, R: Send>(
+    items: Vec<T>,
+    threads: usize,
+    work: impl Fn(T) -> R + Sync,
+) -> Vec<R> {
+    let n = items.len();
+    let threads = threads.clamp(1, n.max(1));
+    if threads < 2 {
+        return items.into_iter().map(work).collect();
+    }
+    // A lock per item and per result, each held only to move a value in or out: the index
+    // counter already gives every item to exactly one thread.
+    let slots: Vec<Mutex<Option<T>>> = items.into_iter().map(|t| Mutex::new(Some(t))).collect();
+    let results: Vec<Mutex<Option<R>>> = (0..n).map(|_| Mutex::new(None)).collect();
+    let next = AtomicUsize::new(0);
+    run_parts(vec![(); threads], |()| loop {
+        let i = next.fetch_add(1, Ordering::Relaxed);
+        let Some(slot) = slots.get(i) else {
+            break;
+        };
+        let item = slot.lock().unwrap_or_else(PoisonError::into_inner).take();
+        if let Some(item) = item {
+            let r = work(item);
+            *results[i].lock().unwrap_or_else(PoisonError::into_inner) = Some(r);
+        }
+    });
+    results
+        .into_iter()
+        .filter_map(|m| m.into_inner().unwrap_or_else(PoisonError::into_inner))
+        .collect()
+}
+
 /// Runs `f` on at most `parts` contiguous ranges of `0..n` ([`split_even`]; all of it on the
 /// calling thread when that is one range) and joins the outputs in order.
 pub fn map_ranges<T: Send>(
@@ -108,23 +145,21 @@ pub fn map_ranges<T: Send>(
     Ok(out)
 }
 
-/// Runs `f` on every `chunk`-long slice of `items` in turn (the last may be shorter), with
-/// runs of whole chunks on up to `threads` threads, and joins the outputs in order: the
-/// same chunks, so the same outputs, for any thread count.
+/// Runs `f` on every `chunk`-long slice of `items` (the last may be shorter) on up to
+/// `threads` threads, each taking the next chunk not yet taken ([`run_dynamic`]), and joins
+/// the outputs in order: the same chunks, so the same outputs, for any thread count.
 pub fn map_chunks<T: Sync, R: Send>(
     items: &[T],
     chunk: usize,
     threads: usize,
     f: impl Fn(&[T]) -> crate::error::Result<Vec<R>> + Sync,
 ) -> crate::error::Result<Vec<R>> {
-    let chunk = chunk.max(1);
-    map_ranges(items.len().div_ceil(chunk), threads, |r| {
-        let mut out = Vec::new();
-        for c in items[r.start * chunk..(r.end * chunk).min(items.len())].chunks(chunk) {
-            out.extend(f(c)?);
-        }
-        Ok(out)
-    })
+    let chunks: Vec<&[T]> = items.chunks(chunk.max(1)).collect();
+    let mut out = Vec::new();
+    for part in run_dynamic(chunks, threads, f) {
+        out.extend(part?);
+    }
+    Ok(out)
 }
 
 /// Applies the row-wise `f` (rows of `row` values in, rows out) to runs of whole rows of `x`
@@ -186,6 +221,28 @@ mod tests {
             "the three workers' CPU time is counted"
         );
         assert!(run_parts(Vec::<u8>::new(), |x| x).is_empty());
+    }
+
+    #[test]
+    fn dynamic_runs_give_every_item_once_in_order() {
+        let ran = AtomicUsize::new(0);
+        for threads in [1, 2, 3, 16] {
+            // Uneven items: the threads take different numbers of them.
+            let out = run_dynamic((0..37u64).collect(), threads, |i| {
+                ran.fetch_add(1, Ordering::Relaxed);
+                (0..(i % 5) * 20_000).fold(i, |a, x| a.wrapping_mul(31).wrapping_add(x))
+            });
+            let want: Vec<u64> = (0..37u64)
+                .map(|i| (0..(i % 5) * 20_000).fold(i, |a, x| a.wrapping_mul(31).wrapping_add(x)))
+                .collect();
+            assert_eq!(out, want, "{threads} threads");
+        }
+        assert_eq!(
+            ran.load(Ordering::Relaxed),
+            4 * 37,
+            "each item ran once per call"
+        );
+        assert!(run_dynamic(Vec::<u8>::new(), 2, |x| x).is_empty());
     }
 
     #[test]
