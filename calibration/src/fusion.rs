@@ -19,7 +19,6 @@
 //! transforms are typed errors, as are missing frames, unknown cameras and cameras with no
 //! valid pixel.
 
-mod fps;
 mod grid;
 
 use std::collections::HashMap;
@@ -1025,7 +1024,7 @@ pub fn mean_neighbour_distances(points: &[Point3<f32>], k: usize, cell_m: f64) -
 /// starting from a random one. Returns the chosen indices (all candidates if fewer).
 /// Each next point is the first candidate farthest from those chosen (squared distances in
 /// f32); buckets of nearby candidates skip the distance updates that cannot change
-/// anything (module `fps`), which gives the same samples as the textbook loop.
+/// anything ([`cell_types::fps`]), which gives the same samples as the textbook loop.
 pub fn farthest_point_sample(
     xyz: &[Point3<f32>],
     candidates: &[usize],
@@ -1040,7 +1039,7 @@ pub fn farthest_point_sample(
         return candidates.to_vec();
     }
     let first = rng.random_range(0..candidates.len());
-    fps::sample(xyz, candidates, count, first)
+    cell_types::fps::farthest_point_sample(xyz, candidates, count, first)
 }
 
 /// Point-to-plane agreement of cloud `a` with cloud `b`: for each point of `a` with at least
@@ -1562,6 +1561,7 @@ mod tests {
 
     #[test]
     fn bucketed_farthest_point_sampling_equals_the_textbook_loop() {
+        use cell_types::fps::{farthest_point_sample, farthest_point_sample_textbook};
         use rand::Rng;
         let mut rng = ChaCha8Rng::seed_from_u64(17);
         for trial in 0..40 {
@@ -1610,8 +1610,8 @@ mod tests {
             let count = rng.random_range(1..candidates.len());
             let first = rng.random_range(0..candidates.len());
             assert_eq!(
-                fps::sample(&xyz, &candidates, count, first),
-                fps::textbook(&xyz, &candidates, count, first),
+                farthest_point_sample(&xyz, &candidates, count, first),
+                farthest_point_sample_textbook(&xyz, &candidates, count, first),
                 "trial {trial}: {} candidates, {count} samples",
                 candidates.len()
             );
@@ -1622,13 +1622,14 @@ mod tests {
         xyz[8] = Point3::new(f32::INFINITY, 0.0, 0.0);
         let all: Vec<usize> = (0..xyz.len()).collect();
         assert_eq!(
-            fps::sample(&xyz, &all, 30, 3),
-            fps::textbook(&xyz, &all, 30, 3)
+            farthest_point_sample(&xyz, &all, 30, 3),
+            farthest_point_sample_textbook(&xyz, &all, 30, 3)
         );
     }
 
     #[test]
     fn sampling_a_fused_cloud_equals_the_textbook_loop() {
+        use cell_types::fps::farthest_point_sample_textbook;
         // The pipeline's split and shuffle around the textbook sampler, on a fused cloud.
         let params = FusionParams {
             focus: Bounds {
@@ -1648,11 +1649,11 @@ mod tests {
         use rand::Rng;
         let mut chosen = {
             let first = rng.random_range(0..inside.len());
-            fps::textbook(&dense.xyz, &inside, params.points_inside, first)
+            farthest_point_sample_textbook(&dense.xyz, &inside, params.points_inside, first)
         };
         chosen.extend({
             let first = rng.random_range(0..outside.len());
-            fps::textbook(&dense.xyz, &outside, 512, first)
+            farthest_point_sample_textbook(&dense.xyz, &outside, 512, first)
         });
         chosen.shuffle(&mut rng);
         let expected: Vec<Point3<f32>> = chosen.iter().map(|&i| dense.xyz[i]).collect();

@@ -3,7 +3,8 @@
 //! Every other crate speaks these types: frame-tagged rigid transforms ([`Transform`]),
 //! joint vectors ([`Joints`], [`JointState`]), point clouds ([`PointCloud`]), policy
 //! keyframes ([`Keyframe`]), time-stamped joint trajectories ([`Trajectory`]) and gripper
-//! commands and states ([`gripper`]). Units are SI inside (metres, radians, seconds,
+//! commands and states ([`gripper`]); and the one algorithm two crates need bit for bit,
+//! farthest point sampling of clouds ([`fps`]). Units are SI inside (metres, radians, seconds,
 //! newtons); degrees and millimetres only at the edges (CLI, config files, wire formats).
 //!
 //! Uses `nalgebra` for the linear algebra (the workspace's one matrix library) and `serde`
@@ -13,6 +14,7 @@ pub mod clock;
 pub mod cloud;
 pub mod config;
 pub mod error;
+pub mod fps;
 pub mod frames;
 pub mod gripper;
 pub mod image;

@@ -31,6 +31,8 @@ fn dist2(a: &[f32; 3], b: &[f32; 3]) -> f32 {
 }
 
 /// Farthest point sampling of `count` points, starting at index 0; indices sorted ascending.
+/// The textbook loop's samples (the first farthest point wins ties, as torch's argmax), from
+/// [`cell_types::fps`], whose buckets skip the distance updates that cannot change anything.
 pub fn farthest_point_sampling(pos: &[[f32; 3]], count: usize) -> Result<Vec<usize>> {
     check_finite("farthest point sampling", pos)?;
     if count == 0 || count > pos.len() {
@@ -40,27 +42,8 @@ pub fn farthest_point_sampling(pos: &[[f32; 3]], count: usize) -> Result<Vec<usi
             got: pos.len(),
         });
     }
-    let mut min_d = vec![f32::INFINITY; pos.len()];
-    let mut picks = Vec::with_capacity(count);
-    let mut current = 0usize;
-    for _ in 0..count {
-        picks.push(current);
-        let c = pos[current];
-        let mut best = 0usize;
-        let mut best_d = -1.0f32;
-        for (i, p) in pos.iter().enumerate() {
-            let d = dist2(p, &c);
-            if d < min_d[i] {
-                min_d[i] = d;
-            }
-            // Strictly greater: the first index wins ties, as torch's argmax.
-            if min_d[i] > best_d {
-                best_d = min_d[i];
-                best = i;
-            }
-        }
-        current = best;
-    }
+    let all: Vec<usize> = (0..pos.len()).collect();
+    let mut picks = cell_types::fps::farthest_point_sample(pos, &all, count, 0);
     picks.sort_unstable();
     Ok(picks)
 }

@@ -1,5 +1,7 @@
 //! Farthest point sampling with buckets: the same samples as the textbook O(N k) loop, with
-//! most of its distance updates skipped.
+//! most of its distance updates skipped. Shared by the perception pipeline (`calibration`'s
+//! fusion samples the fused cloud) and the policy (its input and U-net levels), which both
+//! need the textbook loop's exact samples.
 //!
 //! The textbook loop keeps each candidate's squared distance `d` to the nearest sample and,
 //! for every new sample `c`, lowers `d[j]` to `|p_j - c|^2` where that is smaller, then takes
@@ -19,8 +21,6 @@
 //! their candidate order, and buckets compare their best candidate's index on equal
 //! distances.
 
-use nalgebra::Point3;
-
 /// Target number of candidates per grid cell (of the box around all candidates). Clouds
 /// of surfaces occupy a small fraction of the cells, so occupied buckets hold more.
 /// Benchmark cloud (35 k candidates inside the focus box): 2, 4, 8, 16 take 7.2, 5.9, 5.0,
@@ -30,42 +30,55 @@ const POINTS_PER_CELL: usize = 16;
 /// The most grid cells (the counting sort's offsets).
 const MAX_CELLS: usize = 1 << 20;
 
-/// Farthest point sampling of `count` (`1..candidates.len()`) of `candidates` (indices into
-/// `xyz`) from candidate number `first`: the chosen indices into `xyz`.
-pub(super) fn sample(
-    xyz: &[Point3<f32>],
+/// Farthest point sampling of `count` of `candidates` (indices into `xyz`, each below
+/// `xyz.len()`) from candidate number `first`: the chosen indices into `xyz`, in the order
+/// chosen. At most `candidates.len()` of them; none when `first` is not a candidate number.
+/// Each next point is the first candidate farthest (squared distance in f32, x² + y² + z²
+/// of the differences) from those chosen: the textbook loop's samples
+/// ([`farthest_point_sample_textbook`]).
+pub fn farthest_point_sample<P: Copy + Into<[f32; 3]>>(
+    xyz: &[P],
     candidates: &[usize],
     count: usize,
     first: usize,
 ) -> Vec<usize> {
+    let count = count.min(candidates.len());
+    if count == 0 || first >= candidates.len() {
+        return Vec::new();
+    }
     let finite = candidates
         .iter()
-        .all(|&i| xyz[i].iter().all(|v| v.is_finite()));
+        .all(|&i| xyz[i].into().iter().all(|v| v.is_finite()));
     if !finite {
         // The box test needs finite coordinates; NaN points keep the textbook behaviour.
-        return textbook(xyz, candidates, count, first);
+        return farthest_point_sample_textbook(xyz, candidates, count, first);
     }
     let b = Buckets::new(xyz, candidates);
     b.sample(xyz, candidates, count, first)
 }
 
-/// The textbook loop (the reference, and the path for clouds with non-finite points).
-pub(super) fn textbook(
-    xyz: &[Point3<f32>],
+/// The textbook loop of [`farthest_point_sample`] (its reference, and its path for clouds
+/// with non-finite points), with the same arguments and results.
+pub fn farthest_point_sample_textbook<P: Copy + Into<[f32; 3]>>(
+    xyz: &[P],
     candidates: &[usize],
     count: usize,
     first: usize,
 ) -> Vec<usize> {
+    let count = count.min(candidates.len());
+    if count == 0 || first >= candidates.len() {
+        return Vec::new();
+    }
     let mut dist = vec![f32::INFINITY; candidates.len()];
     let mut out = Vec::with_capacity(count);
     let mut current = first;
     for _ in 0..count {
         out.push(candidates[current]);
-        let c = xyz[candidates[current]];
+        let c: [f32; 3] = xyz[candidates[current]].into();
         let mut far = 0;
         let mut far_d = -1.0f32;
         for (j, d) in dist.iter_mut().enumerate() {
-            let dj = (xyz[candidates[j]] - c).norm_squared();
+            let dj = dist2(xyz[candidates[j]].into(), c);
             if dj < *d {
                 *d = dj;
             }
@@ -77,6 +90,13 @@ pub(super) fn textbook(
         current = far;
     }
     out
+}
+
+/// Squared distance in f32, the textbook loop's order.
+#[inline]
+fn dist2(p: [f32; 3], c: [f32; 3]) -> f32 {
+    let (dx, dy, dz) = (p[0] - c[0], p[1] - c[1], p[2] - c[2]);
+    dx * dx + dy * dy + dz * dz
 }
 
 /// No bucket: an empty grid cell.
@@ -103,14 +123,15 @@ struct Buckets {
 }
 
 impl Buckets {
-    fn new(xyz: &[Point3<f32>], candidates: &[usize]) -> Buckets {
+    fn new<P: Copy + Into<[f32; 3]>>(xyz: &[P], candidates: &[usize]) -> Buckets {
         let n = candidates.len();
         let mut lo = [f32::INFINITY; 3];
         let mut hi = [f32::NEG_INFINITY; 3];
         for &i in candidates {
+            let p: [f32; 3] = xyz[i].into();
             for a in 0..3 {
-                lo[a] = lo[a].min(xyz[i][a]);
-                hi[a] = hi[a].max(xyz[i][a]);
+                lo[a] = lo[a].min(p[a]);
+                hi[a] = hi[a].max(p[a]);
             }
         }
         let lo = lo.map(f64::from);
@@ -129,7 +150,7 @@ impl Buckets {
         let cell: Vec<u32> = candidates
             .iter()
             .map(|&i| {
-                let p = xyz[i];
+                let p: [f32; 3] = xyz[i].into();
                 let [x, y, z] = [0, 1, 2].map(|a| grid.cell(a, f64::from(p[a])));
                 let c = (z * dims[1] + y) * dims[0] + x;
                 offsets[c + 1] += 1;
@@ -147,10 +168,10 @@ impl Buckets {
         for (j, (&i, &c)) in candidates.iter().zip(&cell).enumerate() {
             let at = cursor[c as usize] as usize;
             cursor[c as usize] += 1;
-            let p = xyz[i];
-            xs[at] = p.x;
-            ys[at] = p.y;
-            zs[at] = p.z;
+            let p: [f32; 3] = xyz[i].into();
+            xs[at] = p[0];
+            ys[at] = p[1];
+            zs[at] = p[2];
             ids[at] = j as u32;
         }
         let mut start = Vec::new();
@@ -201,9 +222,9 @@ impl Buckets {
     /// that can get closer, so only the cells within `sqrt(far_d)` (and a margin far above
     /// f32 rounding) are visited, and of those only the buckets whose box passes the test.
     /// A tournament tree over the buckets' best candidates gives the next sample.
-    fn sample(
+    fn sample<P: Copy + Into<[f32; 3]>>(
         &self,
-        xyz: &[Point3<f32>],
+        xyz: &[P],
         candidates: &[usize],
         count: usize,
         first: usize,
@@ -227,8 +248,7 @@ impl Buckets {
             if out.len() == count {
                 return out;
             }
-            let c = xyz[candidates[current]];
-            let (cx, cy, cz) = (c.x, c.y, c.z);
+            let [cx, cy, cz]: [f32; 3] = xyz[candidates[current]].into();
             let reach = f64::from(far_d).sqrt() * (1.0 + 1e-3)
                 + 1e-6 * (1.0 + f64::from(cx.abs().max(cy.abs()).max(cz.abs())));
             let span = |a: usize, v: f32| {
@@ -371,5 +391,84 @@ impl Tree {
 
     fn top(&self) -> (f32, u32) {
         self.nodes[1]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    /// Points from small integers times `step`: many equal distances, and duplicates.
+    fn lattice(cells: &[(i8, i8, i8)], step: f32) -> Vec<[f32; 3]> {
+        cells
+            .iter()
+            .map(|&(x, y, z)| {
+                [
+                    f32::from(x) * step,
+                    f32::from(y) * step,
+                    f32::from(z) * step,
+                ]
+            })
+            .collect()
+    }
+
+    proptest! {
+        #[test]
+        fn buckets_give_the_textbook_samples(
+            cells in prop::collection::vec((-6i8..6, -6i8..6, -2i8..2), 2..300),
+            step in prop_oneof![Just(0.01f32), Just(0.37f32), Just(1e-4f32)],
+            jitter in prop::collection::vec(-1.0f32..1.0, 0..300),
+            every in 1usize..4,
+            count_frac in 0.0f64..1.0,
+            first_frac in 0.0f64..1.0,
+        ) {
+            // A lattice, part of it moved off the lattice by up to a quarter step.
+            let mut xyz = lattice(&cells, step);
+            for (p, j) in xyz.iter_mut().zip(&jitter) {
+                p[0] += 0.25 * step * j;
+            }
+            // Candidates: every `every`-th point, in reverse order.
+            let candidates: Vec<usize> = (0..xyz.len()).rev().step_by(every).collect();
+            let n = candidates.len();
+            let count = 1 + ((n - 1) as f64 * count_frac) as usize;
+            let first = ((n - 1) as f64 * first_frac) as usize;
+            let got = farthest_point_sample(&xyz, &candidates, count, first);
+            prop_assert_eq!(got.len(), count);
+            prop_assert_eq!(got, farthest_point_sample_textbook(&xyz, &candidates, count, first));
+        }
+    }
+
+    #[test]
+    fn the_textbook_loop_takes_the_farthest_and_the_first_on_ties() {
+        let xyz = [
+            [0.0f32, 0.0, 0.0],
+            [1.0, 0.0, 0.0],
+            [-1.0, 0.0, 0.0],
+            [0.0, 3.0, 0.0],
+        ];
+        let all = [0, 1, 2, 3];
+        // From 0: 3 is farthest; then 1 and 2 tie (distance 1 to 0), the first wins.
+        assert_eq!(
+            farthest_point_sample_textbook(&xyz, &all, 3, 0),
+            vec![0, 3, 1]
+        );
+        assert_eq!(farthest_point_sample(&xyz, &all, 3, 0), vec![0, 3, 1]);
+    }
+
+    #[test]
+    fn counts_and_starts_out_of_range_sample_what_they_can() {
+        let xyz = [[0.0f32, 0.0, 0.0], [1.0, 0.0, 0.0], [2.0, 0.0, 0.0]];
+        let all = [0, 1, 2];
+        assert_eq!(farthest_point_sample(&xyz, &all, 9, 0), vec![0, 2, 1]);
+        assert!(farthest_point_sample(&xyz, &all, 2, 3).is_empty());
+        assert!(farthest_point_sample(&xyz, &all, 0, 0).is_empty());
+        assert!(farthest_point_sample(&xyz, &[], 2, 0).is_empty());
+        // Non-finite points take the textbook path.
+        let odd = [[0.0f32, 0.0, 0.0], [f32::NAN, 0.0, 0.0], [2.0, 0.0, 0.0]];
+        assert_eq!(
+            farthest_point_sample(&odd, &all, 3, 0),
+            farthest_point_sample_textbook(&odd, &all, 3, 0)
+        );
     }
 }
