@@ -532,15 +532,16 @@ impl GraphAttention {
                 });
             }
         }
-        // The messages are rotated straight from the node features (no gathered copy).
-        let x_rot = wigners.rotate_messages(
-            range.clone(),
-            &self.map,
+        // The messages are rotated straight from the node features into the convolution's
+        // |m| blocks (no gathered copy, no rotated copy).
+        let (h, extra) = conv1.forward_rotated(
+            (wigners, range),
             c,
             (x_src, src),
             x_dst.map(|x| (x, dst)),
+            Some(attr),
+            self.products,
         )?;
-        let (h, extra) = conv1.forward_with(&x_rot, Some(attr), self.products)?;
         let n_alpha = cfg.num_heads * cfg.alpha_channels;
         let n_extra = n_alpha + cfg.hidden_channels;
         let mut alpha_in = Vec::with_capacity(ne * n_alpha);

@@ -1176,8 +1176,16 @@ impl RadialMlp {
 
     /// Applies the MLP to every row of `x`.
     pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
-        let mut h = x.to_vec();
-        for (lin, ln) in &self.hidden {
+        let Some(((first, ln), rest)) = self.hidden.split_first() else {
+            return self.last.forward(x);
+        };
+        // The first layer reads `x` itself: no copy of the (wide) edge features.
+        let mut h = first.forward(x)?;
+        ln.apply(&mut h);
+        for v in &mut h {
+            *v = silu(*v);
+        }
+        for (lin, ln) in rest {
             h = lin.forward(&h)?;
             ln.apply(&mut h);
             for v in &mut h {

@@ -256,6 +256,91 @@ impl EdgeWigners {
         Ok(y)
     }
 
+    /// [`EdgeWigners::rotate_messages`] written as the SO(2) convolution's |m| blocks, each
+    /// row scaled by the radial weights `rad` `[E, rad_w]` where given (the convolution's
+    /// layout: m = 0 rows for l = 0..=lmax, then for each m > 0 the rows l = m..=lmax, the
+    /// +m and −m halves sharing their weights): the m = 0 block `[E, (lmax+1)·mc]` and the
+    /// (+m, −m) halves `[E, (lmax+1−m)·mc]` each, mc = c or 2c channels per row.
+    pub fn rotate_messages_blocks(
+        &self,
+        range: std::ops::Range<usize>,
+        map: &CoefficientMapping,
+        c: usize,
+        (x_a, a): (&[f32], &[usize]),
+        b: Option<(&[f32], &[usize])>,
+        rad: Option<&[f32]>,
+    ) -> Result<MBlocks> {
+        self.check_map(map)?;
+        let k = num_coefficients(self.lmax);
+        let ne = self.range_len(&range)?;
+        let parts: Vec<(&[f32], &[usize])> = std::iter::once((x_a, a)).chain(b).collect();
+        for (x, idx) in &parts {
+            check_len("message node indices", idx.len(), &[ne])?;
+            let n = rows_of("message node features", x.len(), k * c)?;
+            if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "message node index".into(),
+                    value: bad as i64,
+                    len: n,
+                });
+            }
+        }
+        let mc = parts.len() * c;
+        let (lmax, mmax) = (map.lmax, map.mmax);
+        let l1 = lmax + 1;
+        // Per edge: the m = 0 rows, then each m's rows, l ascending (the weights' layout).
+        let rad_w = l1 * mc + (1..=mmax).map(|m| (l1 - m) * mc).sum::<usize>();
+        if let Some(r) = rad {
+            check_len("radial weights", r.len(), &[ne, rad_w])?;
+        }
+        let mut v0 = Vec::with_capacity(ne * l1 * mc);
+        let mut halves: Vec<[Vec<f32>; 2]> = (1..=mmax)
+            .map(|m| {
+                let n = ne * (l1 - m) * mc;
+                [Vec::with_capacity(n), Vec::with_capacity(n)]
+            })
+            .collect();
+        // One rotated row (both parts) into `out`, times its weights.
+        let row = |e: usize, i: usize, w: Option<&[f32]>, out: &mut Vec<f32>| {
+            let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
+            let l = degree_of(i);
+            let block = l * l..(l + 1) * (l + 1);
+            let at = out.len();
+            for (x, idx) in &parts {
+                let xe = &x[idx[e] * k * c..(idx[e] + 1) * k * c];
+                combine_rows(
+                    &d[i * k + block.start..i * k + block.end],
+                    &xe[block.start * c..block.end * c],
+                    c,
+                    out,
+                );
+            }
+            if let Some(w) = w {
+                out[at..].iter_mut().zip(w).for_each(|(v, w)| *v *= w);
+            }
+        };
+        for e in 0..ne {
+            let re = rad.map(|r| &r[e * rad_w..(e + 1) * rad_w]);
+            for l in 0..=lmax {
+                let w = re.map(|r| &r[l * mc..(l + 1) * mc]);
+                row(e, l * l + l, w, &mut v0);
+            }
+            let mut off = l1 * mc;
+            for (mi, pair) in halves.iter_mut().enumerate() {
+                let m = mi + 1;
+                for (half, sign) in pair.iter_mut().zip([1i64, -1]) {
+                    for (li, l) in (m..=lmax).enumerate() {
+                        let w = re.map(|r| &r[off + li * mc..off + (li + 1) * mc]);
+                        let i = (l * l + l) as i64 + sign * m as i64;
+                        row(e, i as usize, w, half);
+                    }
+                }
+                off += (l1 - m) * mc;
+            }
+        }
+        Ok(MBlocks { m0: v0, halves })
+    }
+
     /// Rotates `y` `[E, n_reduced, c]` back to the global frame with Dᵀ and the reference's
     /// rescaling of degrees above mmax: `[E, (lmax+1)², c]`.
     pub fn rotate_back(&self, map: &CoefficientMapping, y: &[f32], c: usize) -> Result<Vec<f32>> {
@@ -332,6 +417,15 @@ fn combine_rows(w: &[f32], x: &[f32], c: usize, y: &mut Vec<f32>) {
         }
         y.push(acc);
     }
+}
+
+/// The inputs of an SO(2) convolution's per-|m| maps, every edge's rows in order.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MBlocks {
+    /// m = 0: `[E, (lmax+1)·cin]`, rows l = 0..=lmax.
+    pub m0: Vec<f32>,
+    /// For each m = 1..=mmax, the +m and −m halves `[E, (lmax+1−m)·cin]`, rows l = m..=lmax.
+    pub halves: Vec<[Vec<f32>; 2]>,
 }
 
 /// `SO2_Convolution`: per-|m| linear maps in the edge frame, optionally scaled by a radial MLP
@@ -528,28 +622,9 @@ impl So2Conv {
         products: MProducts,
     ) -> Result<(Vec<f32>, Vec<f32>)> {
         let nr = self.map.len();
-        let (cin, cout) = (self.cin, self.cout);
+        let cin = self.cin;
         let edges = rows_of("SO(2) convolution input", x.len(), nr * cin)?;
-        let rad = match (&self.rad, x_edge) {
-            (Some(r), Some(xe)) => {
-                if xe.rows() != edges || xe.cols() != r.inp() {
-                    return Err(PolicyError::ShapeMismatch {
-                        name: "SO(2) convolution edge features".into(),
-                        expected: vec![edges, r.inp()],
-                        got: vec![xe.rows(), xe.cols()],
-                    });
-                }
-                Some(r.forward_features(xe)?)
-            }
-            (Some(r), None) => {
-                return Err(PolicyError::ShapeMismatch {
-                    name: "SO(2) convolution edge features (required by its radial MLP)".into(),
-                    expected: vec![edges, r.inp()],
-                    got: vec![0],
-                })
-            }
-            (None, _) => None,
-        };
+        let rad = self.radial(x_edge, edges)?;
         let rad_w = self.rad.as_ref().map_or(0, RadialMlp::out);
         let lmax = self.map.lmax;
         let l1 = lmax + 1;
@@ -572,16 +647,13 @@ impl So2Conv {
                 }
             }
         }
-        let o0 = self.fc_m0.forward(&v)?;
-        drop(v);
         // m > 0: the +m halves a and the −m halves b of every edge as two matrices
-        // [E, (l1 − m)·cin] per m; out(+m) and out(−m) as two matrices [E, (l1 − m)·cout].
-        let mut om = Vec::with_capacity(self.fc_m.len());
+        // [E, (l1 − m)·cin] per m.
+        let mut halves = Vec::with_capacity(self.fc_m.len());
         let mut roff = l1 * cin;
-        for (mi, (fc, gauss)) in self.fc_m.iter().zip(&self.gauss).enumerate() {
-            let m = mi + 1;
+        for m in 1..=self.fc_m.len() {
             let width = (l1 - m) * cin;
-            let mut halves = [
+            let mut pair = [
                 Vec::with_capacity(edges * width),
                 Vec::with_capacity(edges * width),
             ];
@@ -590,7 +662,7 @@ impl So2Conv {
                 let rw = rad
                     .as_ref()
                     .map(|r| &r[e * rad_w + roff..e * rad_w + roff + width]);
-                for (half, sign) in halves.iter_mut().zip([1, -1]) {
+                for (half, sign) in pair.iter_mut().zip([1, -1]) {
                     for (li, l) in (m..=lmax).enumerate() {
                         let p = self.map.position(l, sign * m as i64);
                         let xl = &xe[p * cin..(p + 1) * cin];
@@ -606,7 +678,82 @@ impl So2Conv {
                 }
             }
             roff += width;
-            let [mut a, b] = halves;
+            halves.push(pair);
+        }
+        self.finish(edges, MBlocks { m0: v, halves }, products)
+    }
+
+    /// [`So2Conv::forward_features`] of the messages `concat(x_a[a[e]], x_b[b[e]])` rotated
+    /// into the frames of the edges `range` of `wigners` (what
+    /// [`EdgeWigners::rotate_messages`] gives, with `c` channels per part): each rotated
+    /// row is scaled by the radial MLP and written straight into its |m| block, with no
+    /// rotated copy gathered again. The same values.
+    pub fn forward_rotated(
+        &self,
+        (wigners, range): (&EdgeWigners, std::ops::Range<usize>),
+        c: usize,
+        parts: (&[f32], &[usize]),
+        second: Option<(&[f32], &[usize])>,
+        x_edge: Option<EdgeFeaturesRef<'_>>,
+        products: MProducts,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
+        let mc = if second.is_some() { 2 * c } else { c };
+        if mc != self.cin {
+            return Err(PolicyError::ShapeMismatch {
+                name: "SO(2) convolution message channels".into(),
+                expected: vec![self.cin],
+                got: vec![mc],
+            });
+        }
+        let edges = wigners.range_len(&range)?;
+        let rad = self.radial(x_edge, edges)?;
+        let blocks =
+            wigners.rotate_messages_blocks(range, &self.map, c, parts, second, rad.as_deref())?;
+        self.finish(edges, blocks, products)
+    }
+
+    /// The radial MLP of the edge features (None without one), checked against `edges`.
+    fn radial(
+        &self,
+        x_edge: Option<EdgeFeaturesRef<'_>>,
+        edges: usize,
+    ) -> Result<Option<Vec<f32>>> {
+        match (&self.rad, x_edge) {
+            (Some(r), Some(xe)) => {
+                if xe.rows() != edges || xe.cols() != r.inp() {
+                    return Err(PolicyError::ShapeMismatch {
+                        name: "SO(2) convolution edge features".into(),
+                        expected: vec![edges, r.inp()],
+                        got: vec![xe.rows(), xe.cols()],
+                    });
+                }
+                Ok(Some(r.forward_features(xe)?))
+            }
+            (Some(r), None) => Err(PolicyError::ShapeMismatch {
+                name: "SO(2) convolution edge features (required by its radial MLP)".into(),
+                expected: vec![edges, r.inp()],
+                got: vec![0],
+            }),
+            (None, _) => Ok(None),
+        }
+    }
+
+    /// The per-|m| products of the gathered inputs and the outputs in reduced order, edge
+    /// by edge: `[E, n_reduced, cout]` and the extra outputs `[E, extra]`.
+    fn finish(
+        &self,
+        edges: usize,
+        MBlocks { m0: v, halves }: MBlocks,
+        products: MProducts,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
+        let nr = self.map.len();
+        let cout = self.cout;
+        let l1 = self.map.lmax + 1;
+        let o0 = self.fc_m0.forward(&v)?;
+        drop(v);
+        // out(+m) and out(−m) as two matrices [E, (l1 − m)·cout] per m.
+        let mut om = Vec::with_capacity(self.fc_m.len());
+        for ((fc, gauss), [mut a, b]) in self.fc_m.iter().zip(&self.gauss).zip(halves) {
             om.push(match products {
                 MProducts::Gauss => {
                     // In place where the buffers allow: a becomes a + b once k2 is taken,
@@ -781,6 +928,84 @@ mod tests {
         assert!(w.rotate_messages(r, &map, c, (&xa, &bad), None).is_err());
         assert!(w
             .rotate_messages(30..41, &map, c, (&xa, &a[..11]), None)
+            .is_err());
+    }
+
+    #[test]
+    fn the_convolution_of_rotated_messages_equals_rotating_then_convolving() {
+        // The tiny model's first attention: conv1 (radial MLP, source and destination
+        // channels) and its source-only form, on messages of random node features.
+        let cfg = crate::predict::PolicyConfig::tiny();
+        let m = &cfg.model;
+        let w = crate::init::random_weights(m, &cfg.extra, 9);
+        let attn = m.block_attention(0, m.sphere_channels[0]);
+        let s = w.scope("down_blocks.0.block.transblock.ga.");
+        let c = attn.sphere_channels;
+        let map = CoefficientMapping::new(attn.lmax, attn.mmax).unwrap();
+        let n_extra = attn.num_heads * attn.alpha_channels + attn.hidden_channels;
+        let conv1 = So2Conv::load(
+            &s.sub("so2_conv_1"),
+            &map,
+            2 * c,
+            attn.hidden_channels,
+            n_extra,
+            true,
+        )
+        .unwrap();
+        let sources = conv1.first_channels(c).unwrap();
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        let (lmax, nodes, ne) = (attn.lmax, 11, 37);
+        let k = num_coefficients(lmax);
+        let calc = WignerCalculator::new(lmax).unwrap();
+        let vecs: Vec<[f32; 3]> = (0..ne)
+            .map(|_| [0; 3].map(|_| rng.random_range(-1.0..1.0f32)))
+            .collect();
+        let wig = EdgeWigners::new(&calc, lmax, &vecs).unwrap();
+        let mut random =
+            |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(-1.0..1.0f32)).collect() };
+        let (xa, xb) = (random(nodes * k * c), random(nodes * k * c));
+        let xe = random(ne * conv1.edge_features());
+        let a: Vec<usize> = (0..ne).map(|e| (e * 5) % nodes).collect();
+        let b: Vec<usize> = (0..ne).map(|e| (e * 2 + 3) % nodes).collect();
+        let r = 4..29;
+        let feats = EdgeFeaturesRef::Dense {
+            cols: conv1.edge_features(),
+            values: &xe[r.start * conv1.edge_features()..r.end * conv1.edge_features()],
+        };
+        for (conv, second) in [(&conv1, Some((&xb[..], &b[r.clone()]))), (&sources, None)] {
+            let first = (&xa[..], &a[r.clone()]);
+            let rotated = wig
+                .rotate_messages(r.clone(), &map, c, first, second)
+                .unwrap();
+            for products in [MProducts::Gauss, MProducts::Plain] {
+                let want = conv.forward_with(&rotated, Some(feats), products).unwrap();
+                let got = conv
+                    .forward_rotated((&wig, r.clone()), c, first, second, Some(feats), products)
+                    .unwrap();
+                assert_eq!(got, want, "bit for bit");
+            }
+        }
+        // Message channels that do not match the convolution's are an error.
+        assert!(sources
+            .forward_rotated(
+                (&wig, r.clone()),
+                c,
+                (&xa, &a[r.clone()]),
+                Some((&xb, &b[r.clone()])),
+                Some(feats),
+                MProducts::Gauss
+            )
+            .is_err());
+        // So is a radial MLP without its edge features.
+        assert!(conv1
+            .forward_rotated(
+                (&wig, r.clone()),
+                c,
+                (&xa, &a[r.clone()]),
+                Some((&xb, &b[r.clone()])),
+                None,
+                MProducts::Gauss
+            )
             .is_err());
     }
 
