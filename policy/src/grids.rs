@@ -233,14 +233,16 @@ impl S2Grid {
 /// exactly equivariant, at O(n·nr·c) instead of two products with the grid matrices.
 pub fn gate_activation(x: &[f32], scalars: &[f32], gates: &[f32], nr: usize, c: usize) -> Vec<f32> {
     let mut y = x.to_vec();
+    let mut sig = Vec::with_capacity(c);
     for (node, yn) in y.chunks_exact_mut(nr * c).enumerate() {
         let (s, g) = (
             &scalars[node * c..(node + 1) * c],
             &gates[node * c..(node + 1) * c],
         );
-        let sig: Vec<f32> = g.iter().map(|v| 1.0 / (1.0 + (-v).exp())).collect();
-        for (ch, v) in yn[..c].iter_mut().enumerate() {
-            *v = s[ch] / (1.0 + (-s[ch]).exp());
+        sig.clear();
+        sig.extend(g.iter().map(|&v| crate::layers::sigmoid(v)));
+        for (v, &s) in yn[..c].iter_mut().zip(s) {
+            *v = crate::layers::silu(s);
         }
         for row in yn[c..].chunks_exact_mut(c) {
             for (v, sg) in row.iter_mut().zip(&sig) {
