@@ -97,6 +97,14 @@ pub struct TrainSample {
     pub placed_by_scene: bool,
 }
 
+impl TrainSample {
+    /// Whether [`TrainConfig::held_shift_m`] may move this sample: its keyframe is placed
+    /// by the scene and the gripper holds something (closed) before the step.
+    pub fn held_shift_applies(&self) -> bool {
+        self.placed_by_scene && !self.gripper.open
+    }
+}
+
 /// The three loss terms (per sample, or averaged over a batch).
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
 pub struct Losses {
@@ -169,7 +177,7 @@ pub fn sample_gradients(
     let (mut cloud, mut gripper, mut target) =
         (sample.cloud.clone(), sample.gripper, sample.target);
     let mut negatives = sample.negatives.clone();
-    if cfg.held_shift_m > 0.0 && sample.placed_by_scene && !gripper.open {
+    if cfg.held_shift_m > 0.0 && sample.held_shift_applies() {
         // Before the rotation, which then turns the moved sample as a whole.
         shift_held(
             &mut cloud,
@@ -612,6 +620,9 @@ mod tests {
         let mut open = placed.clone();
         open.gripper.open = true;
         assert_eq!(loss(&shifting, &open), loss(&cfg, &open));
+        // The predicate the trainer and `equact train`'s count share.
+        assert!(placed.held_shift_applies());
+        assert!(!closed.held_shift_applies() && !open.held_shift_applies());
         for bad in [-0.01, f64::NAN, f64::INFINITY] {
             let c = TrainConfig {
                 held_shift_m: bad,

@@ -299,7 +299,7 @@ pub fn run(args: TrainArgs) -> anyhow::Result<()> {
     if args.held_shift_mm > 0.0 {
         let placed = samples
             .iter()
-            .filter(|s| s.sample.placed_by_scene && !s.sample.gripper.open)
+            .filter(|s| s.sample.held_shift_applies())
             .count();
         eprintln!(
             "held-object shift up to {} mm: {placed} of {} samples are placed by the scene \
