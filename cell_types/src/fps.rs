@@ -42,10 +42,9 @@ pub fn farthest_point_sample<P: Copy + Into<[f32; 3]>>(
     count: usize,
     first: usize,
 ) -> Vec<usize> {
-    let count = count.min(candidates.len());
-    if count == 0 || first >= candidates.len() {
+    let Some(count) = feasible(candidates, count, first) else {
         return Vec::new();
-    }
+    };
     let finite = candidates
         .iter()
         .all(|&i| xyz[i].into().iter().all(|v| v.is_finite()));
@@ -57,6 +56,13 @@ pub fn farthest_point_sample<P: Copy + Into<[f32; 3]>>(
     b.sample(xyz, candidates, count, first)
 }
 
+/// The number of samples to draw (at most every candidate), or None when there is nothing
+/// to sample: no count, or `first` not a candidate number.
+fn feasible(candidates: &[usize], count: usize, first: usize) -> Option<usize> {
+    let count = count.min(candidates.len());
+    (count > 0 && first < candidates.len()).then_some(count)
+}
+
 /// The textbook loop of [`farthest_point_sample`] (its reference, and its path for clouds
 /// with non-finite points), with the same arguments and results.
 pub fn farthest_point_sample_textbook<P: Copy + Into<[f32; 3]>>(
@@ -65,10 +71,9 @@ pub fn farthest_point_sample_textbook<P: Copy + Into<[f32; 3]>>(
     count: usize,
     first: usize,
 ) -> Vec<usize> {
-    let count = count.min(candidates.len());
-    if count == 0 || first >= candidates.len() {
+    let Some(count) = feasible(candidates, count, first) else {
         return Vec::new();
-    }
+    };
     let mut dist = vec![f32::INFINITY; candidates.len()];
     let mut out = Vec::with_capacity(count);
     let mut current = first;

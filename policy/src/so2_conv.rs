@@ -205,6 +205,33 @@ impl EdgeWigners {
         self.rotate_messages(0..self.edges, map, c, (x, &own), None)
     }
 
+    /// The message parts (`x_a` with its node of each edge, then `x_b`'s if given), checked:
+    /// the mapping matches, `ne` indices each, `c` channels per node, every index a node.
+    fn message_parts<'a>(
+        &self,
+        map: &CoefficientMapping,
+        ne: usize,
+        c: usize,
+        a: (&'a [f32], &'a [usize]),
+        b: Option<(&'a [f32], &'a [usize])>,
+    ) -> Result<Vec<(&'a [f32], &'a [usize])>> {
+        self.check_map(map)?;
+        let k = num_coefficients(self.lmax);
+        let parts: Vec<(&[f32], &[usize])> = std::iter::once(a).chain(b).collect();
+        for (x, idx) in &parts {
+            check_len("message node indices", idx.len(), &[ne])?;
+            let n = rows_of("message node features", x.len(), k * c)?;
+            if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
+                return Err(PolicyError::IndexOutOfRange {
+                    name: "message node index".into(),
+                    value: bad as i64,
+                    len: n,
+                });
+            }
+        }
+        Ok(parts)
+    }
+
     /// [`EdgeWigners::rotate`] of the edges in `range` (no copy of their matrices) on the
     /// messages `concat(x_a[a[e]], x_b[b[e]])` along channels (`x_a` `[Na, (lmax+1)², c]`; the second part is optional), read straight from
     /// the node features instead of from a gathered copy: `[E, n_reduced, c or 2c]`, the
@@ -217,21 +244,8 @@ impl EdgeWigners {
         (x_a, a): (&[f32], &[usize]),
         b: Option<(&[f32], &[usize])>,
     ) -> Result<Vec<f32>> {
-        self.check_map(map)?;
-        let k = num_coefficients(self.lmax);
-        let ne = self.range_len(&range)?;
-        let parts: Vec<(&[f32], &[usize])> = std::iter::once((x_a, a)).chain(b).collect();
-        for (x, idx) in &parts {
-            check_len("message node indices", idx.len(), &[ne])?;
-            let n = rows_of("message node features", x.len(), k * c)?;
-            if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
-                return Err(PolicyError::IndexOutOfRange {
-                    name: "message node index".into(),
-                    value: bad as i64,
-                    len: n,
-                });
-            }
-        }
+        let (k, ne) = (num_coefficients(self.lmax), self.range_len(&range)?);
+        let parts = self.message_parts(map, ne, c, (x_a, a), b)?;
         let mc = parts.len() * c;
         let nr = map.len();
         // Appended in output order (edge, reduced row, part): every value is written once,
@@ -270,21 +284,8 @@ impl EdgeWigners {
         b: Option<(&[f32], &[usize])>,
         rad: Option<&[f32]>,
     ) -> Result<MBlocks> {
-        self.check_map(map)?;
-        let k = num_coefficients(self.lmax);
-        let ne = self.range_len(&range)?;
-        let parts: Vec<(&[f32], &[usize])> = std::iter::once((x_a, a)).chain(b).collect();
-        for (x, idx) in &parts {
-            check_len("message node indices", idx.len(), &[ne])?;
-            let n = rows_of("message node features", x.len(), k * c)?;
-            if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
-                return Err(PolicyError::IndexOutOfRange {
-                    name: "message node index".into(),
-                    value: bad as i64,
-                    len: n,
-                });
-            }
-        }
+        let (k, ne) = (num_coefficients(self.lmax), self.range_len(&range)?);
+        let parts = self.message_parts(map, ne, c, (x_a, a), b)?;
         let mc = parts.len() * c;
         let (lmax, mmax) = (map.lmax, map.mmax);
         let l1 = lmax + 1;
@@ -931,27 +932,48 @@ mod tests {
             .is_err());
     }
 
-    #[test]
-    fn the_convolution_of_rotated_messages_equals_rotating_then_convolving() {
-        // The tiny model's first attention: conv1 (radial MLP, source and destination
-        // channels) and its source-only form, on messages of random node features.
+    /// The tiny model's first attention (random weights, seed 9): its sizes, mapping, and
+    /// its two convolutions (the first with a radial MLP).
+    fn tiny_first_attention() -> (
+        crate::attention::AttentionConfig,
+        CoefficientMapping,
+        So2Conv,
+        So2Conv,
+    ) {
         let cfg = crate::predict::PolicyConfig::tiny();
         let m = &cfg.model;
         let w = crate::init::random_weights(m, &cfg.extra, 9);
         let attn = m.block_attention(0, m.sphere_channels[0]);
         let s = w.scope("down_blocks.0.block.transblock.ga.");
-        let c = attn.sphere_channels;
         let map = CoefficientMapping::new(attn.lmax, attn.mmax).unwrap();
         let n_extra = attn.num_heads * attn.alpha_channels + attn.hidden_channels;
         let conv1 = So2Conv::load(
             &s.sub("so2_conv_1"),
             &map,
-            2 * c,
+            2 * attn.sphere_channels,
             attn.hidden_channels,
             n_extra,
             true,
         )
         .unwrap();
+        let conv2 = So2Conv::load(
+            &s.sub("so2_conv_2"),
+            &map,
+            attn.hidden_channels,
+            attn.num_heads * attn.value_channels,
+            0,
+            false,
+        )
+        .unwrap();
+        (attn, map, conv1, conv2)
+    }
+
+    #[test]
+    fn the_convolution_of_rotated_messages_equals_rotating_then_convolving() {
+        // The tiny model's first attention: conv1 (radial MLP, source and destination
+        // channels) and its source-only form, on messages of random node features.
+        let (attn, map, conv1, _) = tiny_first_attention();
+        let c = attn.sphere_channels;
         let sources = conv1.first_channels(c).unwrap();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
         let (lmax, nodes, ne) = (attn.lmax, 11, 37);
@@ -1013,31 +1035,7 @@ mod tests {
     /// without the radial MLP, and for the source-only convolution.
     #[test]
     fn gauss_products_equal_the_plain_four() {
-        let cfg = crate::predict::PolicyConfig::tiny();
-        let m = &cfg.model;
-        let w = crate::init::random_weights(m, &cfg.extra, 9);
-        let attn = m.block_attention(0, m.sphere_channels[0]);
-        let s = w.scope("down_blocks.0.block.transblock.ga.");
-        let map = CoefficientMapping::new(attn.lmax, attn.mmax).unwrap();
-        let n_extra = attn.num_heads * attn.alpha_channels + attn.hidden_channels;
-        let conv1 = So2Conv::load(
-            &s.sub("so2_conv_1"),
-            &map,
-            2 * attn.sphere_channels,
-            attn.hidden_channels,
-            n_extra,
-            true,
-        )
-        .unwrap();
-        let conv2 = So2Conv::load(
-            &s.sub("so2_conv_2"),
-            &map,
-            attn.hidden_channels,
-            attn.num_heads * attn.value_channels,
-            0,
-            false,
-        )
-        .unwrap();
+        let (attn, map, conv1, conv2) = tiny_first_attention();
         let sources = conv1.first_channels(attn.sphere_channels).unwrap();
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         let edges = 23;
