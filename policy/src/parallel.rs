@@ -36,27 +36,6 @@ pub fn split_even(n: usize, parts: usize) -> Vec<Range<usize>> {
         .collect()
 }
 
-/// Cuts `0..weights.len()` into at most `parts` contiguous ranges of nearly equal total
-/// weight (no empty range), e.g. destination chunks by their edge counts.
-pub fn split_weighted(weights: &[usize], parts: usize) -> Vec<Range<usize>> {
-    let total: usize = weights.iter().sum();
-    let parts = parts.clamp(1, weights.len().max(1));
-    let mut out = Vec::with_capacity(parts);
-    let (mut start, mut acc) = (0, 0);
-    for (i, w) in weights.iter().enumerate() {
-        acc += w;
-        // Close the current range once it holds its share of the weight.
-        if out.len() + 1 < parts && acc * parts >= total * (out.len() + 1) {
-            out.push(start..i + 1);
-            start = i + 1;
-        }
-    }
-    if start < weights.len() {
-        out.push(start..weights.len());
-    }
-    out
-}
-
 /// Runs `work` on each of `items` (one per part), the first on the calling thread and each
 /// other on a scoped thread of its own; returns the results in order.
 ///
@@ -192,17 +171,6 @@ mod tests {
                 assert_eq!(flat, (0..n).collect::<Vec<_>>(), "n {n} parts {parts}");
             }
         }
-    }
-
-    #[test]
-    fn weighted_splits_balance_the_weight() {
-        let w = [10, 10, 10, 10, 1, 1, 1, 1, 1, 35];
-        let r = split_weighted(&w, 2);
-        assert_eq!(r, vec![0..4, 4..10]);
-        let flat: Vec<usize> = split_weighted(&w, 4).into_iter().flatten().collect();
-        assert_eq!(flat, (0..w.len()).collect::<Vec<_>>());
-        assert_eq!(split_weighted(&[5], 3), vec![0..1]);
-        assert!(split_weighted(&[], 3).is_empty());
     }
 
     #[test]
