@@ -1156,22 +1156,11 @@ impl RadialMlp {
             Some((lin, ln)) => (lin, Some(ln)),
             None => (&self.last, None),
         };
-        let mut h = first.forward_sparse(x.cols(), ptr, idx, val)?;
+        let h = first.forward_sparse(x.cols(), ptr, idx, val)?;
         let Some(ln) = ln else {
             return Ok(h);
         };
-        ln.apply(&mut h);
-        for v in &mut h {
-            *v = silu(*v);
-        }
-        for (lin, ln) in &self.hidden[1..] {
-            h = lin.forward(&h)?;
-            ln.apply(&mut h);
-            for v in &mut h {
-                *v = silu(*v);
-            }
-        }
-        self.last.forward(&h)
+        self.after_first(h, ln, &self.hidden[1..])
     }
 
     /// Applies the MLP to every row of `x`.
@@ -1180,17 +1169,23 @@ impl RadialMlp {
             return self.last.forward(x);
         };
         // The first layer reads `x` itself: no copy of the (wide) edge features.
-        let mut h = first.forward(x)?;
+        self.after_first(first.forward(x)?, ln, rest)
+    }
+
+    /// The rest of the MLP from the first hidden layer's products `h`: its norm and SiLU,
+    /// then each of the `rest` hidden layers (product, norm, SiLU), then the last layer.
+    fn after_first(
+        &self,
+        mut h: Vec<f32>,
+        ln: &LayerNorm,
+        rest: &[(Linear, LayerNorm)],
+    ) -> Result<Vec<f32>> {
         ln.apply(&mut h);
-        for v in &mut h {
-            *v = silu(*v);
-        }
+        h.iter_mut().for_each(|v| *v = silu(*v));
         for (lin, ln) in rest {
             h = lin.forward(&h)?;
             ln.apply(&mut h);
-            for v in &mut h {
-                *v = silu(*v);
-            }
+            h.iter_mut().for_each(|v| *v = silu(*v));
         }
         self.last.forward(&h)
     }
