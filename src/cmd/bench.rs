@@ -30,6 +30,8 @@ pub enum BenchWhat {
     Policy(PolicyBenchArgs),
     /// One graph attention layer of the physical network, ours against PyTorch's on CPU.
     Attention(super::bench_attention::AttentionBenchArgs),
+    /// The physical network's largest matrix products alone (their rate without the rest).
+    Matmul(super::bench_matmul::MatmulBenchArgs),
 }
 
 /// Arguments of `equact bench policy`.
@@ -190,6 +192,7 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
         BenchWhat::Ur(a) => super::bench_ur::run(a),
         BenchWhat::Policy(a) => run_policy(a),
         BenchWhat::Attention(a) => super::bench_attention::run(a),
+        BenchWhat::Matmul(a) => super::bench_matmul::run(a),
     }
 }
 
@@ -414,10 +417,12 @@ fn time_predictions(
         &policy::predict::InstructionEmbedding,
     ),
 ) -> anyhow::Result<(serde_json::Value, f64, Vec<serde_json::Value>)> {
-    let mut runs = Vec::new();
+    let (mut runs, mut products) = (Vec::new(), Vec::new());
     for i in 0..a.predictions.max(1) {
         policy.seed = a.seed + i as u64;
+        let before = policy::matmul::product_counts();
         runs.push(policy.predict_detailed(cloud, gripper, instruction)?);
+        products.push(policy::matmul::product_counts().since(before));
         eprintln!(
             "{name}: {} threads: prediction {} of {}: {:.3} s CPU, {:.3} s wall",
             policy.threads(),
@@ -441,6 +446,10 @@ fn time_predictions(
             blocks.insert(bn.clone(), serde_json::json!(median(&mut v)));
         }
     }
+    let product = |f: &dyn Fn(&policy::matmul::ProductCounts) -> f64| {
+        let mut v: Vec<f64> = products.iter().map(f).collect();
+        median(&mut v)
+    };
     let wall = stage(&|t| t.wall_total);
     let timings = serde_json::json!({
         "input_prep": stage(&|t| t.input_prep),
@@ -455,6 +464,14 @@ fn time_predictions(
         "wall_total": wall,
         "wall_encoder": stage(&|t| t.wall_encoder),
         "wall_translation_head": stage(&|t| t.wall_translation_head),
+        // The dense matrix products of a keyframe (`policy::matmul`): their count and
+        // multiply-adds, their seconds summed over threads, and the rate they ran at.
+        "matrix_products": {
+            "products": product(&|p| p.products as f64),
+            "multiply_adds": product(&|p| p.multiply_adds as f64),
+            "seconds": product(&|p| p.seconds),
+            "gflops_per_second": product(&|p| p.flops_per_second() * 1e-9),
+        },
         // The first prediction also runs the hypernetwork FiLM for the instruction; the
         // later ones (an episode's next keyframes) reuse its maps.
         "first_prediction": {

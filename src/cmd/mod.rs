@@ -3,6 +3,7 @@
 pub mod args;
 pub mod bench;
 pub mod bench_attention;
+pub mod bench_matmul;
 pub mod bench_ur;
 pub mod calibrate;
 pub mod check;
