@@ -244,7 +244,7 @@ impl EdgeWigners {
         (x_a, a): (&[f32], &[usize]),
         b: Option<(&[f32], &[usize])>,
     ) -> Result<Vec<f32>> {
-        let (k, ne) = (num_coefficients(self.lmax), self.range_len(&range)?);
+        let ne = self.range_len(&range)?;
         let parts = self.message_parts(map, ne, c, (x_a, a), b)?;
         let mc = parts.len() * c;
         let nr = map.len();
@@ -252,22 +252,39 @@ impl EdgeWigners {
         // with no zero fill before.
         let mut y = Vec::with_capacity(ne * nr * mc);
         for e in 0..ne {
-            let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
             for &i in &map.reduced {
-                let l = degree_of(i);
-                let block = l * l..(l + 1) * (l + 1);
-                for (x, idx) in &parts {
-                    let xe = &x[idx[e] * k * c..(idx[e] + 1) * k * c];
-                    combine_rows(
-                        &d[i * k + block.start..i * k + block.end],
-                        &xe[block.start * c..block.end * c],
-                        c,
-                        &mut y,
-                    );
-                }
+                self.append_rotated_row(range.start + e, e, i, c, &parts, &mut y);
             }
         }
         Ok(y)
+    }
+
+    /// Appends row `i` (a coefficient index) of edge `edge`'s rotated messages to `out`: for
+    /// each part, `Σ_j D[i, j] · x[idx[local], j]` over the coefficients j of i's degree (c
+    /// values). `local` indexes the parts' node indices, `edge` the Wigner matrices.
+    #[inline]
+    fn append_rotated_row(
+        &self,
+        edge: usize,
+        local: usize,
+        i: usize,
+        c: usize,
+        parts: &[(&[f32], &[usize])],
+        out: &mut Vec<f32>,
+    ) {
+        let k = num_coefficients(self.lmax);
+        let d = &self.d[edge * k * k..(edge + 1) * k * k];
+        let l = degree_of(i);
+        let block = l * l..(l + 1) * (l + 1);
+        for (x, idx) in parts {
+            let xe = &x[idx[local] * k * c..(idx[local] + 1) * k * c];
+            combine_rows(
+                &d[i * k + block.start..i * k + block.end],
+                &xe[block.start * c..block.end * c],
+                c,
+                out,
+            );
+        }
     }
 
     /// [`EdgeWigners::rotate_messages`] written as the SO(2) convolution's |m| blocks, each
@@ -284,7 +301,7 @@ impl EdgeWigners {
         b: Option<(&[f32], &[usize])>,
         rad: Option<&[f32]>,
     ) -> Result<MBlocks> {
-        let (k, ne) = (num_coefficients(self.lmax), self.range_len(&range)?);
+        let ne = self.range_len(&range)?;
         let parts = self.message_parts(map, ne, c, (x_a, a), b)?;
         let mc = parts.len() * c;
         let (lmax, mmax) = (map.lmax, map.mmax);
@@ -303,19 +320,8 @@ impl EdgeWigners {
             .collect();
         // One rotated row (both parts) into `out`, times its weights.
         let row = |e: usize, i: usize, w: Option<&[f32]>, out: &mut Vec<f32>| {
-            let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
-            let l = degree_of(i);
-            let block = l * l..(l + 1) * (l + 1);
             let at = out.len();
-            for (x, idx) in &parts {
-                let xe = &x[idx[e] * k * c..(idx[e] + 1) * k * c];
-                combine_rows(
-                    &d[i * k + block.start..i * k + block.end],
-                    &xe[block.start * c..block.end * c],
-                    c,
-                    out,
-                );
-            }
+            self.append_rotated_row(range.start + e, e, i, c, &parts, out);
             if let Some(w) = w {
                 out[at..].iter_mut().zip(w).for_each(|(v, w)| *v *= w);
             }
