@@ -24,7 +24,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use cell_types::config::{CellConfig, PerceptionSection};
-use cell_types::{Keyframe, Transform};
+use cell_types::{CellTypesError, Keyframe, ScaledClock, Transform};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::episode::{run_sim_episode, KeyframeSource, Observation, Outcome, ScriptedExpert};
 use crate::recording::EpisodeRecorder;
-use crate::sim_cell::SimCell;
+use crate::sim_cell::{EpisodePlan, SimCell};
 use crate::task::{ExpertSettings, TaskInstance, TaskKind};
 
 mod merge;
@@ -123,6 +123,9 @@ pub enum DemosError {
     /// The expert's settings are out of range.
     #[error("the expert's grasp turn must be a number from 0 to 30°, got {0}")]
     BadExpertSettings(f64),
+    /// The simulator cannot run at the speed asked.
+    #[error("{0}: the simulated cell runs above 0 and at most 16 times real time")]
+    SimSpeed(CellTypesError),
     /// The simulated cell could not run the episode.
     #[error("episode {task} seed {seed}: {why}")]
     Episode {
@@ -536,13 +539,11 @@ pub struct CollectSummary {
     pub failed: usize,
 }
 
-/// Records `episodes` expert episodes (seeds `first_seed..`) of every kind in `kinds` into
+/// Records the plan's expert episodes (`plan.episodes` per kind, seeds `plan.seed..`) into
 /// the dataset at `out`, skipping those its index already lists. Progress goes to stdout.
 pub fn collect(
     cfg: &CellConfig,
-    kinds: &[TaskKind],
-    episodes: u64,
-    first_seed: u64,
+    plan: &EpisodePlan,
     out: &Path,
     expert: &ExpertSettings,
     interrupt: &Arc<AtomicBool>,
@@ -551,6 +552,8 @@ pub fn collect(
     if !(0.0..=30.0).contains(&turn) {
         return Err(DemosError::BadExpertSettings(turn));
     }
+    plan.clock().map_err(DemosError::SimSpeed)?;
+    let (kinds, episodes, first_seed) = (&plan.kinds, plan.episodes, plan.seed);
     fs::create_dir_all(out).map_err(io(out))?;
     let mut index = Index::load(out)?;
     if index.episodes.is_empty() {
@@ -599,7 +602,8 @@ pub fn collect(
                     .retain(|x| !(x.task == name && x.seed == seed));
             }
             let t0 = Instant::now();
-            let (outcome, steps) = record_episode(cfg, kind, seed, out, expert, interrupt)?;
+            let clock = plan.clock().map_err(DemosError::SimSpeed)?;
+            let (outcome, steps) = record_episode(cfg, kind, seed, clock, out, expert, interrupt)?;
             let file = if outcome == Outcome::Success {
                 let rel = shard_name(kind, seed);
                 let bytes =
@@ -646,6 +650,7 @@ fn record_episode(
     cfg: &CellConfig,
     kind: TaskKind,
     seed: u64,
+    clock: Arc<ScaledClock>,
     out: &Path,
     expert: &ExpertSettings,
     interrupt: &Arc<AtomicBool>,
@@ -655,7 +660,6 @@ fn record_episode(
         seed,
         why,
     };
-    let clock = Arc::new(cell_types::SystemClock::new());
     let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
     let mut cell = SimCell::start(cfg, task.clone(), seed, clock.clone())
         .map_err(|e| err(format!("{e:#}")))?;
@@ -692,6 +696,27 @@ mod tests {
     #![allow(clippy::unwrap_used)] // tests may unwrap (CONVENTIONS 6)
     use super::*;
 
+    /// A speed the simulator cannot run is refused, named, before anything is written.
+    #[test]
+    fn a_speed_the_simulator_cannot_run_is_refused_before_anything_is_written() {
+        let dir = std::env::temp_dir().join(format!("equact-demos-speed-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        let cfg = CellConfig::simulated().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        for speed in [0.0, -1.0, f64::NAN, 100.0] {
+            let plan = EpisodePlan {
+                kinds: vec![TaskKind::parse("pick_fruit/plum").unwrap()],
+                episodes: 1,
+                seed: 0,
+                sim_speed: speed,
+            };
+            let err = collect(&cfg, &plan, &dir, &ExpertSettings::default(), &stop).unwrap_err();
+            assert!(matches!(err, DemosError::SimSpeed(_)), "{speed}: {err}");
+            assert!(err.to_string().contains("clock speed"), "{err}");
+            assert!(!dir.exists());
+        }
+    }
+
     #[test]
     fn a_dataset_keeps_one_perception_setting_and_old_indexes_read_as_plain() {
         let dir = std::env::temp_dir().join(format!("equact-demos-perc-{}", std::process::id()));
@@ -706,9 +731,14 @@ mod tests {
         // Resuming it with denser sampling near the gripper would mix two kinds of cloud.
         let mut cfg = CellConfig::simulated().unwrap();
         cfg.perception.gripper_points = 256;
-        let kinds = [TaskKind::parse("install_toilet_roll/large").unwrap()];
+        let plan = EpisodePlan {
+            kinds: vec![TaskKind::parse("install_toilet_roll/large").unwrap()],
+            episodes: 1,
+            seed: 0,
+            sim_speed: 1.0,
+        };
         let stop = Arc::new(AtomicBool::new(false));
-        let err = collect(&cfg, &kinds, 1, 0, &dir, &ExpertSettings::default(), &stop).unwrap_err();
+        let err = collect(&cfg, &plan, &dir, &ExpertSettings::default(), &stop).unwrap_err();
         match &err {
             DemosError::PerceptionMismatch { recorded, cell, .. } => {
                 assert_eq!(recorded.gripper_points, 0);
@@ -724,8 +754,7 @@ mod tests {
         ] {
             let mut cfg = CellConfig::simulated().unwrap();
             change(&mut cfg);
-            let err =
-                collect(&cfg, &kinds, 1, 0, &dir, &ExpertSettings::default(), &stop).unwrap_err();
+            let err = collect(&cfg, &plan, &dir, &ExpertSettings::default(), &stop).unwrap_err();
             assert!(
                 matches!(err, DemosError::PerceptionMismatch { .. }),
                 "{err}"

@@ -13,13 +13,12 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use cell_types::config::CellConfig;
-use cell_types::SystemClock;
 use serde::Serialize;
 
 use crate::episode::{run_sim_episode, KeyframeSource, ScriptedExpert};
 use crate::learned::LearnedPolicy;
 use crate::recording::EpisodeRecorder;
-use crate::sim_cell::SimCell;
+use crate::sim_cell::{EpisodePlan, SimCell};
 use crate::task::world::GripperEvent;
 use crate::task::{TaskInstance, TaskKind};
 
@@ -196,17 +195,6 @@ impl EpisodePolicy for LearnedEval {
     }
 }
 
-/// What to evaluate.
-#[derive(Clone, Debug, PartialEq)]
-pub struct EvalPlan {
-    /// Task variations.
-    pub kinds: Vec<TaskKind>,
-    /// Episodes per variation.
-    pub episodes: u64,
-    /// Seed of each variation's first episode (the next ones add one).
-    pub seed: u64,
-}
-
 /// Runs the evaluation: for each variation and seed, a fresh simulated cell and the
 /// policy's source for that episode; recordings go to `out`, and one JSON line per finished
 /// episode to `out`/[`EPISODE_LOG`].
@@ -214,12 +202,13 @@ pub struct EvalPlan {
 /// (its arm stopped, its recording finished) and returns the table so far.
 pub fn evaluate(
     cfg: &CellConfig,
-    plan: &EvalPlan,
+    plan: &EpisodePlan,
     policy: &mut dyn EpisodePolicy,
     out: &Path,
     interrupt: &Arc<AtomicBool>,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<EvalTable> {
+    plan.clock().context("the simulator's speed")?;
     std::fs::create_dir_all(out).with_context(|| format!("creating {}", out.display()))?;
     let log_path = out.join(EPISODE_LOG);
     let policy_name = policy.name().to_string();
@@ -242,7 +231,7 @@ pub fn evaluate(
                 break;
             }
             let seed = plan.seed + e;
-            let clock = Arc::new(SystemClock::new());
+            let clock = plan.clock()?;
             let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
             let source = policy.for_episode(kind, &task, seed)?;
             let mut cell = SimCell::start(cfg, task, seed, clock.clone())?;

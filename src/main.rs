@@ -234,4 +234,43 @@ mod tests {
             assert!(Cli::try_parse_from(bad).is_err(), "{bad:?}");
         }
     }
+
+    /// `run`, `eval` and `demos collect` take `--sim-speed` (real time by default) and refuse
+    /// a speed the simulator cannot run, naming it.
+    #[test]
+    fn sim_speed_is_one_checked_flag_of_every_simulated_command() {
+        let speed = |args: &[&str]| -> Result<f64, String> {
+            let cli = Cli::try_parse_from(args).map_err(|e| e.to_string())?;
+            Ok(match cli.command {
+                Command::Run(a) => a.sim.speed,
+                Command::Eval(a) => a.sim.speed,
+                Command::Demos(d) => match d.command {
+                    cmd::demos::DemosCommand::Collect(c) => c.sim.speed,
+                    other => panic!("{other:?}"),
+                },
+                other => panic!("{other:?}"),
+            })
+        };
+        let commands: [&[&str]; 3] = [
+            &["equact", "run"],
+            &["equact", "eval"],
+            &["equact", "demos", "collect", "--task", "all", "--out", "d"],
+        ];
+        for base in commands {
+            assert_eq!(speed(base), Ok(1.0), "{base:?}");
+            let with = |v: &str| {
+                let flag = format!("--sim-speed={v}");
+                speed(&[base, &[flag.as_str()]].concat())
+            };
+            assert_eq!(with("4"), Ok(4.0), "{base:?}");
+            assert_eq!(with("0.5"), Ok(0.5), "{base:?}");
+            for bad in ["0", "-2", "nan", "17", "fast"] {
+                let err = with(bad).unwrap_err();
+                assert!(
+                    err.contains("--sim-speed") && err.contains(bad),
+                    "{base:?} {bad}: {err}"
+                );
+            }
+        }
+    }
 }

@@ -10,7 +10,7 @@ use std::sync::{Arc, RwLock};
 
 use anyhow::Context;
 use cell_types::config::CellConfig;
-use cell_types::{Clock, Joints, Transform};
+use cell_types::{CellTypesError, Clock, Joints, ScaledClock, Transform};
 use firmware_iface::camera::DepthCamera;
 use firmware_iface::gripper::transport::UrcapTransport;
 use firmware_iface::gripper::RobotiqGripper;
@@ -22,7 +22,29 @@ use hil_sim::ur_controller::{self, UrSimConfig, UrSimHandle};
 use nalgebra::{Isometry3, Translation3, Vector3};
 
 use crate::task::world::{GripperEvent, TaskWorld};
-use crate::task::TaskInstance;
+use crate::task::{TaskInstance, TaskKind};
+
+/// Which simulated episodes to run (`equact eval`, `equact demos collect`): task
+/// variations, episodes per variation, the first seed, and the simulator's speed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EpisodePlan {
+    /// Task variations.
+    pub kinds: Vec<TaskKind>,
+    /// Episodes per variation.
+    pub episodes: u64,
+    /// Seed of each variation's first episode (the next ones add one).
+    pub seed: u64,
+    /// How many times faster than real time the simulated cell runs (1: real time, as the
+    /// real cell does; see [`ScaledClock`]).
+    pub sim_speed: f64,
+}
+
+impl EpisodePlan {
+    /// A fresh clock for one episode at the plan's speed, or why that speed cannot run.
+    pub fn clock(&self) -> Result<Arc<ScaledClock>, CellTypesError> {
+        ScaledClock::new(self.sim_speed).map(Arc::new)
+    }
+}
 
 /// Control cycles without data before the driver stops a motion, in the simulated cell.
 const SIM_LOST_CYCLES: u32 = cell_types::config::MAX_LOST_CYCLES;

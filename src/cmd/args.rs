@@ -1,4 +1,5 @@
-//! Helpers shared by subcommands: comma-separated numbers, cloud files, the Ctrl-C flag.
+//! Helpers shared by subcommands: comma-separated numbers, the simulator's speed, cloud
+//! files, the Ctrl-C flag.
 
 use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -18,6 +19,44 @@ pub fn numbers<const N: usize>(s: &str, what: &str) -> anyhow::Result<[f64; N]> 
         .map_err(|v: Vec<f64>| anyhow::anyhow!("--{what} has {} numbers, need {N}", v.len()))
 }
 
+/// `--sim-speed`, of every command that runs episodes in the simulated cell.
+#[derive(clap::Args, Debug, Clone, Copy)]
+pub struct SimSpeedArgs {
+    /// Run the simulated cell this many times faster than real time (above 0, at most 16;
+    /// 1, the real cell's pace, by default). The controller, gripper, cameras and episode
+    /// all keep the simulator's time, so episodes play out as in real time while the
+    /// driver still answers every controller cycle: 4 held on an idle two-core machine, 8
+    /// lost one episode of 264 to the servo watchdog (README, "Faster than real time").
+    #[arg(long = "sim-speed", default_value_t = 1.0, value_parser = sim_speed)]
+    pub speed: f64,
+}
+
+impl SimSpeedArgs {
+    /// Refuses a speed other than real time for a real cell, whose arm moves in real time.
+    pub fn refuse_on_real_cell(self, real: bool) -> anyhow::Result<()> {
+        if real && self.speed != 1.0 {
+            anyhow::bail!(
+                "--sim-speed {} applies to the simulated cell only: a real arm moves in real \
+                 time; omit --sim-speed with a real cell's --config",
+                self.speed
+            );
+        }
+        Ok(())
+    }
+}
+
+/// Parses `--sim-speed`: how many times faster than real time the simulated cell runs
+/// (above 0, at most [`cell_types::ScaledClock::MAX_SPEED`]).
+fn sim_speed(s: &str) -> Result<f64, String> {
+    let v: f64 = s
+        .trim()
+        .parse()
+        .map_err(|e| format!("{s:?} is not a number ({e})"))?;
+    cell_types::ScaledClock::new(v)
+        .map(|c| c.speed())
+        .map_err(|e| e.to_string())
+}
+
 /// Reads a point cloud file (PLY or PCD, see `planner::cloud_io`).
 pub fn read_cloud_file(path: &Path) -> anyhow::Result<PointCloud> {
     let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
@@ -34,4 +73,25 @@ pub fn interrupt_flag(message: &'static str) -> anyhow::Result<Arc<AtomicBool>> 
     })
     .context("installing the Ctrl-C handler")?;
     Ok(interrupt)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A real arm moves in real time: another speed is refused there, named, and allowed
+    /// for the simulated cell.
+    #[test]
+    fn a_real_cell_refuses_another_speed() {
+        let fast = SimSpeedArgs { speed: 4.0 };
+        let err = fast.refuse_on_real_cell(true).unwrap_err().to_string();
+        assert!(
+            err.contains("--sim-speed 4") && err.contains("real"),
+            "{err}"
+        );
+        assert!(fast.refuse_on_real_cell(false).is_ok());
+        assert!(SimSpeedArgs { speed: 1.0 }
+            .refuse_on_real_cell(true)
+            .is_ok());
+    }
 }

@@ -84,6 +84,9 @@ pub enum CalibrateCommand {
         /// On a real cell, start moving without asking (interactive runs ask for Enter).
         #[arg(long)]
         yes: bool,
+        /// The simulated cell's speed.
+        #[command(flatten)]
+        sim: super::args::SimSpeedArgs,
     },
     /// Solve a captures folder: per-camera base_from_camera and flange_from_board in one
     /// bundle adjustment; prints the report and writes calibration.toml.
@@ -148,11 +151,14 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             poses,
             limit,
             yes,
+            sim,
         } => {
             let cfg = super::config::load(config.as_ref())?;
-            let clock = std::sync::Arc::new(cell_types::SystemClock::new());
             let mut progress = |line: &str| eprintln!("{line}");
-            let run = if cfg.robot.backend == cell_types::config::RobotBackend::Ur {
+            let real = cfg.robot.backend == cell_types::config::RobotBackend::Ur;
+            sim.refuse_on_real_cell(real)?;
+            let clock = std::sync::Arc::new(cell_types::ScaledClock::new(sim.speed)?);
+            let run = if real {
                 let config_dir = super::config::config_dir(config.as_ref());
                 let mut cameras = equact::real_cell::open_cameras(&cfg)?;
                 equact::real_cell::confirm_motion(yes)?;

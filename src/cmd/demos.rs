@@ -50,6 +50,9 @@ pub struct CollectArgs {
     /// Seed of the first episode of each variation (the next ones add one).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// The simulator's speed.
+    #[command(flatten)]
+    pub sim: super::args::SimSpeedArgs,
     /// The dataset directory (created when missing; an existing one is resumed).
     #[arg(long)]
     pub out: PathBuf,
@@ -131,11 +134,15 @@ fn collect(args: CollectArgs) -> anyhow::Result<()> {
         kinds.len(),
         args.out.display()
     );
+    let plan = equact::sim_cell::EpisodePlan {
+        kinds,
+        episodes: args.episodes,
+        seed: args.seed,
+        sim_speed: args.sim.speed,
+    };
     let s = equact::demos::collect(
         &cfg,
-        &kinds,
-        args.episodes,
-        args.seed,
+        &plan,
         &args.out,
         &equact::task::ExpertSettings {
             grasp_turn_deg: args.grasp_turn,

@@ -6,8 +6,9 @@ use std::sync::atomic::Ordering;
 
 use anyhow::Context;
 use clap::{Args, Subcommand};
-use equact::eval::{evaluate, EpisodePolicy, EvalPlan, ExpertEval, LearnedEval, EVAL_SEED};
+use equact::eval::{evaluate, EpisodePolicy, ExpertEval, LearnedEval, EVAL_SEED};
 use equact::learned::LearnedPolicy;
+use equact::sim_cell::EpisodePlan;
 use equact::train::Instructions;
 
 use super::policy::HeadsArg;
@@ -29,6 +30,9 @@ pub struct EvalArgs {
     /// Seed of each variation's first episode (away from the demonstrations' 0, 1, ...).
     #[arg(long, default_value_t = EVAL_SEED)]
     pub seed: u64,
+    /// The simulator's speed.
+    #[command(flatten)]
+    pub sim: super::args::SimSpeedArgs,
     /// Which policy to evaluate.
     #[arg(long, value_enum, default_value_t = PolicyChoice::Learned)]
     pub policy: PolicyChoice,
@@ -156,10 +160,11 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
         }
     };
     let interrupt = super::args::interrupt_flag("stopping after the current episode")?;
-    let plan = EvalPlan {
+    let plan = EpisodePlan {
         kinds,
         episodes: args.episodes,
         seed: args.seed,
+        sim_speed: args.sim.speed,
     };
     let table = evaluate(
         &cfg,

@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use cell_types::config::RobotBackend;
-use cell_types::SystemClock;
+use cell_types::{ScaledClock, SystemClock};
 use clap::{Args, ValueEnum};
 use equact::episode::{
     run_episode, run_sim_episode, KeyframeSource, OperatorJudged, Outcome, ScriptedExpert,
@@ -55,6 +55,9 @@ pub struct RunArgs {
     /// Seed of the first episode (each next episode adds one).
     #[arg(long, default_value_t = 0)]
     pub seed: u64,
+    /// The simulator's speed.
+    #[command(flatten)]
+    pub sim: super::args::SimSpeedArgs,
     /// Which policy to run.
     #[arg(long, value_enum, default_value_t = PolicyChoice::Learned)]
     pub policy: PolicyChoice,
@@ -199,6 +202,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
              simulated cell (no --config)"
         );
     }
+    args.sim.refuse_on_real_cell(real)?;
     let learned_chosen = args.policy == PolicyChoice::Learned;
     // Checked before anything starts: a wrong size or heads for the built-in model fails now.
     let network = if learned_chosen {
@@ -305,7 +309,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             break;
         }
         let seed = args.seed + u64::from(e);
-        let clock = Arc::new(SystemClock::new());
+        let clock = Arc::new(ScaledClock::new(args.sim.speed)?);
         let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
         println!(
             "episode {}/{} · task {} (\"{}\") · seed {seed} · policy {}",

@@ -8,7 +8,18 @@ use std::sync::Arc;
 
 use cell_types::config::CellConfig;
 use equact::demos::{collect, read_shard, Index};
+use equact::sim_cell::EpisodePlan;
 use equact::task::{ExpertSettings, PipePart, TaskInstance, TaskKind};
+
+/// `episodes` of `kind` from `seed`, the simulated cell at the tests' speed.
+fn plan(kind: TaskKind, episodes: u64, seed: u64) -> EpisodePlan {
+    EpisodePlan {
+        kinds: vec![kind],
+        episodes,
+        seed,
+        sim_speed: tests::SIM_SPEED,
+    }
+}
 
 #[test]
 fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it() {
@@ -17,7 +28,14 @@ fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it()
     let _ = std::fs::remove_dir_all(&out);
     let kind = TaskKind::DisassemblePipe(PipePart::FirstLink);
     let stop = Arc::new(AtomicBool::new(false));
-    let s = collect(&cfg, &[kind], 1, 7, &out, &ExpertSettings::default(), &stop).unwrap();
+    let s = collect(
+        &cfg,
+        &plan(kind, 1, 7),
+        &out,
+        &ExpertSettings::default(),
+        &stop,
+    )
+    .unwrap();
     assert_eq!((s.recorded, s.skipped, s.failed), (1, 0, 0));
 
     let index = Index::load(&out).unwrap();
@@ -58,7 +76,14 @@ fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it()
     // A rerun skips the finished episode and leaves its shard untouched.
     let shard = out.join(entry.file.as_ref().unwrap());
     let before = std::fs::metadata(&shard).unwrap().modified().unwrap();
-    let s = collect(&cfg, &[kind], 1, 7, &out, &ExpertSettings::default(), &stop).unwrap();
+    let s = collect(
+        &cfg,
+        &plan(kind, 1, 7),
+        &out,
+        &ExpertSettings::default(),
+        &stop,
+    )
+    .unwrap();
     assert_eq!((s.recorded, s.skipped), (0, 1));
     assert_eq!(
         std::fs::metadata(&shard).unwrap().modified().unwrap(),
@@ -97,7 +122,14 @@ fn a_focus_box_raised_off_the_table_samples_the_objects_instead_of_the_table_top
             std::process::id()
         ));
         let _ = std::fs::remove_dir_all(&out);
-        let s = collect(&cfg, &[kind], 1, 3, &out, &ExpertSettings::default(), &stop).unwrap();
+        let s = collect(
+            &cfg,
+            &plan(kind, 1, 3),
+            &out,
+            &ExpertSettings::default(),
+            &stop,
+        )
+        .unwrap();
         assert_eq!(s.recorded, 1);
         let index = Index::load(&out).unwrap();
         assert_eq!(index.perception, cfg.perception);
@@ -145,7 +177,7 @@ fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
     let out = std::env::temp_dir().join(format!("equact-demos-turn-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
     let stop = Arc::new(AtomicBool::new(false));
-    let s = collect(&cfg, &[kind], 1, seed, &out, &turned, &stop).unwrap();
+    let s = collect(&cfg, &plan(kind, 1, seed), &out, &turned, &stop).unwrap();
     assert_eq!((s.recorded, s.failed), (1, 0));
     let index = Index::load(&out).unwrap();
     assert_eq!(index.expert, turned);
@@ -169,7 +201,7 @@ fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
     );
     // A resume with the plain expert, or a turn out of range, is refused.
     let plain_settings = ExpertSettings::default();
-    let err = collect(&cfg, &[kind], 2, seed, &out, &plain_settings, &stop).unwrap_err();
+    let err = collect(&cfg, &plan(kind, 2, seed), &out, &plain_settings, &stop).unwrap_err();
     assert!(matches!(err, DemosError::ExpertMismatch { .. }), "{err}");
     assert!(
         err.to_string()
@@ -182,7 +214,7 @@ fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
         centred_grasp_labels: true,
         ..turned
     };
-    let err = collect(&cfg, &[kind], 2, seed, &out, &centred, &stop).unwrap_err();
+    let err = collect(&cfg, &plan(kind, 2, seed), &out, &centred, &stop).unwrap_err();
     assert!(
         err.to_string().contains(
             "not the expert with grasp turns up to 12° and centred grasp labels: record into \
@@ -195,7 +227,7 @@ fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
             grasp_turn_deg: bad,
             ..ExpertSettings::default()
         };
-        let err = collect(&cfg, &[kind], 1, seed, &out, &settings, &stop).unwrap_err();
+        let err = collect(&cfg, &plan(kind, 1, seed), &out, &settings, &stop).unwrap_err();
         assert!(matches!(err, DemosError::BadExpertSettings(_)), "{err}");
     }
     let _ = std::fs::remove_dir_all(&out);

@@ -8,8 +8,9 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use cell_types::config::CellConfig;
-use equact::eval::{evaluate, EvalPlan, ExpertEval, LearnedEval, EPISODE_LOG, EVAL_SEED};
+use equact::eval::{evaluate, ExpertEval, LearnedEval, EPISODE_LOG, EVAL_SEED};
 use equact::learned::{for_cell, LearnedPolicy};
+use equact::sim_cell::EpisodePlan;
 use equact::task::{Fruit, TaskKind};
 use policy::predict::{InstructionEmbedding, Policy, PolicyConfig};
 
@@ -22,10 +23,11 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
     let mut lines = Vec::new();
     let table = evaluate(
         &cfg,
-        &EvalPlan {
+        &EpisodePlan {
             kinds: vec![plum],
             episodes: 2,
             seed: EVAL_SEED,
+            sim_speed: tests::SIM_SPEED,
         },
         &mut ExpertEval::default(),
         &dir,
@@ -111,10 +113,11 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
     };
     let table = evaluate(
         &cfg,
-        &EvalPlan {
+        &EpisodePlan {
             kinds: vec![plum],
             episodes: 1,
             seed: EVAL_SEED,
+            sim_speed: tests::SIM_SPEED,
         },
         &mut learned,
         &dir,
@@ -144,10 +147,11 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
     // A variation without an embedding is an error, not a silent skip.
     let err = evaluate(
         &cfg,
-        &EvalPlan {
+        &EpisodePlan {
             kinds: vec![TaskKind::PickFruit(Fruit::Peach)],
             episodes: 1,
             seed: EVAL_SEED,
+            sim_speed: tests::SIM_SPEED,
         },
         &mut learned,
         &dir,
@@ -169,10 +173,11 @@ fn an_unwritable_episode_log_is_reported_and_the_evaluation_goes_on() {
     let mut lines = Vec::new();
     let table = evaluate(
         &cfg,
-        &EvalPlan {
+        &EpisodePlan {
             kinds: vec![TaskKind::PickFruit(Fruit::Strawberry)],
             episodes: 1,
             seed: EVAL_SEED,
+            sim_speed: tests::SIM_SPEED,
         },
         &mut ExpertEval::default(),
         &dir,

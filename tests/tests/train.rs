@@ -11,8 +11,9 @@ use std::sync::Arc;
 
 use cell_types::config::CellConfig;
 use equact::demos::{collect, read_shard, Index};
-use equact::eval::{evaluate, EvalPlan, LearnedEval, EVAL_SEED};
+use equact::eval::{evaluate, LearnedEval, EVAL_SEED};
 use equact::learned::{for_cell, LearnedPolicy};
+use equact::sim_cell::EpisodePlan;
 use equact::task::{ExpertSettings, Fruit, TaskKind};
 use equact::train::{load_samples, Instructions};
 use policy::init::random_weights;
@@ -42,9 +43,12 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     let stop = Arc::new(AtomicBool::new(false));
     let s = collect(
         &cfg,
-        &[kind],
-        1,
-        3,
+        &EpisodePlan {
+            kinds: vec![kind],
+            episodes: 1,
+            seed: 3,
+            sim_speed: tests::SIM_SPEED,
+        },
         &demos,
         &ExpertSettings::default(),
         &stop,
@@ -152,10 +156,11 @@ fn demonstrations_train_a_checkpoint_that_runs_an_episode() {
     };
     let table = evaluate(
         &cfg,
-        &EvalPlan {
+        &EpisodePlan {
             kinds: vec![kind],
             episodes: 1,
             seed: EVAL_SEED,
+            sim_speed: tests::SIM_SPEED,
         },
         &mut learned,
         &root.join("eval"),
