@@ -4,6 +4,11 @@
 //! dynamics), [`gripper`] (Robotiq 2F-85 emulator behind Modbus RTU, URCap and CAN),
 //! [`scene`] (table, objects, the arm as capsules) and [`depth_camera`] (D455-like
 //! depth/IR/colour by ray casting with parry3d, with the sensor's noise model).
+//!
+//! Every server and device keeps the time of an injected [`cell_types::Clock`]: the wall
+//! clock ([`cell_types::SystemClock`]) for the real cell's pace, or
+//! [`cell_types::ScaledClock`] to run a whole cell faster than real time with the same
+//! drivers (`--sim-speed`; the drivers must still answer every controller cycle).
 
 pub mod depth_camera;
 pub mod gripper;

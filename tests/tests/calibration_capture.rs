@@ -30,6 +30,7 @@ fn plan(limit: Option<usize>) -> CapturePlan {
 
 #[test]
 fn capture_resume_and_solve_in_the_simulated_cell() {
+    let _cell = tests::one_cell_at_a_time();
     let cfg = CellConfig::simulated().unwrap();
     let dir = std::env::temp_dir().join(format!("equact-capture-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
@@ -130,6 +131,7 @@ impl DepthCamera for BoardCamera {
 /// truth), and the captures solved to the cameras' true poses.
 #[test]
 fn capture_on_a_real_cell_config_with_approximately_placed_cameras() {
+    let _cell = tests::one_cell_at_a_time();
     let mut cfg = CellConfig::simulated().unwrap();
     let clock = Arc::new(SystemClock::new());
     let tcp = cfg.robot.tcp_offset_m;

@@ -23,6 +23,7 @@ fn plan(kind: TaskKind, episodes: u64, seed: u64) -> EpisodePlan {
 
 #[test]
 fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it() {
+    let _cell = tests::one_cell_at_a_time();
     let cfg = CellConfig::simulated().unwrap();
     let out = std::env::temp_dir().join(format!("equact-demos-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&out);
@@ -108,6 +109,7 @@ fn above_table(cloud: &[[f32; 3]], table: f64, clearance: f64) -> usize {
 
 #[test]
 fn a_focus_box_raised_off_the_table_samples_the_objects_instead_of_the_table_top() {
+    let _cell = tests::one_cell_at_a_time();
     let kind = TaskKind::DisassemblePipe(PipePart::FirstLink);
     let stop = Arc::new(AtomicBool::new(false));
     let mut counts = Vec::new();
@@ -156,6 +158,7 @@ fn a_focus_box_raised_off_the_table_samples_the_objects_instead_of_the_table_top
 /// is not resumed with another (or with a turn out of range).
 #[test]
 fn a_turned_grasp_is_executed_while_the_clean_grasp_is_recorded() {
+    let _cell = tests::one_cell_at_a_time();
     use equact::demos::DemosError;
     use equact::task::{toilet_roll, RollSize};
     let cfg = CellConfig::simulated().unwrap();

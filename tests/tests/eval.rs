@@ -16,6 +16,7 @@ use policy::predict::{InstructionEmbedding, Policy, PolicyConfig};
 
 #[test]
 fn expert_and_learned_policies_are_evaluated_per_variation() {
+    let _cell = tests::one_cell_at_a_time();
     let cfg = CellConfig::simulated().unwrap();
     let dir = std::env::temp_dir().join(format!("equact-eval-{}", std::process::id()));
     let interrupt = Arc::new(AtomicBool::new(false));
@@ -167,6 +168,7 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
 /// a full disk) is reported, and the evaluation goes on: the table still counts it.
 #[test]
 fn an_unwritable_episode_log_is_reported_and_the_evaluation_goes_on() {
+    let _cell = tests::one_cell_at_a_time();
     let cfg = CellConfig::simulated().unwrap();
     let dir = std::env::temp_dir().join(format!("equact-eval-log-{}", std::process::id()));
     std::fs::create_dir_all(dir.join(EPISODE_LOG)).unwrap();

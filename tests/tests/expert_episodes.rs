@@ -7,7 +7,7 @@
 
 use std::collections::BTreeMap;
 use std::sync::atomic::AtomicBool;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 
 use cell_types::config::CellConfig;
 use cell_types::ScaledClock;
@@ -18,14 +18,10 @@ use equact::task::toilet_roll::{HoleFit, Landing};
 use equact::task::world::GripperEvent;
 use equact::task::{toilet_roll, ReleaseOutcome, RollSize, TaskInstance, TaskKind};
 
-/// Episodes run on the wall clock (scaled) against loopback servers: one at a time, so that
-/// the driver of each has the cores to answer every controller cycle.
-static SERIAL: Mutex<()> = Mutex::new(());
-
 /// One expert episode with the simulated cell at `speed` times real time; its report and
 /// the world's own success test.
 fn expert_episode(kind: TaskKind, seed: u64, speed: f64) -> (EpisodeReport, bool) {
-    let _guard = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
+    let _cell = tests::one_cell_at_a_time();
     let cfg = CellConfig::simulated().unwrap();
     let clock = Arc::new(ScaledClock::new(speed).unwrap());
     let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
