@@ -29,14 +29,18 @@ fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it()
     let _ = std::fs::remove_dir_all(&out);
     let kind = TaskKind::DisassemblePipe(PipePart::FirstLink);
     let stop = Arc::new(AtomicBool::new(false));
-    let s = collect(
-        &cfg,
-        &plan(kind, 1, 7),
-        &out,
-        &ExpertSettings::default(),
-        &stop,
-    )
-    .unwrap();
+    // The same command twice: a run, then its rerun.
+    let collect_seed_7 = || {
+        collect(
+            &cfg,
+            &plan(kind, 1, 7),
+            &out,
+            &ExpertSettings::default(),
+            &stop,
+        )
+        .unwrap()
+    };
+    let s = collect_seed_7();
     assert_eq!((s.recorded, s.skipped, s.failed), (1, 0, 0));
 
     let index = Index::load(&out).unwrap();
@@ -77,14 +81,7 @@ fn a_collected_demo_reads_back_with_the_experts_keyframes_and_a_rerun_skips_it()
     // A rerun skips the finished episode and leaves its shard untouched.
     let shard = out.join(entry.file.as_ref().unwrap());
     let before = std::fs::metadata(&shard).unwrap().modified().unwrap();
-    let s = collect(
-        &cfg,
-        &plan(kind, 1, 7),
-        &out,
-        &ExpertSettings::default(),
-        &stop,
-    )
-    .unwrap();
+    let s = collect_seed_7();
     assert_eq!((s.recorded, s.skipped), (0, 1));
     assert_eq!(
         std::fs::metadata(&shard).unwrap().modified().unwrap(),
