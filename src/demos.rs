@@ -124,7 +124,7 @@ pub enum DemosError {
     #[error("the expert's grasp turn must be a number from 0 to 30°, got {0}")]
     BadExpertSettings(f64),
     /// The simulator cannot run at the speed asked.
-    #[error("{0}: the simulated cell runs above 0 and at most 16 times real time")]
+    #[error("{0}: the simulated cell runs above 0 and at most {max} times real time", max = cell_types::ScaledClock::MAX_SPEED)]
     SimSpeed(CellTypesError),
     /// The simulated cell could not run the episode.
     #[error("episode {task} seed {seed}: {why}")]
@@ -713,6 +713,7 @@ mod tests {
             let err = collect(&cfg, &plan, &dir, &ExpertSettings::default(), &stop).unwrap_err();
             assert!(matches!(err, DemosError::SimSpeed(_)), "{speed}: {err}");
             assert!(err.to_string().contains("clock speed"), "{err}");
+            assert!(err.to_string().contains("at most 16 times"), "{err}");
             assert!(!dir.exists());
         }
     }

@@ -49,6 +49,12 @@ impl EpisodePlan {
 /// Control cycles without data before the driver stops a motion, in the simulated cell.
 const SIM_LOST_CYCLES: u32 = cell_types::config::MAX_LOST_CYCLES;
 
+/// The servo program's watchdog in the simulated cell, in control cycles (200 ms): the
+/// driver shares two cores with the simulator, so it tolerates the same silence as
+/// [`SIM_LOST_CYCLES`] instead of the real robot's 10. Faster than real time this matters
+/// most: at `--sim-speed` S the driver has 1/S of the wall time to answer.
+const SIM_WATCHDOG_CYCLES: u32 = SIM_LOST_CYCLES;
+
 /// The simulated world's truth for the task: the bodies, which one is held, and their
 /// solids in the rendered scene.
 pub struct SimWorld {
@@ -211,6 +217,7 @@ impl SimCell {
                 // whatever else runs; a real controller has its own. Tolerate 200 ms of
                 // silence here instead of the driver's 3 cycles (kept for real robots).
                 lost_cycles: SIM_LOST_CYCLES,
+                watchdog_cycles: SIM_WATCHDOG_CYCLES,
                 ..UrConfig::default()
             },
             clock.clone(),

@@ -25,9 +25,8 @@ pub struct SimSpeedArgs {
     /// Run the simulated cell this many times faster than real time (above 0, at most 16;
     /// 1, the real cell's pace, by default). The controller, gripper, cameras and episode
     /// all keep the simulator's time, so episodes play out as in real time while the
-    /// driver still answers every controller cycle: on an idle two-core machine 4 lost one
-    /// evaluation episode of 440 to the servo watchdog, 8 one expert episode of 264 (README,
-    /// "Faster than real time").
+    /// driver still answers the controller: the servo watchdog's 200 ms of simulated time
+    /// is 200/S ms of wall time (README, "Faster than real time").
     #[arg(long = "sim-speed", default_value_t = 1.0, value_parser = sim_speed)]
     pub speed: f64,
 }

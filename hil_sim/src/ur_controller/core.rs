@@ -421,6 +421,18 @@ impl Core {
 
     /// Runs one control cycle.
     pub fn step(&mut self) {
+        self.cycle_once(true);
+    }
+
+    /// Runs one control cycle that started late, back to back with others after the
+    /// control thread was starved of CPU: the client had no time to answer it, so the servo
+    /// program's watchdog does not count it. (A real controller never runs late; without
+    /// this, a stall of the simulator's own thread would be blamed on the client.)
+    pub fn step_late(&mut self) {
+        self.cycle_once(false);
+    }
+
+    fn cycle_once(&mut self, on_time: bool) {
         let dt = self.model.period;
         self.prev_tcp = tcp_pose(&self.q, &self.model.flange_from_tcp);
         self.time += dt;
@@ -433,12 +445,14 @@ impl Core {
             }
         }
         if self.program_state == ProgramState::Playing {
-            self.run_program();
+            self.run_program(on_time);
         }
         self.move_arm(dt);
     }
 
-    fn run_program(&mut self) {
+    /// One cycle of the servo program; `on_time` says whether a stale sequence word counts
+    /// toward the watchdog (see [`Core::step_late`]).
+    fn run_program(&mut self, on_time: bool) {
         let Some(mut p) = self.program else {
             return;
         };
@@ -473,7 +487,9 @@ impl Core {
             self.motion = Motion::Servo { target, ff };
             self.registers.output_int[ACK_REGISTER] = seq;
         } else if seq > 0 {
-            p.stale += 1;
+            if on_time {
+                p.stale += 1;
+            }
             if p.stale > p.params.watchdog_cycles {
                 self.registers.output_int[ACK_REGISTER] = ACK_WATCHDOG;
                 self.stop_program("watchdog: sequence word did not advance");
@@ -626,6 +642,33 @@ mod tests {
         let s = c.snapshot();
         assert!(s.actual_qd.iter().all(|v| *v == 0.0));
         assert!((s.actual_q[0] - target[0]).abs() < 0.01, "{:?}", s.actual_q);
+    }
+
+    #[test]
+    fn late_cycles_do_not_count_toward_the_watchdog() {
+        let mut c = running_core();
+        c.start_servo_program(ServoParams::default()).unwrap();
+        c.registers.input_int[SEQ_REGISTER] = 1;
+        let q = c.snapshot().actual_q;
+        c.registers.input_double[24..30].copy_from_slice(&q);
+        c.step();
+        assert_eq!(c.snapshot().registers.output_int[ACK_REGISTER], 1);
+        // A burst of catch-up cycles longer than the watchdog: the program keeps running.
+        for _ in 0..30 {
+            c.step_late();
+        }
+        assert_eq!(c.program_state().0, ProgramState::Playing);
+        // On-time stale cycles still count, from where the last on-time cycle left off.
+        for _ in 0..10 {
+            c.step();
+        }
+        assert_eq!(c.program_state().0, ProgramState::Playing);
+        c.step();
+        assert_eq!(c.program_state().0, ProgramState::Stopped);
+        assert_eq!(
+            c.snapshot().registers.output_int[ACK_REGISTER],
+            ACK_WATCHDOG
+        );
     }
 
     #[test]

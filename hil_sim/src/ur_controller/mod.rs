@@ -310,6 +310,8 @@ impl Shared {
             next += period;
             self.clock.sleep_until(next);
             let now = self.clock.now();
+            // Started after the next cycle was due: part of a catch-up burst.
+            let late = now > next + period;
             if now > next + CATCH_UP_LIMIT {
                 // Starved of CPU for long: resume the cadence from now. Shorter delays are
                 // caught up (a short burst of packages), so that the average rate a client
@@ -328,7 +330,11 @@ impl Shared {
             let seen_before = *lock(&self.inputs_seen);
             let (snap, events) = {
                 let mut core = self.core();
-                core.step();
+                if late {
+                    core.step_late();
+                } else {
+                    core.step();
+                }
                 (Arc::new(core.snapshot()), core.take_events())
             };
             for e in events {
