@@ -104,30 +104,57 @@ impl EvalTable {
         out
     }
 
-    /// The table as Markdown (per variation, then per task).
+    /// The table as Markdown (per variation, then per task), each rate with its 95 %
+    /// interval: at 20 episodes a rate is known to about ±20 points, which a reader
+    /// comparing two models needs beside it.
     pub fn markdown(&self) -> String {
         let mut s = format!(
-            "| task/variation ({}) | success | rate |\n|---|---|---|\n",
+            "| task/variation ({}) | success | rate | 95 % interval |\n|---|---|---|---|\n",
             self.policy
         );
-        for r in &self.rows {
-            s.push_str(&format!(
-                "| {} | {}/{} | {:.0} % |\n",
-                r.task,
-                r.successes,
-                r.episodes,
-                100.0 * r.rate()
-            ));
-        }
-        for (task, ok, n) in self.per_task() {
+        let rows = self
+            .rows
+            .iter()
+            .map(|r| (r.task.clone(), r.successes, r.episodes))
+            .chain(
+                self.per_task()
+                    .into_iter()
+                    .map(|(task, ok, n)| (format!("**{task}**"), ok, n)),
+            );
+        for (name, ok, n) in rows {
             let rate = if n == 0 { 0.0 } else { ok as f64 / n as f64 };
             s.push_str(&format!(
-                "| **{task}** | {ok}/{n} | {:.0} % |\n",
-                100.0 * rate
+                "| {name} | {ok}/{n} | {:.0} % | {} |\n",
+                100.0 * rate,
+                interval_words(ok, n)
             ));
         }
         s
     }
+}
+
+/// [`wilson_interval`] as a table cell (`11-47 %`; `-` with no episode).
+pub(crate) fn interval_words(successes: u64, episodes: u64) -> String {
+    match wilson_interval(successes, episodes) {
+        Some((lo, hi)) => format!("{:.0}-{:.0} %", 100.0 * lo, 100.0 * hi),
+        None => "-".into(),
+    }
+}
+
+/// The Wilson score interval (95 %) of a success rate seen as `successes` of `episodes`
+/// (None with no episode): unlike the normal approximation it stays inside [0, 1] and is
+/// not empty at 0 or all successes, the usual case of a task a policy always or never does.
+pub fn wilson_interval(successes: u64, episodes: u64) -> Option<(f64, f64)> {
+    if episodes == 0 {
+        return None;
+    }
+    const Z: f64 = 1.959_963_984_540_054;
+    let n = episodes as f64;
+    let p = successes.min(episodes) as f64 / n;
+    let z2 = Z * Z;
+    let centre = (p + z2 / (2.0 * n)) / (1.0 + z2 / n);
+    let half = Z * (p * (1.0 - p) / n + z2 / (4.0 * n * n)).sqrt() / (1.0 + z2 / n);
+    Some(((centre - half).max(0.0), (centre + half).min(1.0)))
 }
 
 /// Hands out the keyframe source of each evaluation episode.
@@ -345,6 +372,55 @@ pub fn gripper_summary(events: &[(usize, impl std::fmt::Display)]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn wilson_intervals_match_the_published_values() {
+        // Newcombe (1998), "Two-sided confidence intervals for the single proportion",
+        // Table I, method 3 (the Wilson score interval), to its four decimals.
+        for (k, n, want) in [
+            (81, 263, (0.2553, 0.3662)),
+            (15, 148, (0.0624, 0.1605)),
+            (0, 20, (0.0, 0.1611)),
+            (1, 29, (0.0061, 0.1718)),
+        ] {
+            let (lo, hi) = wilson_interval(k, n).unwrap();
+            assert!(
+                (lo - want.0).abs() < 5e-5 && (hi - want.1).abs() < 5e-5,
+                "{k}/{n}: {lo} {hi}"
+            );
+        }
+        // All successes: the upper end is 1, the lower end below the rate.
+        let (lo, hi) = wilson_interval(20, 20).unwrap();
+        assert!((lo - 0.8389).abs() < 5e-5 && hi == 1.0, "{lo} {hi}");
+        assert_eq!(wilson_interval(0, 0), None);
+    }
+
+    #[test]
+    fn the_table_gives_each_rate_its_interval() {
+        let row = |task: &str, successes, episodes| VariationResult {
+            task: task.into(),
+            episodes,
+            successes,
+            outcomes: BTreeMap::new(),
+            runs: Vec::new(),
+        };
+        let table = EvalTable {
+            policy: "learned".into(),
+            rows: vec![
+                row("install_toilet_roll/large", 5, 20),
+                row("install_toilet_roll/small", 3, 20),
+            ],
+        };
+        let md = table.markdown();
+        assert!(
+            md.contains("| install_toilet_roll/large | 5/20 | 25 % | 11-47 % |"),
+            "{md}"
+        );
+        assert!(
+            md.contains("| **install_toilet_roll** | 8/40 | 20 % | 10-35 % |"),
+            "{md}"
+        );
+    }
 
     #[test]
     fn a_failed_episodes_line_shows_its_first_gripper_events() {

@@ -229,15 +229,18 @@ impl EvalReport {
 
     /// The report as Markdown tables.
     pub fn markdown(&self) -> String {
-        let mut s = String::from("| task/variation | success | outcomes |\n|---|---|---|\n");
+        let mut s = String::from(
+            "| task/variation | success | 95 % interval | outcomes |\n|---|---|---|---|\n",
+        );
         for v in &self.variations {
             let outcomes: Vec<String> =
                 v.outcomes.iter().map(|(k, n)| format!("{k} {n}")).collect();
             s.push_str(&format!(
-                "| {} | {}/{} | {} |\n",
+                "| {} | {}/{} | {} | {} |\n",
                 v.task,
                 v.successes,
                 v.episodes,
+                crate::eval::interval_words(v.successes, v.episodes),
                 outcomes.join(", ")
             ));
         }

@@ -144,6 +144,19 @@ fn expert_and_learned_policies_are_evaluated_per_variation() {
     assert_eq!(v.successes, 2 + learned_ok);
     assert_eq!(v.outcomes.values().sum::<u64>(), 3);
     assert_eq!(report.roll, None);
+    let interval = if v.successes == 3 {
+        "44-100 %"
+    } else {
+        "21-94 %"
+    };
+    assert!(
+        report.markdown().contains(&format!(
+            "| pick_fruit/plum | {}/3 | {interval} |",
+            v.successes
+        )),
+        "{}",
+        report.markdown()
+    );
 
     // A variation without an embedding is an error, not a silent skip.
     let err = evaluate(
