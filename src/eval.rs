@@ -126,35 +126,11 @@ impl EvalTable {
             s.push_str(&format!(
                 "| {name} | {ok}/{n} | {:.0} % | {} |\n",
                 100.0 * rate,
-                interval_words(ok, n)
+                crate::stats::interval_words(ok, n)
             ));
         }
         s
     }
-}
-
-/// [`wilson_interval`] as a table cell (`11-47 %`; `-` with no episode).
-pub(crate) fn interval_words(successes: u64, episodes: u64) -> String {
-    match wilson_interval(successes, episodes) {
-        Some((lo, hi)) => format!("{:.0}-{:.0} %", 100.0 * lo, 100.0 * hi),
-        None => "-".into(),
-    }
-}
-
-/// The Wilson score interval (95 %) of a success rate seen as `successes` of `episodes`
-/// (None with no episode): unlike the normal approximation it stays inside [0, 1] and is
-/// not empty at 0 or all successes, the usual case of a task a policy always or never does.
-pub fn wilson_interval(successes: u64, episodes: u64) -> Option<(f64, f64)> {
-    if episodes == 0 {
-        return None;
-    }
-    const Z: f64 = 1.959_963_984_540_054;
-    let n = episodes as f64;
-    let p = successes.min(episodes) as f64 / n;
-    let z2 = Z * Z;
-    let centre = (p + z2 / (2.0 * n)) / (1.0 + z2 / n);
-    let half = Z * (p * (1.0 - p) / n + z2 / (4.0 * n * n)).sqrt() / (1.0 + z2 / n);
-    Some(((centre - half).max(0.0), (centre + half).min(1.0)))
 }
 
 /// Hands out the keyframe source of each evaluation episode.
@@ -372,28 +348,6 @@ pub fn gripper_summary(events: &[(usize, impl std::fmt::Display)]) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn wilson_intervals_match_the_published_values() {
-        // Newcombe (1998), "Two-sided confidence intervals for the single proportion",
-        // Table I, method 3 (the Wilson score interval), to its four decimals.
-        for (k, n, want) in [
-            (81, 263, (0.2553, 0.3662)),
-            (15, 148, (0.0624, 0.1605)),
-            (0, 20, (0.0, 0.1611)),
-            (1, 29, (0.0061, 0.1718)),
-        ] {
-            let (lo, hi) = wilson_interval(k, n).unwrap();
-            assert!(
-                (lo - want.0).abs() < 5e-5 && (hi - want.1).abs() < 5e-5,
-                "{k}/{n}: {lo} {hi}"
-            );
-        }
-        // All successes: the upper end is 1, the lower end below the rate.
-        let (lo, hi) = wilson_interval(20, 20).unwrap();
-        assert!((lo - 0.8389).abs() < 5e-5 && hi == 1.0, "{lo} {hi}");
-        assert_eq!(wilson_interval(0, 0), None);
-    }
 
     #[test]
     fn the_table_gives_each_rate_its_interval() {

@@ -240,7 +240,7 @@ impl EvalReport {
                 v.task,
                 v.successes,
                 v.episodes,
-                crate::eval::interval_words(v.successes, v.episodes),
+                crate::stats::interval_words(v.successes, v.episodes),
                 outcomes.join(", ")
             ));
         }

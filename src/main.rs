@@ -197,8 +197,9 @@ mod tests {
         assert_eq!(err.kind(), clap::error::ErrorKind::MissingRequiredArgument);
     }
 
-    /// `eval report` takes its logs in order, at least one; without the subcommand `eval`
-    /// runs episodes as before, and episode options do not mix with `report`.
+    /// `eval report` takes its logs in order, at least one, `eval compare` exactly two;
+    /// without a subcommand `eval` runs episodes as before, and episode options do not mix
+    /// with a subcommand.
     #[test]
     fn eval_report_is_a_subcommand_beside_the_episode_options() {
         let report = |args: &[&str]| {
@@ -227,9 +228,26 @@ mod tests {
         let e = report(&["equact", "eval", "--task", "pick_fruit", "--episodes", "3"]);
         assert!(e.action.is_none());
         assert_eq!((e.task.as_str(), e.episodes), ("pick_fruit", 3));
+        let e = report(&[
+            "equact",
+            "eval",
+            "compare",
+            "first",
+            "ablation/episodes.jsonl",
+        ]);
+        let Some(cmd::eval::EvalAction::Compare(c)) = e.action else {
+            panic!("not compare: {e:?}")
+        };
+        assert_eq!(
+            [c.a, c.b],
+            ["first", "ablation/episodes.jsonl"].map(std::path::PathBuf::from)
+        );
+        assert!(!c.json);
         for bad in [
             &["equact", "eval", "report"][..],
             &["equact", "eval", "--episodes", "3", "report", "a"][..],
+            &["equact", "eval", "compare", "a"][..],
+            &["equact", "eval", "compare", "a", "b", "c"][..],
         ] {
             assert!(Cli::try_parse_from(bad).is_err(), "{bad:?}");
         }

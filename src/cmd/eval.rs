@@ -87,6 +87,22 @@ pub enum EvalAction {
     /// task variation, and the toilet roll's first releases against how far along the pads
     /// the roll was held.
     Report(ReportArgs),
+    /// Compare two evaluations (a model and its ablation, two training runs): success per
+    /// task variation, per task and overall in each, with Fisher's exact test of each
+    /// difference.
+    Compare(CompareArgs),
+}
+
+/// Arguments of `equact eval compare`.
+#[derive(Args, Debug)]
+pub struct CompareArgs {
+    /// The first evaluation: a folder `equact eval --out` wrote, or its `episodes.jsonl`.
+    pub a: PathBuf,
+    /// The second evaluation, likewise.
+    pub b: PathBuf,
+    /// Print the comparison as JSON instead of Markdown.
+    #[arg(long)]
+    pub json: bool,
 }
 
 /// Arguments of `equact eval report`.
@@ -102,8 +118,10 @@ pub struct ReportArgs {
 
 /// Runs `equact eval`.
 pub fn run(args: EvalArgs) -> anyhow::Result<()> {
-    if let Some(EvalAction::Report(report)) = args.action {
-        return run_report(&report);
+    match args.action {
+        Some(EvalAction::Report(report)) => return run_report(&report),
+        Some(EvalAction::Compare(compare)) => return run_compare(&compare),
+        None => {}
     }
     let cfg = super::config::load(args.config.as_ref())?;
     if cfg.robot.backend != cell_types::config::RobotBackend::Sim {
@@ -198,6 +216,23 @@ fn run_report(args: &ReportArgs) -> anyhow::Result<()> {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {
         print!("{}", report.markdown());
+    }
+    Ok(())
+}
+
+/// Runs `equact eval compare`.
+fn run_compare(args: &CompareArgs) -> anyhow::Result<()> {
+    let read = |p: &PathBuf| equact::eval_report::read_logs(std::slice::from_ref(p));
+    let comparison = equact::eval_compare::Comparison::of(
+        &args.a.display().to_string(),
+        &read(&args.a)?,
+        &args.b.display().to_string(),
+        &read(&args.b)?,
+    )?;
+    if args.json {
+        println!("{}", serde_json::to_string_pretty(&comparison)?);
+    } else {
+        print!("{}", comparison.markdown());
     }
     Ok(())
 }
