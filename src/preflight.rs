@@ -17,6 +17,7 @@ use firmware_iface::arm::{Arm, ArmError, JointLimits};
 use firmware_iface::dashboard::{RobotMode, SafetyMode};
 use firmware_iface::gripper::RobotiqGripper;
 use firmware_iface::realsense::{self, RealSenseCamera, RealSenseError, StreamIntrinsics};
+use firmware_iface::realtime::Scheduling;
 use firmware_iface::ur::{UrArm, UrConfig, UrPorts};
 use nalgebra::{Isometry3, Translation3, UnitQuaternion, Vector3};
 
@@ -98,8 +99,23 @@ pub fn ur_config(cfg: &CellConfig) -> Result<UrConfig, String> {
             max_speed: cfg.limits.max_velocity,
         },
         lost_cycles: cfg.robot.lost_cycles,
+        realtime_priority: (cfg.robot.realtime_priority != 0)
+            .then_some(cfg.robot.realtime_priority),
         ..UrConfig::default()
     })
+}
+
+/// Whether the driver's link thread got the real-time priority the config asked for.
+fn scheduling_check(s: &Scheduling) -> Check {
+    const NAME: &str = "driver thread";
+    match s {
+        Scheduling::Fifo(_) | Scheduling::Normal => Check::pass(NAME, s.to_string()),
+        Scheduling::Refused { .. } => Check::warn(
+            NAME,
+            s.to_string(),
+            "on a busy machine a driver thread at normal priority can miss the controller's              cycles and have its motions stopped: grant this user real-time priorities, or              set robot.realtime_priority = 0 to stop asking",
+        ),
+    }
 }
 
 /// Runs every check; `config_dir` resolves a relative calibration file.
@@ -338,6 +354,7 @@ fn check_controller(cfg: &CellConfig, clock: Arc<dyn Clock>) -> Vec<Check> {
     } else {
         out.push(Check::pass("controller", detail));
     }
+    out.push(scheduling_check(arm.scheduling()));
     match arm.state() {
         Ok(s) => {
             if s.robot_mode == RobotMode::Running && s.safety_mode == SafetyMode::Normal {
@@ -543,5 +560,26 @@ mod tests {
         assert_eq!(ur.lost_cycles, 7);
         assert_eq!(ur.tracking_bound, 0.05);
         assert_eq!(ur.limits.max_speed, cfg.limits.max_velocity);
+        assert_eq!(ur.realtime_priority, Some(80));
+        cfg.robot.realtime_priority = 0;
+        assert_eq!(ur_config(&cfg).unwrap().realtime_priority, None);
+    }
+
+    #[test]
+    fn a_refused_real_time_priority_is_a_warning_with_the_way_out() {
+        let refused = Scheduling::Refused {
+            priority: 80,
+            why: "Operation not permitted (os error 1)".into(),
+        };
+        let c = scheduling_check(&refused);
+        assert!(c.passed && c.warning, "{c:?}");
+        assert!(
+            c.detail
+                .contains("priority 80 refused (Operation not permitted"),
+            "{c:?}"
+        );
+        assert!(c.fix.contains("robot.realtime_priority = 0"), "{c:?}");
+        let c = scheduling_check(&Scheduling::Fifo(80));
+        assert!(c.passed && !c.warning && c.detail.contains("SCHED_FIFO priority 80"));
     }
 }

@@ -218,6 +218,9 @@ impl SimCell {
                 // silence here instead of the driver's 3 cycles (kept for real robots).
                 lost_cycles: SIM_LOST_CYCLES,
                 watchdog_cycles: SIM_WATCHDOG_CYCLES,
+                // As on the real cell: the thread that answers the controller first.
+                realtime_priority: (cfg.robot.realtime_priority != 0)
+                    .then_some(cfg.robot.realtime_priority),
                 ..UrConfig::default()
             },
             clock.clone(),

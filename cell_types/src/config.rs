@@ -104,6 +104,11 @@ pub struct RobotSection {
     /// "ur"; the simulated cell sets its own). Keep the default on a real controller.
     #[serde(default = "default_lost_cycles")]
     pub lost_cycles: u32,
+    /// `SCHED_FIFO` priority (1-99) of the UR driver's thread that answers the controller
+    /// every cycle, asked for at connect (a preflight line says whether it was granted);
+    /// 0 leaves it at normal priority.
+    #[serde(default = "default_realtime_priority")]
+    pub realtime_priority: u8,
 }
 
 /// The driver's watchdog on a real controller: 3 cycles (24 ms at 125 Hz).
@@ -114,6 +119,14 @@ pub const MAX_LOST_CYCLES: u32 = 25;
 
 fn default_lost_cycles() -> u32 {
     DEFAULT_LOST_CYCLES
+}
+
+/// The driver thread's `SCHED_FIFO` priority by default: high, under the kernel's own
+/// real-time threads (99), as UR's client library runs its RTDE thread.
+pub const DEFAULT_REALTIME_PRIORITY: u8 = 80;
+
+fn default_realtime_priority() -> u8 {
+    DEFAULT_REALTIME_PRIORITY
 }
 
 /// `[limits]`: joint limits the planner and the driver enforce.
@@ -485,6 +498,13 @@ impl CellConfig {
                      {DEFAULT_LOST_CYCLES} on a real controller and raise it only for a \
                      simulated controller on a loaded machine"
                 ),
+            );
+        }
+        if r.realtime_priority > 99 {
+            return invalid(
+                "robot.realtime_priority",
+                &r.realtime_priority.to_string(),
+                "must be a SCHED_FIFO priority, 1 to 99, or 0 for normal priority",
             );
         }
 
@@ -870,6 +890,18 @@ mod tests {
             let p = expect_invalid(&text, "robot.lost_cycles");
             assert!(p.contains("real controller"), "{p}");
         }
+    }
+
+    #[test]
+    fn realtime_priority_defaults_to_80_and_is_a_fifo_priority_or_off() {
+        let cfg = CellConfig::from_toml_str(&sim_text(), "test").unwrap();
+        assert_eq!(cfg.robot.realtime_priority, DEFAULT_REALTIME_PRIORITY);
+        let off = sim_text().replace("[robot]\n", "[robot]\nrealtime_priority = 0\n");
+        let cfg = CellConfig::from_toml_str(&off, "test").unwrap();
+        assert_eq!(cfg.robot.realtime_priority, 0);
+        let bad = sim_text().replace("[robot]\n", "[robot]\nrealtime_priority = 100\n");
+        let p = expect_invalid(&bad, "robot.realtime_priority");
+        assert!(p.contains("1 to 99"), "{p}");
     }
 
     #[test]

@@ -18,6 +18,7 @@ pub mod camera;
 pub mod dashboard;
 pub mod gripper;
 pub mod realsense;
+pub mod realtime;
 pub mod rtde;
 pub mod ur;
 pub mod urscript;

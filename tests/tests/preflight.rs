@@ -51,6 +51,14 @@ fn preflight_of_a_loopback_cell() {
         assert!(c.passed && !c.warning, "{c:?}");
     }
     assert!(!find(&checks, "cameras").passed);
+    // The driver thread asked for real-time priority (the default 80): granted here when the
+    // tests run with the right (root, CAP_SYS_NICE, rtprio), else a warning saying why.
+    let c = find(&checks, "driver thread");
+    assert!(c.passed, "{c:?}");
+    assert!(
+        c.detail.contains("SCHED_FIFO priority 80") && (c.warning == c.detail.contains("refused")),
+        "{c:?}"
+    );
 
     // The config names the wrong controller generation.
     let mut wrong = cfg.clone();

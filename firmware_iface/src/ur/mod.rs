@@ -40,6 +40,7 @@ use crate::arm::{
     StoppedBy,
 };
 use crate::dashboard::{DashboardCommand, RobotMode, SafetyMode};
+use crate::realtime::Scheduling;
 use crate::urscript::ServoParams;
 pub use dashboard_client::DashboardClient;
 use rtde_link::{Job, Link};
@@ -78,6 +79,10 @@ pub struct UrConfig {
     pub settle_time: f64,
     /// Joint limits checked before any sample is sent.
     pub limits: JointLimits,
+    /// Run the link thread (the 125 Hz answer to the controller) at this `SCHED_FIFO`
+    /// priority (1-99), as UR's client library does; `None` leaves its scheduling alone. A
+    /// refusal (no permission) is not an error: see [`UrArm::scheduling`].
+    pub realtime_priority: Option<u8>,
 }
 
 impl Default for UrConfig {
@@ -98,6 +103,7 @@ impl Default for UrConfig {
             goal_tolerance: 1e-4,
             settle_time: 1.0,
             limits: JointLimits::ur5(),
+            realtime_priority: None,
         }
     }
 }
@@ -108,6 +114,7 @@ pub struct UrArm {
     dashboard: DashboardClient,
     link: Arc<Link>,
     stop: StopHandle,
+    scheduling: Scheduling,
 }
 
 impl UrArm {
@@ -123,17 +130,19 @@ impl UrArm {
             }
             dashboard.power_up(Duration::from_secs(30))?;
         }
-        let link = Link::connect(
+        let (link, scheduling) = Link::connect(
             SocketAddr::new(config.host, config.ports.rtde),
             t,
             config.force_v1,
             clock,
+            config.realtime_priority,
         )?;
         let arm = Self {
             config,
             dashboard,
             link,
             stop: StopHandle::new(),
+            scheduling,
         };
         arm.link
             .wait_for(t, |s| s.packages > 0)
@@ -164,6 +173,12 @@ impl UrArm {
     /// The controller's software version.
     pub fn controller(&self) -> crate::rtde::ControllerVersion {
         self.link.controller
+    }
+
+    /// How the link thread is scheduled: what [`UrConfig::realtime_priority`] asked for and
+    /// got (a preflight line on a real cell).
+    pub fn scheduling(&self) -> &Scheduling {
+        &self.scheduling
     }
 
     /// Control period (s).

@@ -15,6 +15,7 @@ use crate::arm::{
     ArmError, ArmState, ExecutionOutcome, JitterStats, StopCause, StopHandle, StoppedBy,
 };
 use crate::dashboard::{RobotMode, SafetyMode};
+use crate::realtime::Scheduling;
 use crate::rtde::robot_to_host::borrow_data_package;
 use crate::rtde::{
     split_package, ControllerVersion, DataType, FieldType, HostMessage, Layout, ProtocolVersion,
@@ -230,7 +231,8 @@ impl Link {
         timeout: Duration,
         force_v1: bool,
         clock: Arc<dyn Clock>,
-    ) -> Result<Arc<Link>, ArmError> {
+        realtime_priority: Option<u8>,
+    ) -> Result<(Arc<Link>, Scheduling), ArmError> {
         let s = TcpStream::connect_timeout(&addr, timeout).map_err(|source| ArmError::Connect {
             service: "RTDE interface",
             addr,
@@ -344,11 +346,20 @@ impl Link {
         c.s.set_read_timeout(Some(Duration::from_secs_f64(period)))
             .map_err(io)?;
         let l = link.clone();
-        std::thread::Builder::new()
+        let thread = std::thread::Builder::new()
             .name("ur-rtde-link".into())
             .spawn(move || l.run(c, out_layout, clock))
             .map_err(io)?;
-        Ok(link)
+        let scheduling = match realtime_priority {
+            Some(p) => crate::realtime::request_fifo(&thread, p),
+            None => Scheduling::Normal,
+        };
+        if let Scheduling::Refused { .. } = &scheduling {
+            log::warn!("UR driver link thread: {scheduling}");
+        }
+        // Detached, as before: the thread ends when the connection closes.
+        drop(thread);
+        Ok((link, scheduling))
     }
 
     /// Writes the sequence word and targets (one input package; no allocation).
