@@ -99,8 +99,7 @@ pub fn ur_config(cfg: &CellConfig) -> Result<UrConfig, String> {
             max_speed: cfg.limits.max_velocity,
         },
         lost_cycles: cfg.robot.lost_cycles,
-        realtime_priority: (cfg.robot.realtime_priority != 0)
-            .then_some(cfg.robot.realtime_priority),
+        realtime_priority: cfg.robot.fifo_priority(),
         ..UrConfig::default()
     })
 }
@@ -113,7 +112,9 @@ fn scheduling_check(s: &Scheduling) -> Check {
         Scheduling::Refused { .. } => Check::warn(
             NAME,
             s.to_string(),
-            "on a busy machine a driver thread at normal priority can miss the controller's              cycles and have its motions stopped: grant this user real-time priorities, or              set robot.realtime_priority = 0 to stop asking",
+            "on a busy machine a driver thread at normal priority can miss the controller's \
+             cycles and have its motions stopped: grant this user real-time priorities, or \
+             set robot.realtime_priority = 0 to stop asking",
         ),
     }
 }
@@ -576,6 +577,11 @@ mod tests {
         assert!(
             c.detail
                 .contains("priority 80 refused (Operation not permitted"),
+            "{c:?}"
+        );
+        assert!(
+            c.fix
+                .contains("miss the controller's cycles and have its motions stopped: grant"),
             "{c:?}"
         );
         assert!(c.fix.contains("robot.realtime_priority = 0"), "{c:?}");

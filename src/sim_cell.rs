@@ -219,8 +219,7 @@ impl SimCell {
                 lost_cycles: SIM_LOST_CYCLES,
                 watchdog_cycles: SIM_WATCHDOG_CYCLES,
                 // As on the real cell: the thread that answers the controller first.
-                realtime_priority: (cfg.robot.realtime_priority != 0)
-                    .then_some(cfg.robot.realtime_priority),
+                realtime_priority: cfg.robot.fifo_priority(),
                 ..UrConfig::default()
             },
             clock.clone(),

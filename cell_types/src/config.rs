@@ -121,6 +121,13 @@ fn default_lost_cycles() -> u32 {
     DEFAULT_LOST_CYCLES
 }
 
+impl RobotSection {
+    /// The driver thread's `SCHED_FIFO` priority to ask for; `None` for 0 (normal priority).
+    pub fn fifo_priority(&self) -> Option<u8> {
+        (self.realtime_priority != 0).then_some(self.realtime_priority)
+    }
+}
+
 /// The driver thread's `SCHED_FIFO` priority by default: high, under the kernel's own
 /// real-time threads (99), as UR's client library runs its RTDE thread.
 pub const DEFAULT_REALTIME_PRIORITY: u8 = 80;
@@ -896,9 +903,11 @@ mod tests {
     fn realtime_priority_defaults_to_80_and_is_a_fifo_priority_or_off() {
         let cfg = CellConfig::from_toml_str(&sim_text(), "test").unwrap();
         assert_eq!(cfg.robot.realtime_priority, DEFAULT_REALTIME_PRIORITY);
+        assert_eq!(cfg.robot.fifo_priority(), Some(DEFAULT_REALTIME_PRIORITY));
         let off = sim_text().replace("[robot]\n", "[robot]\nrealtime_priority = 0\n");
         let cfg = CellConfig::from_toml_str(&off, "test").unwrap();
         assert_eq!(cfg.robot.realtime_priority, 0);
+        assert_eq!(cfg.robot.fifo_priority(), None);
         let bad = sim_text().replace("[robot]\n", "[robot]\nrealtime_priority = 100\n");
         let p = expect_invalid(&bad, "robot.realtime_priority");
         assert!(p.contains("1 to 99"), "{p}");
