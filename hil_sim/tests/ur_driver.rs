@@ -4,7 +4,6 @@
 
 #![allow(clippy::unwrap_used, clippy::expect_used)] // test helpers may panic
 
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
@@ -613,67 +612,4 @@ fn delayed_packages_still_complete_and_a_long_delay_is_caught() {
         } => {}
         o => panic!("{o:?}"),
     }
-}
-
-/// The wall clock plus an offset a test can jump forward: to the simulator's control
-/// thread, a jump looks like a wake-up that came that much late (its thread starved of CPU).
-struct JumpClock {
-    wall: SystemClock,
-    offset_ns: AtomicU64,
-}
-
-impl JumpClock {
-    fn offset(&self) -> Duration {
-        Duration::from_nanos(self.offset_ns.load(Ordering::SeqCst))
-    }
-}
-
-impl cell_types::Clock for JumpClock {
-    fn now(&self) -> Duration {
-        self.wall.now() + self.offset()
-    }
-
-    fn sleep_until(&self, deadline: Duration) {
-        self.wall
-            .sleep_until(deadline.saturating_sub(self.offset()));
-    }
-}
-
-#[test]
-fn a_starved_controller_thread_catching_up_does_not_trip_the_watchdog() {
-    let clock = Arc::new(JumpClock {
-        wall: SystemClock::new(),
-        offset_ns: AtomicU64::new(0),
-    });
-    let h = start(UrSimConfig::for_tests(), clock.clone()).unwrap();
-    // The driver's own clock runs on: only the controller's thread was late.
-    let mut arm = UrArm::connect(
-        UrConfig {
-            watchdog_cycles: 10,
-            ..config_for(&h)
-        },
-        Arc::new(SystemClock::new()),
-    )
-    .unwrap();
-    let start = arm.state().unwrap().joints.position;
-    let goal = goal_from(start);
-    // Slow enough that the arm holding its target through the burst stays in bounds.
-    let traj = quintic(start, goal, 3.0, arm.period());
-    let outcome = std::thread::scope(|s| {
-        s.spawn(|| {
-            std::thread::sleep(Duration::from_millis(800));
-            // 15 cycles late: the controller runs them back to back, faster than any client
-            // could answer; more than the program's 10-cycle watchdog.
-            clock.offset_ns.store(
-                Duration::from_millis(120).as_nanos() as u64,
-                Ordering::SeqCst,
-            );
-        });
-        arm.execute(&traj).unwrap()
-    });
-    assert!(
-        matches!(outcome, ExecutionOutcome::Completed { .. }),
-        "{outcome:?}"
-    );
-    assert!(cell_types::joints::max_abs_diff(&h.snapshot().actual_q, &goal) < 0.01);
 }
