@@ -8,7 +8,7 @@ use std::collections::BTreeSet;
 use serde::Serialize;
 
 use crate::eval_report::{EvalReport, LoggedEpisode};
-use crate::stats::{fisher_exact, Count};
+use crate::stats::{fisher_exact, mcnemar_exact, Count};
 
 /// One row of a comparison: the same variation (or task, or all of them) in both.
 #[derive(Clone, Debug, PartialEq, Serialize)]
@@ -21,6 +21,31 @@ pub struct CompareRow {
     pub b: Count,
     /// Fisher's exact test, two-sided.
     pub p: Option<f64>,
+    /// The episodes both ran on the same seed, as pairs: how many, and the exact McNemar
+    /// test of their disagreements (more telling than Fisher's when the scenes are shared).
+    pub paired: Paired,
+}
+
+/// Episodes both evaluations ran on the same scene seed.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize)]
+pub struct Paired {
+    /// Seed-matched pairs.
+    pub pairs: u64,
+    /// Pairs only the first evaluation succeeded in.
+    pub only_a: u64,
+    /// Pairs only the second succeeded in.
+    pub only_b: u64,
+    /// McNemar's exact test, two-sided; `None` without a pair.
+    pub p: Option<f64>,
+}
+
+impl Paired {
+    fn add(&mut self, other: Paired) {
+        self.pairs += other.pairs;
+        self.only_a += other.only_a;
+        self.only_b += other.only_b;
+        self.p = (self.pairs > 0).then(|| mcnemar_exact(self.only_a, self.only_b));
+    }
 }
 
 /// Two evaluations compared over the task variations both ran.
@@ -61,7 +86,9 @@ impl Comparison {
                 only_in_a.push(va.task.clone());
                 continue;
             };
-            rows.push(row(va.task.clone(), count(va), count(vb)));
+            let mut r = row(va.task.clone(), count(va), count(vb));
+            r.paired.add(pairs(a, b, &va.task));
+            rows.push(r);
             if seeds(a, &va.task) != seeds(b, &va.task) {
                 different_seeds.push(va.task.clone());
             }
@@ -100,6 +127,8 @@ impl Comparison {
                 acc.successes += r.b.successes;
                 acc.episodes += r.b.episodes;
             }
+            t.paired.add(r.paired);
+            all.paired.add(r.paired);
         }
         for t in tasks.iter_mut().chain(std::iter::once(&mut all)) {
             t.p = fisher_exact(t.a, t.b);
@@ -119,7 +148,7 @@ impl Comparison {
     /// The comparison as a Markdown table and the notes under it.
     pub fn markdown(&self) -> String {
         let mut s = format!(
-            "| task/variation | {} | {} | p (Fisher, two-sided) |\n|---|---|---|---|\n",
+            "| task/variation | {} | {} | p (Fisher, two-sided) | same-seed pairs: only first / only second, p (McNemar) |\n|---|---|---|---|---|\n",
             self.a_name, self.b_name
         );
         let cell = |c: Count| format!("{}/{} ({:.0} %)", c.successes, c.episodes, 100.0 * c.rate());
@@ -129,8 +158,18 @@ impl Comparison {
             } else {
                 format!("**{}**", r.name)
             };
+            let paired = match r.paired.p {
+                Some(p) => format!(
+                    "{} pairs: {} / {}, {}",
+                    r.paired.pairs,
+                    r.paired.only_a,
+                    r.paired.only_b,
+                    p_words(p)
+                ),
+                None => "-".into(),
+            };
             s.push_str(&format!(
-                "| {name} | {} | {} | {} |\n",
+                "| {name} | {} | {} | {} | {paired} |\n",
                 cell(r.a),
                 cell(r.b),
                 r.p.map_or_else(|| "-".into(), p_words)
@@ -138,7 +177,8 @@ impl Comparison {
         }
         s.push_str(
             "\np: how likely a difference this large or larger is were both at one rate \
-             (Fisher's exact test; no correction for the several rows).\n",
+             (Fisher's exact test; no correction for the several rows). Where both ran the \
+             same scene seeds, McNemar's exact test weighs only the pairs they disagree on.\n",
         );
         for (what, list) in [
             (
@@ -168,7 +208,30 @@ fn row(name: String, a: Count, b: Count) -> CompareRow {
         a,
         b,
         p: fisher_exact(a, b),
+        paired: Paired::default(),
     }
+}
+
+/// The seed-matched episodes of `task` in both evaluations (a seed run twice in one of them
+/// pairs its first run).
+fn pairs(a: &[LoggedEpisode], b: &[LoggedEpisode], task: &str) -> Paired {
+    let outcomes = |eps: &[LoggedEpisode]| {
+        let mut m = std::collections::BTreeMap::new();
+        for e in eps.iter().filter(|e| e.task == task) {
+            m.entry(e.seed).or_insert(e.succeeded());
+        }
+        m
+    };
+    let (oa, ob) = (outcomes(a), outcomes(b));
+    let mut p = Paired::default();
+    for (seed, &sa) in &oa {
+        if let Some(&sb) = ob.get(seed) {
+            p.pairs += 1;
+            p.only_a += u64::from(sa && !sb);
+            p.only_b += u64::from(sb && !sa);
+        }
+    }
+    p
 }
 
 /// The scene seeds an evaluation ran for a variation.
@@ -256,13 +319,41 @@ mod tests {
         assert_eq!((all.a.successes, all.a.episodes), (14, 24));
         assert_eq!((all.b.successes, all.b.episodes), (22, 28));
         assert_eq!(all.p, fisher_exact(all.a, all.b));
+        // Pairs by seed: plum 0-3 in both (first alone wins seeds 1 and 2), peach 5-9 (both
+        // win), flower 0-9 (the second alone wins seeds 1-9).
+        assert_eq!(
+            c.rows[0].paired,
+            Paired {
+                pairs: 4,
+                only_a: 2,
+                only_b: 0,
+                p: Some(0.5)
+            }
+        );
+        assert_eq!((c.rows[1].paired.pairs, c.rows[1].paired.p), (5, Some(1.0)));
+        assert_eq!(
+            c.rows[2].paired,
+            Paired {
+                pairs: 10,
+                only_a: 0,
+                only_b: 9,
+                p: Some(2.0 / 512.0)
+            }
+        );
+        assert_eq!(
+            (all.paired.pairs, all.paired.only_a, all.paired.only_b),
+            (19, 2, 9)
+        );
+        assert_eq!(all.paired.p, Some(mcnemar_exact(2, 9)));
         assert_eq!(c.only_in_b, ["install_toilet_roll/large"]);
         assert!(c.only_in_a.is_empty());
         // Peach: seeds 0-9 against 5-14; the flower: 10 episodes against 14.
         assert_eq!(c.different_seeds, ["pick_fruit/peach", "pluck_flower/top"]);
         let md = c.markdown();
         assert!(
-            md.contains("| pluck_flower/top | 1/10 (10 %) | 11/14 (79 %) | 0.0028 |"),
+            md.contains(
+                "| pluck_flower/top | 1/10 (10 %) | 11/14 (79 %) | 0.0028 | 10 pairs: 0 / 9, 0.0039 |"
+            ),
             "{md}"
         );
         assert!(

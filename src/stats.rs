@@ -1,6 +1,7 @@
 //! The statistics of success counts: how well an evaluation knows a rate (the Wilson
-//! interval) and whether two evaluations differ (Fisher's exact test). Hand-written: two
-//! closed forms over factorials, not worth a statistics crate and its dependencies.
+//! interval) and whether two evaluations differ (Fisher's exact test; McNemar's for
+//! episodes paired by scene). Hand-written: closed forms over factorials, not worth a
+//! statistics crate and its dependencies.
 
 /// The Wilson score interval (95 %) of a success rate seen as `successes` of `episodes`
 /// (None with no episode): unlike the normal approximation it stays inside [0, 1] and is
@@ -81,6 +82,24 @@ pub fn fisher_exact(a: Count, b: Count) -> Option<f64> {
     Some(p.min(1.0))
 }
 
+/// McNemar's exact test, two-sided, of paired outcomes: `only_a` pairs where only the
+/// first succeeded, `only_b` where only the second did; the binomial test of the split at
+/// one half (pairs both agree on say nothing about a difference). 1 with no disagreement.
+pub fn mcnemar_exact(only_a: u64, only_b: u64) -> f64 {
+    let n = only_a + only_b;
+    let k = only_a.min(only_b);
+    // P(X <= k) for X ~ Binomial(n, 1/2), in logs: C(n, i) / 2^n.
+    let mut ln_choose = 0.0f64; // ln C(n, 0)
+    let mut tail = 0.0f64;
+    for i in 0..=k {
+        if i > 0 {
+            ln_choose += ((n - i + 1) as f64).ln() - (i as f64).ln();
+        }
+        tail += (ln_choose - n as f64 * std::f64::consts::LN_2).exp();
+    }
+    (2.0 * tail).min(1.0)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -138,5 +157,19 @@ mod tests {
         assert!((fisher_exact(count(20, 20), count(20, 20)).unwrap() - 1.0).abs() < 1e-9);
         assert_eq!(fisher_exact(count(0, 0), count(1, 2)), None);
         assert_eq!(fisher_exact(count(3, 2), count(1, 2)), None);
+    }
+
+    #[test]
+    fn mcnemar_is_the_two_sided_binomial_test_of_the_disagreements() {
+        // R: binom.test(1, 10)$p.value = 0.02148438 (= 22 / 1024).
+        assert!((mcnemar_exact(1, 9) - 22.0 / 1024.0).abs() < 1e-12);
+        assert!((mcnemar_exact(9, 1) - 22.0 / 1024.0).abs() < 1e-12);
+        // binom.test(0, 5): 2 / 32.
+        assert!((mcnemar_exact(0, 5) - 0.0625).abs() < 1e-12);
+        // An even split, or no disagreement at all: nothing to see.
+        assert_eq!(mcnemar_exact(4, 4), 1.0);
+        assert_eq!(mcnemar_exact(0, 0), 1.0);
+        // Many pairs stay finite: binom.test(40, 100)$p.value = 0.05688793.
+        assert!((mcnemar_exact(40, 60) - 0.056_887_93).abs() < 1e-7);
     }
 }
