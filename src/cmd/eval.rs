@@ -89,7 +89,7 @@ pub enum EvalAction {
     Report(ReportArgs),
     /// Compare two evaluations (a model and its ablation, two training runs): success per
     /// task variation, per task and overall in each, with Fisher's exact test of each
-    /// difference.
+    /// difference and McNemar's over the episodes both ran on the same seed.
     Compare(CompareArgs),
 }
 

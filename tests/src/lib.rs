@@ -177,7 +177,8 @@ pub fn write_exact_calibration(dir: &Path) -> anyhow::Result<PathBuf> {
 /// driver must still keep up with the controller, with one cell running at a time
 /// ([`one_cell_at_a_time`]). With both cores kept busy by two other processes, 2 passed
 /// every HIL test; at 4 the calibration capture once stopped on the tracking bound (the
-/// driver starved for longer than the arm may lag) (README, "Faster than real time").
+/// driver starved for longer than the arm may lag), until the driver's link thread ran at
+/// real-time priority, which CI may not grant (README, "Faster than real time").
 /// `expert_installs_the_small_toilet_roll` stays in real time, so CI runs one whole episode
 /// at the real cell's pace.
 pub const SIM_SPEED: f64 = 2.0;
