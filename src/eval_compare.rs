@@ -1,7 +1,8 @@
 //! `equact eval compare`: two evaluations side by side (a model and its ablation, two
 //! training runs), per task variation, per task and over all variations both ran, each
-//! difference with Fisher's exact test, so that a claim such as "the equivariant heads beat
-//! the plain ones" is measured in the repository rather than by a script beside it.
+//! difference with Fisher's exact test and, over the episodes both ran on the same scene
+//! seed, McNemar's, so that a claim such as "the equivariant heads beat the plain ones" is
+//! measured in the repository rather than by a script beside it.
 
 use std::collections::BTreeSet;
 
