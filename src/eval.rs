@@ -70,11 +70,11 @@ pub struct EpisodeSummary {
 impl VariationResult {
     /// Success rate in [0, 1] (0 with no episode).
     pub fn rate(&self) -> f64 {
-        if self.episodes == 0 {
-            0.0
-        } else {
-            self.successes as f64 / self.episodes as f64
+        crate::stats::Count {
+            successes: self.successes,
+            episodes: self.episodes,
         }
+        .rate()
     }
 }
 
@@ -92,7 +92,7 @@ impl EvalTable {
     pub fn per_task(&self) -> Vec<(String, u64, u64)> {
         let mut out: Vec<(String, u64, u64)> = Vec::new();
         for r in &self.rows {
-            let task = r.task.split('/').next().unwrap_or(&r.task).to_string();
+            let task = task_name(&r.task).to_string();
             match out.iter_mut().find(|(t, _, _)| *t == task) {
                 Some(e) => {
                     e.1 += r.successes;
@@ -122,15 +122,23 @@ impl EvalTable {
                     .map(|(task, ok, n)| (format!("**{task}**"), ok, n)),
             );
         for (name, ok, n) in rows {
-            let rate = if n == 0 { 0.0 } else { ok as f64 / n as f64 };
+            let count = crate::stats::Count {
+                successes: ok,
+                episodes: n,
+            };
             s.push_str(&format!(
                 "| {name} | {ok}/{n} | {:.0} % | {} |\n",
-                100.0 * rate,
+                100.0 * count.rate(),
                 crate::stats::interval_words(ok, n)
             ));
         }
         s
     }
+}
+
+/// The task of a `task/variation` name (the name itself when it has no variation).
+pub fn task_name(variation: &str) -> &str {
+    variation.split('/').next().unwrap_or(variation)
 }
 
 /// Hands out the keyframe source of each evaluation episode.

@@ -4,8 +4,6 @@
 //! seed, McNemar's, so that a claim such as "the equivariant heads beat the plain ones" is
 //! measured in the repository rather than by a script beside it.
 
-use std::collections::BTreeSet;
-
 use serde::Serialize;
 
 use crate::eval_report::{EvalReport, LoggedEpisode};
@@ -88,9 +86,10 @@ impl Comparison {
                 continue;
             };
             let mut r = row(va.task.clone(), count(va), count(vb));
-            r.paired.add(pairs(a, b, &va.task));
+            let (paired, same_seeds) = pairs(a, b, &va.task);
+            r.paired.add(paired);
             rows.push(r);
-            if seeds(a, &va.task) != seeds(b, &va.task) {
+            if !same_seeds {
                 different_seeds.push(va.task.clone());
             }
         }
@@ -111,7 +110,7 @@ impl Comparison {
         let mut tasks: Vec<CompareRow> = Vec::new();
         let mut all = row("all".into(), Count::default(), Count::default());
         for r in &rows {
-            let task = r.name.split('/').next().unwrap_or(&r.name);
+            let task = crate::eval::task_name(&r.name);
             let i = tasks
                 .iter()
                 .position(|t| t.name == task)
@@ -214,8 +213,8 @@ fn row(name: String, a: Count, b: Count) -> CompareRow {
 }
 
 /// The seed-matched episodes of `task` in both evaluations (a seed run twice in one of them
-/// pairs its first run).
-fn pairs(a: &[LoggedEpisode], b: &[LoggedEpisode], task: &str) -> Paired {
+/// pairs its first run), and whether the two ran the same seeds.
+fn pairs(a: &[LoggedEpisode], b: &[LoggedEpisode], task: &str) -> (Paired, bool) {
     let outcomes = |eps: &[LoggedEpisode]| {
         let mut m = std::collections::BTreeMap::new();
         for e in eps.iter().filter(|e| e.task == task) {
@@ -232,16 +231,7 @@ fn pairs(a: &[LoggedEpisode], b: &[LoggedEpisode], task: &str) -> Paired {
             p.only_b += u64::from(sb && !sa);
         }
     }
-    p
-}
-
-/// The scene seeds an evaluation ran for a variation.
-fn seeds(episodes: &[LoggedEpisode], task: &str) -> BTreeSet<u64> {
-    episodes
-        .iter()
-        .filter(|e| e.task == task)
-        .map(|e| e.seed)
-        .collect()
+    (p, oa.keys().eq(ob.keys()))
 }
 
 fn names(list: &[String]) -> String {

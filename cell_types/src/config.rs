@@ -128,6 +128,9 @@ impl RobotSection {
     }
 }
 
+/// The highest `SCHED_FIFO` priority Linux offers (`robot.realtime_priority`'s bound).
+pub const MAX_REALTIME_PRIORITY: u8 = 99;
+
 /// The driver thread's `SCHED_FIFO` priority by default: high, under the kernel's own
 /// real-time threads (99), as UR's client library runs its RTDE thread.
 pub const DEFAULT_REALTIME_PRIORITY: u8 = 80;
@@ -507,11 +510,14 @@ impl CellConfig {
                 ),
             );
         }
-        if r.realtime_priority > 99 {
+        if r.realtime_priority > MAX_REALTIME_PRIORITY {
             return invalid(
                 "robot.realtime_priority",
                 &r.realtime_priority.to_string(),
-                "must be a SCHED_FIFO priority, 1 to 99, or 0 for normal priority",
+                &format!(
+                    "must be a SCHED_FIFO priority, 1 to {MAX_REALTIME_PRIORITY}, or 0 for \
+                     normal priority"
+                ),
             );
         }
 

@@ -9,7 +9,7 @@ use std::os::unix::thread::JoinHandleExt;
 use std::thread::JoinHandle;
 
 /// The highest `SCHED_FIFO` priority Linux offers.
-pub const MAX_PRIORITY: u8 = 99;
+pub const MAX_PRIORITY: u8 = cell_types::config::MAX_REALTIME_PRIORITY;
 
 /// How a driver thread is scheduled.
 #[derive(Clone, Debug, PartialEq, Eq)]

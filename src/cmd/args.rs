@@ -75,6 +75,20 @@ pub fn interrupt_flag(message: &'static str) -> anyhow::Result<Arc<AtomicBool>> 
     Ok(interrupt)
 }
 
+/// Prints `value` as pretty JSON with `--json`, else its Markdown table.
+pub fn print_json_or_markdown(
+    json: bool,
+    value: &impl serde::Serialize,
+    markdown: impl FnOnce() -> String,
+) -> anyhow::Result<()> {
+    if json {
+        println!("{}", serde_json::to_string_pretty(value)?);
+    } else {
+        print!("{}", markdown());
+    }
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

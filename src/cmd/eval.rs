@@ -212,12 +212,7 @@ pub fn run(args: EvalArgs) -> anyhow::Result<()> {
 fn run_report(args: &ReportArgs) -> anyhow::Result<()> {
     let episodes = equact::eval_report::read_logs(&args.logs)?;
     let report = equact::eval_report::EvalReport::of(&episodes);
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&report)?);
-    } else {
-        print!("{}", report.markdown());
-    }
-    Ok(())
+    super::args::print_json_or_markdown(args.json, &report, || report.markdown())
 }
 
 /// Runs `equact eval compare`.
@@ -229,10 +224,5 @@ fn run_compare(args: &CompareArgs) -> anyhow::Result<()> {
         &args.b.display().to_string(),
         &read(&args.b)?,
     )?;
-    if args.json {
-        println!("{}", serde_json::to_string_pretty(&comparison)?);
-    } else {
-        print!("{}", comparison.markdown());
-    }
-    Ok(())
+    super::args::print_json_or_markdown(args.json, &comparison, || comparison.markdown())
 }

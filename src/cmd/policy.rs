@@ -423,12 +423,7 @@ fn ground(a: ScoreArgs) -> anyhow::Result<()> {
         a.seed,
         &mut |l| eprintln!("{l}"),
     )?;
-    if a.json {
-        println!("{}", serde_json::to_string_pretty(&table)?);
-    } else {
-        print!("{}", table.markdown());
-    }
-    Ok(())
+    super::args::print_json_or_markdown(a.json, &table, || table.markdown())
 }
 
 fn follow(a: FollowArgs) -> anyhow::Result<()> {
@@ -444,12 +439,7 @@ fn follow(a: FollowArgs) -> anyhow::Result<()> {
         a.score.seed,
         &mut |l| eprintln!("{l}"),
     )?;
-    if a.score.json {
-        println!("{}", serde_json::to_string_pretty(&table)?);
-    } else {
-        print!("{}", table.markdown());
-    }
-    Ok(())
+    super::args::print_json_or_markdown(a.score.json, &table, || table.markdown())
 }
 
 /// What `equact policy info` prints about `weights`: size, trained cloud points and one
