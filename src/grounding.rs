@@ -315,7 +315,7 @@ pub fn ground(
     let row = |task: Option<&str>| {
         let mine: Vec<&GroundedPrediction> = predictions
             .iter()
-            .filter(|p| task.is_none_or(|t| p.variation.split('/').next() == Some(t)))
+            .filter(|p| task.is_none_or(|t| crate::eval::task_name(&p.variation) == t))
             .collect();
         let pairs: Vec<bool> = per_scene
             .iter()
