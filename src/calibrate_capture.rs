@@ -345,7 +345,7 @@ pub fn capture_in_sim(
     cfg: &CellConfig,
     dir: &Path,
     plan: CapturePlan,
-    clock: Arc<dyn Clock>,
+    clock: Arc<cell_types::TickClock>,
     progress: &mut dyn FnMut(&str),
 ) -> anyhow::Result<CaptureRun> {
     let mut prepared = PreparedCapture::new(cfg, SimConfig::default_cell(), dir, &plan, progress)?;

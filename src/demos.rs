@@ -24,7 +24,7 @@ use std::sync::Arc;
 use std::time::Instant;
 
 use cell_types::config::{CellConfig, PerceptionSection};
-use cell_types::{CellTypesError, Keyframe, ScaledClock, Transform};
+use cell_types::{CellTypesError, Keyframe, TickClock, Transform};
 use nalgebra::{Quaternion, UnitQuaternion, Vector3};
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
@@ -650,7 +650,7 @@ fn record_episode(
     cfg: &CellConfig,
     kind: TaskKind,
     seed: u64,
-    clock: Arc<ScaledClock>,
+    clock: Arc<TickClock>,
     out: &Path,
     expert: &ExpertSettings,
     interrupt: &Arc<AtomicBool>,

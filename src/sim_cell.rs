@@ -10,7 +10,7 @@ use std::sync::{Arc, RwLock};
 
 use anyhow::Context;
 use cell_types::config::CellConfig;
-use cell_types::{CellTypesError, Clock, Joints, ScaledClock, Transform};
+use cell_types::{CellTypesError, Clock, Joints, TickClock, Transform};
 use firmware_iface::camera::DepthCamera;
 use firmware_iface::gripper::transport::UrcapTransport;
 use firmware_iface::gripper::RobotiqGripper;
@@ -35,14 +35,14 @@ pub struct EpisodePlan {
     /// Seed of each variation's first episode (the next ones add one).
     pub seed: u64,
     /// How many times faster than real time the simulated cell runs (1: real time, as the
-    /// real cell does; see [`ScaledClock`]).
+    /// real cell does; see [`TickClock`]).
     pub sim_speed: f64,
 }
 
 impl EpisodePlan {
     /// A fresh clock for one episode at the plan's speed, or why that speed cannot run.
-    pub fn clock(&self) -> Result<Arc<ScaledClock>, CellTypesError> {
-        ScaledClock::new(self.sim_speed).map(Arc::new)
+    pub fn clock(&self) -> Result<Arc<TickClock>, CellTypesError> {
+        TickClock::new(self.sim_speed).map(Arc::new)
     }
 }
 
@@ -181,13 +181,16 @@ pub struct SimCell {
 }
 
 impl SimCell {
-    /// Starts the simulated cell for `task` and connects the drivers.
+    /// Starts the simulated cell for `task` and connects the drivers. The simulated
+    /// controller keeps `clock`'s time, one control cycle at a time, each waiting for the
+    /// driver's answer to the one before (lockstep), so that an episode replays bit for bit.
     pub fn start(
         cfg: &CellConfig,
         task: TaskInstance,
         seed: u64,
-        clock: Arc<dyn Clock>,
+        clock: Arc<TickClock>,
     ) -> anyhow::Result<Self> {
+        let clock: Arc<dyn Clock> = clock;
         let tcp_offset = cfg.robot.tcp_offset_m;
         let sim_cfg = UrSimConfig {
             initial_q: HOME_Q,
@@ -198,6 +201,12 @@ impl SimCell {
             // The controller's table check must see the same table as the planner and the
             // scene: the simulated table top is below the base plate.
             floor_z: Some(cfg.workspace.table_height),
+            // Each control cycle waits for the driver's answer to the one before, as a real
+            // controller never has to (its client always answers in time): the arm then
+            // follows the same targets cycle for cycle whatever the load, and an episode
+            // replays bit for bit (with the driver reporting a motion once the arm is at
+            // rest, not from its last creep).
+            lockstep: true,
             ..UrSimConfig::for_tests()
         };
         let sim_cfg = match cfg.robot.model {

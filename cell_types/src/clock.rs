@@ -2,7 +2,7 @@
 //! simulator can run faster than real time and seeded runs repeat exactly.
 
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
 use crate::CellTypesError;
@@ -13,6 +13,39 @@ pub trait Clock: Send + Sync {
     fn now(&self) -> Duration;
     /// Waits until `deadline` (since the epoch) has passed.
     fn sleep_until(&self, deadline: Duration);
+    /// For the one thread that keeps a simulation's time (the simulated controller's control
+    /// loop): the next cycle starts at `t`. Most clocks just wait for it; a [`TickClock`]
+    /// moves its time there (at most its speed allows) and wakes whoever waits for it.
+    fn advance_to(&self, t: Duration) {
+        self.sleep_until(t);
+    }
+    /// For the thread that kept time with [`Clock::advance_to`]: it has stopped. A
+    /// [`TickClock`] then runs on by itself, so that nothing waiting on it hangs.
+    fn keeper_stopped(&self) {}
+    /// How many times faster than real time the clock runs (1 for the wall clock and for a
+    /// clock moved by hand), so a simulator can turn its own waits into wall time.
+    fn speed(&self) -> f64 {
+        1.0
+    }
+}
+
+/// Checks a simulated clock's speed: finite, positive, at most [`ScaledClock::MAX_SPEED`].
+fn checked_speed(speed: f64) -> Result<f64, CellTypesError> {
+    if !speed.is_finite() {
+        return Err(CellTypesError::NotFinite {
+            what: "clock speed",
+            value: speed,
+        });
+    }
+    if !(speed > 0.0 && speed <= ScaledClock::MAX_SPEED) {
+        return Err(CellTypesError::OutOfRange {
+            what: "clock speed (times real time)",
+            value: speed,
+            min: 0.0,
+            max: ScaledClock::MAX_SPEED,
+        });
+    }
+    Ok(speed)
 }
 
 /// The machine's monotonic clock; sleeps really sleep.
@@ -86,29 +119,10 @@ impl ScaledClock {
     /// A clock whose epoch is now, running `speed` times real time (1 is the wall clock).
     /// Refuses a speed that is not finite, not positive, or above [`Self::MAX_SPEED`].
     pub fn new(speed: f64) -> Result<Self, CellTypesError> {
-        if !speed.is_finite() {
-            return Err(CellTypesError::NotFinite {
-                what: "clock speed",
-                value: speed,
-            });
-        }
-        if !(speed > 0.0 && speed <= Self::MAX_SPEED) {
-            return Err(CellTypesError::OutOfRange {
-                what: "clock speed (times real time)",
-                value: speed,
-                min: 0.0,
-                max: Self::MAX_SPEED,
-            });
-        }
         Ok(Self {
             epoch: Instant::now(),
-            speed,
+            speed: checked_speed(speed)?,
         })
-    }
-
-    /// How many times faster than real time this clock runs.
-    pub fn speed(&self) -> f64 {
-        self.speed
     }
 }
 
@@ -119,6 +133,145 @@ impl Clock for ScaledClock {
 
     fn sleep_until(&self, deadline: Duration) {
         sleep_until_scaled(|| self.now(), deadline, self.speed);
+    }
+
+    fn speed(&self) -> f64 {
+        self.speed
+    }
+}
+
+/// Simulated time that moves only when its keeper, the simulated controller's control loop,
+/// moves it ([`Clock::advance_to`], once per control cycle), and at most `speed` times
+/// faster than real time. Everything else in the simulated cell reads and waits on it, so
+/// time is counted in control cycles: a cycle that waits for its client's answer (lockstep)
+/// delays the clock with it instead of leaving the arm behind its time stamps, and a
+/// seeded episode replays bit for bit. When the keeper stops ([`Clock::keeper_stopped`]),
+/// or is silent for [`TickClock::KEEPER_SILENCE`] of wall time, the clock runs on by
+/// itself at its speed, so that no waiting thread hangs.
+#[derive(Debug)]
+pub struct TickClock {
+    speed: f64,
+    state: Mutex<TickState>,
+    moved: Condvar,
+}
+
+#[derive(Debug)]
+struct TickState {
+    /// Simulated time (while kept).
+    now: Duration,
+    /// The pace's origin: this wall instant is due at simulated time `pace_sim`.
+    pace_wall: Instant,
+    pace_sim: Duration,
+    /// Wall instant of the keeper's last move.
+    last_move: Instant,
+    /// Running by itself since this wall instant, from this simulated time.
+    free_since: Option<(Instant, Duration)>,
+}
+
+impl TickState {
+    fn now(&self, speed: f64) -> Duration {
+        match self.free_since {
+            Some((wall, sim)) => sim + wall.elapsed().mul_f64(speed),
+            None => self.now,
+        }
+    }
+}
+
+impl TickClock {
+    /// The keeper's silence (wall time) after which the clock runs by itself.
+    pub const KEEPER_SILENCE: Duration = Duration::from_secs(2);
+
+    /// A clock at t = 0 whose keeper may move it `speed` times faster than real time at
+    /// most (checked as [`ScaledClock::new`] checks it).
+    pub fn new(speed: f64) -> Result<Self, CellTypesError> {
+        let wall = Instant::now();
+        Ok(Self {
+            speed: checked_speed(speed)?,
+            state: Mutex::new(TickState {
+                now: Duration::ZERO,
+                pace_wall: wall,
+                pace_sim: Duration::ZERO,
+                last_move: wall,
+                free_since: None,
+            }),
+            moved: Condvar::new(),
+        })
+    }
+
+    fn state(&self) -> MutexGuard<'_, TickState> {
+        self.state.lock().unwrap_or_else(|e| e.into_inner())
+    }
+}
+
+/// Behind its pace by more than this (wall time), a tick clock restarts its pace from now
+/// instead of catching up in a burst.
+const TICK_PACE_SLACK: Duration = Duration::from_millis(20);
+
+impl Clock for TickClock {
+    fn now(&self) -> Duration {
+        self.state().now(self.speed)
+    }
+
+    fn sleep_until(&self, deadline: Duration) {
+        let mut s = self.state();
+        loop {
+            if let Some((wall, sim)) = s.free_since {
+                drop(s);
+                let speed = self.speed;
+                sleep_until_scaled(|| sim + wall.elapsed().mul_f64(speed), deadline, speed);
+                return;
+            }
+            if s.now >= deadline {
+                return;
+            }
+            if s.last_move.elapsed() >= Self::KEEPER_SILENCE {
+                let now = s.now;
+                s.free_since = Some((Instant::now(), now));
+                continue;
+            }
+            let left = Self::KEEPER_SILENCE.saturating_sub(s.last_move.elapsed());
+            s = self
+                .moved
+                .wait_timeout(s, left)
+                .map(|(g, _)| g)
+                .unwrap_or_else(|e| e.into_inner().0);
+        }
+    }
+
+    fn advance_to(&self, t: Duration) {
+        let due = {
+            let s = self.state();
+            s.pace_wall + t.saturating_sub(s.pace_sim).div_f64(self.speed)
+        };
+        let wall = Instant::now();
+        if due > wall {
+            std::thread::sleep(due - wall);
+        }
+        let mut s = self.state();
+        let now = s.now(self.speed).max(t);
+        if wall > due + TICK_PACE_SLACK {
+            s.pace_wall = Instant::now();
+            s.pace_sim = now;
+        }
+        s.now = now;
+        s.free_since = None;
+        s.last_move = Instant::now();
+        drop(s);
+        self.moved.notify_all();
+    }
+
+    fn keeper_stopped(&self) {
+        let mut s = self.state();
+        if s.free_since.is_none() {
+            let now = s.now;
+            s.free_since = Some((Instant::now(), now));
+        }
+        drop(s);
+        self.moved.notify_all();
+    }
+
+    fn speed(&self) -> f64 {
+        self.speed
     }
 }
 
@@ -218,5 +371,75 @@ mod tests {
         }
         assert!(ScaledClock::new(0.5).is_ok());
         assert!(ScaledClock::new(ScaledClock::MAX_SPEED).is_ok());
+        for bad in [0.0, f64::NAN, ScaledClock::MAX_SPEED * 2.0] {
+            assert!(TickClock::new(bad).is_err(), "{bad}");
+        }
+    }
+
+    /// A tick clock's time is its keeper's: it stands still between moves, and a thread
+    /// waiting for a time wakes at the first move that reaches it.
+    #[test]
+    fn tick_clock_moves_only_with_its_keeper_and_wakes_sleepers_at_its_moves() {
+        let c = Arc::new(TickClock::new(16.0).unwrap());
+        assert_eq!(c.speed(), 16.0);
+        let sleeper = {
+            let c = c.clone();
+            std::thread::spawn(move || {
+                c.sleep_until(Duration::from_millis(50));
+                c.now()
+            })
+        };
+        std::thread::sleep(Duration::from_millis(20));
+        assert_eq!(c.now(), Duration::ZERO);
+        assert!(!sleeper.is_finished());
+        for k in 1..=8u64 {
+            c.advance_to(Duration::from_millis(8 * k));
+        }
+        assert_eq!(c.now(), Duration::from_millis(64));
+        let woke = sleeper.join().unwrap();
+        assert!(
+            woke >= Duration::from_millis(50) && woke <= Duration::from_millis(64),
+            "{woke:?}"
+        );
+        // Moving back is not possible.
+        c.advance_to(Duration::from_millis(10));
+        assert_eq!(c.now(), Duration::from_millis(64));
+    }
+
+    /// The keeper cannot move a tick clock faster than its speed: 400 ms of its time at 4
+    /// take at least 100 ms of wall time.
+    #[test]
+    fn tick_clock_keeps_its_pace() {
+        let c = TickClock::new(4.0).unwrap();
+        let wall = Instant::now();
+        for k in 1..=50u64 {
+            c.advance_to(Duration::from_millis(8 * k));
+        }
+        let waited = wall.elapsed();
+        assert_eq!(c.now(), Duration::from_millis(400));
+        assert!(waited >= Duration::from_millis(95), "{waited:?}");
+    }
+
+    /// Once its keeper has stopped, or has been silent for `KEEPER_SILENCE`, a tick clock
+    /// runs on by itself, so that nothing waiting on it hangs.
+    #[test]
+    fn tick_clock_runs_by_itself_without_its_keeper() {
+        let c = TickClock::new(4.0).unwrap();
+        c.advance_to(Duration::from_millis(8));
+        c.keeper_stopped();
+        let wall = Instant::now();
+        c.sleep_until(Duration::from_millis(48));
+        assert!(c.now() >= Duration::from_millis(48));
+        assert!(
+            wall.elapsed() >= Duration::from_millis(9),
+            "{:?}",
+            wall.elapsed()
+        );
+
+        let silent = TickClock::new(1.0).unwrap();
+        let wall = Instant::now();
+        silent.sleep_until(Duration::from_millis(5));
+        assert!(wall.elapsed() >= TickClock::KEEPER_SILENCE);
+        assert!(silent.now() >= Duration::from_millis(5));
     }
 }

@@ -22,7 +22,7 @@ pub mod joints;
 pub mod keyframe;
 pub mod trajectory;
 
-pub use clock::{Clock, ManualClock, ScaledClock, SystemClock};
+pub use clock::{Clock, ManualClock, ScaledClock, SystemClock, TickClock};
 pub use cloud::{PointCloud, Rgb};
 pub use config::{CellConfig, ConfigError};
 pub use error::CellTypesError;

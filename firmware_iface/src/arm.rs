@@ -160,7 +160,8 @@ impl JitterStats {
 pub enum ExecutionOutcome {
     /// Every sample was sent and the arm settled at the goal.
     Completed {
-        /// State at the end.
+        /// State at the end: for the UR driver, the first after the servo program ended
+        /// (the arm at rest), or the last of a short wait for it.
         final_state: ArmState,
         /// Largest tracking error seen (rad).
         max_tracking_error: f64,

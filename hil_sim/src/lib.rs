@@ -6,9 +6,11 @@
 //! depth/IR/colour by ray casting with parry3d, with the sensor's noise model).
 //!
 //! Every server and device keeps the time of an injected [`cell_types::Clock`]: the wall
-//! clock ([`cell_types::SystemClock`]) for the real cell's pace, or
-//! [`cell_types::ScaledClock`] to run a whole cell faster than real time with the same
-//! drivers (`--sim-speed`; the drivers must still answer every controller cycle).
+//! clock ([`cell_types::SystemClock`]) for the real cell's pace, [`cell_types::ScaledClock`]
+//! to run faster than real time, or [`cell_types::TickClock`], whose time the simulated
+//! controller moves one control cycle at a time while waiting for its driver's answer to
+//! each (lockstep): the simulated cell of `equact run`, `eval` and `demos collect`, at any
+//! `--sim-speed` and bit for bit repeatable.
 
 pub mod depth_camera;
 pub mod gripper;

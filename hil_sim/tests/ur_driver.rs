@@ -96,6 +96,12 @@ fn run_to_goal(h: &UrSimHandle, mut arm: UrArm) {
     );
     // The driver ended its program.
     assert_eq!(snap.runtime_state(), 1);
+    // ... and reported the motion once the program had ended and the arm was at rest: the
+    // state it reports is where the arm stays (not one from its last cycles of creep, which
+    // would make the next motion's start depend on timing).
+    assert!(!final_state.program_running, "{final_state:?}");
+    assert_eq!(final_state.joints.velocity, [0.0; 6], "{final_state:?}");
+    assert_eq!(snap.actual_q, final_state.joints.position);
 }
 
 #[test]

@@ -52,8 +52,8 @@ fn sim_speed(s: &str) -> Result<f64, String> {
         .trim()
         .parse()
         .map_err(|e| format!("{s:?} is not a number ({e})"))?;
-    cell_types::ScaledClock::new(v)
-        .map(|c| c.speed())
+    cell_types::TickClock::new(v)
+        .map(|c| cell_types::Clock::speed(&c))
         .map_err(|e| e.to_string())
 }
 

@@ -157,8 +157,8 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
             let mut progress = |line: &str| eprintln!("{line}");
             let real = cfg.robot.backend == cell_types::config::RobotBackend::Ur;
             sim.refuse_on_real_cell(real)?;
-            let clock = std::sync::Arc::new(cell_types::ScaledClock::new(sim.speed)?);
             let run = if real {
+                let clock = std::sync::Arc::new(cell_types::SystemClock::new());
                 let config_dir = super::config::config_dir(config.as_ref());
                 let mut cameras = equact::real_cell::open_cameras(&cfg)?;
                 equact::real_cell::confirm_motion(yes)?;
@@ -178,6 +178,7 @@ pub fn run(args: CalibrateArgs) -> anyhow::Result<()> {
                     &mut progress,
                 )?
             } else {
+                let clock = std::sync::Arc::new(cell_types::TickClock::new(sim.speed)?);
                 equact::calibrate_capture::capture_in_sim(
                     &cfg,
                     &out,

@@ -9,7 +9,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use cell_types::config::RobotBackend;
-use cell_types::{ScaledClock, SystemClock};
+use cell_types::{SystemClock, TickClock};
 use clap::{Args, ValueEnum};
 use equact::episode::{
     run_episode, run_sim_episode, KeyframeSource, OperatorJudged, Outcome, ScriptedExpert,
@@ -309,7 +309,7 @@ pub fn run(args: RunArgs) -> anyhow::Result<()> {
             break;
         }
         let seed = args.seed + u64::from(e);
-        let clock = Arc::new(ScaledClock::new(args.sim.speed)?);
+        let clock = Arc::new(TickClock::new(args.sim.speed)?);
         let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
         println!(
             "episode {}/{} · task {} (\"{}\") · seed {seed} · policy {}",

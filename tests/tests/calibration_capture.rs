@@ -10,9 +10,7 @@ use std::sync::Arc;
 use calibration::detect::{render_board_ir, IrLevels};
 use calibration::simulate::SimConfig;
 use cell_types::config::CellConfig;
-use cell_types::{
-    Base, Camera, CameraFrame, DepthImage, Image, ScaledClock, SystemClock, Transform,
-};
+use cell_types::{Base, Camera, CameraFrame, DepthImage, Image, SystemClock, TickClock, Transform};
 use equact::calibrate_capture::{capture_in_sim, capture_on_cell, CapturePlan};
 use firmware_iface::camera::{CameraError, DepthCamera};
 use hil_sim::ur_controller::{start, UrSimConfig, UrSimHandle};
@@ -34,7 +32,7 @@ fn capture_resume_and_solve_in_the_simulated_cell() {
     let cfg = CellConfig::simulated().unwrap();
     let dir = std::env::temp_dir().join(format!("equact-capture-{}", std::process::id()));
     let _ = std::fs::remove_dir_all(&dir);
-    let clock = Arc::new(ScaledClock::new(tests::SIM_SPEED).unwrap());
+    let clock = Arc::new(TickClock::new(tests::SIM_SPEED).unwrap());
     let mut lines = Vec::new();
 
     // An interrupted run: only 4 poses.

@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
 use cell_types::config::CellConfig;
-use cell_types::{CameraFrame, Keyframe, SystemClock, Transform};
+use cell_types::{CameraFrame, Keyframe, TickClock, Transform};
 use equact::episode::{run_sim_episode, EpisodeReport, KeyframeSource, Outcome, ScriptedExpert};
 use equact::learned::{for_cell, LearnedPolicy};
 use equact::recording::EpisodeRecorder;
@@ -74,7 +74,8 @@ fn run_task_episode(
 ) -> Run {
     let _guard = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let cfg = CellConfig::simulated().unwrap();
-    let clock = Arc::new(SystemClock::new());
+    // Real time: the faults below are injected after wall-clock delays.
+    let clock = Arc::new(TickClock::new(1.0).unwrap());
     let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
     let mut cell = SimCell::start(&cfg, task.clone(), seed, clock.clone()).unwrap();
     setup(&mut cell);

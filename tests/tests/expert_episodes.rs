@@ -10,7 +10,7 @@ use std::sync::atomic::AtomicBool;
 use std::sync::Arc;
 
 use cell_types::config::CellConfig;
-use cell_types::ScaledClock;
+use cell_types::TickClock;
 use equact::episode::{run_sim_episode, EpisodeReport, ScriptedExpert};
 use equact::recording::EpisodeRecorder;
 use equact::sim_cell::SimCell;
@@ -23,7 +23,7 @@ use equact::task::{toilet_roll, ReleaseOutcome, RollSize, TaskInstance, TaskKind
 fn expert_episode(kind: TaskKind, seed: u64, speed: f64) -> (EpisodeReport, bool) {
     let _cell = tests::one_cell_at_a_time();
     let cfg = CellConfig::simulated().unwrap();
-    let clock = Arc::new(ScaledClock::new(speed).unwrap());
+    let clock = Arc::new(TickClock::new(speed).unwrap());
     let task = TaskInstance::sample(kind, seed, cfg.workspace.table_height);
     let mut cell = SimCell::start(&cfg, task.clone(), seed, clock.clone()).unwrap();
     let dir = std::env::temp_dir().join(format!("equact-expert-{}", std::process::id()));

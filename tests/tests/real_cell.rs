@@ -12,7 +12,7 @@ use std::time::Duration;
 
 use cell_types::config::{CellConfig, GripperTransport};
 use cell_types::Joints;
-use cell_types::SystemClock;
+use cell_types::{SystemClock, TickClock};
 use equact::episode::{run_episode, CellIo, OperatorJudged, Outcome, ScriptedExpert, TaskMonitor};
 use equact::real_cell::{connect_gripper, read_calibration, RealCell};
 use equact::recording::EpisodeRecorder;
@@ -94,7 +94,7 @@ impl TaskMonitor for RealWorld<'_> {
 #[test]
 fn an_episode_without_a_success_test_is_left_to_the_operator() {
     let cfg = CellConfig::simulated().unwrap();
-    let clock = Arc::new(SystemClock::new());
+    let clock = Arc::new(TickClock::new(1.0).unwrap());
     let seed = 0;
     let task = TaskInstance::sample(
         TaskKind::PickFruit(Fruit::Strawberry),

@@ -307,7 +307,12 @@ impl Arm for UrArm {
             settle_cycles,
             stop: self.stop.clone(),
             done: tx,
-            cycles: Vec::with_capacity(trajectory.len() + settle_cycles as usize + 8),
+            cycles: Vec::with_capacity(
+                trajectory.len()
+                    + settle_cycles as usize
+                    + (rtde_link::PROGRAM_END_WAIT_S / period).ceil() as usize
+                    + 8,
+            ),
         };
         *self.link.job.lock().unwrap_or_else(|e| e.into_inner()) = Some(job);
         let limit = trajectory.duration() + self.config.settle_time + 2.0;

@@ -510,7 +510,15 @@ struct Streamer {
     settle_cycles: u32,
     max_err: f64,
     started: bool,
+    /// Packages since the stop word ended a motion that reached its goal, while waiting for
+    /// the program to end (`None`: still streaming).
+    ending: Option<u32>,
 }
+
+/// After a motion reached its goal and the stop word went out, how long (s) the driver waits
+/// for the servo program to end (its `stopj` brings the last sub-millimetre creep to rest)
+/// before it reports the motion completed anyway.
+pub(crate) const PROGRAM_END_WAIT_S: f64 = 0.25;
 
 impl Streamer {
     fn finish(
@@ -567,6 +575,30 @@ impl Streamer {
             self.settle_cycles = job.settle_cycles;
         } else if job.cycles.len() < job.cycles.capacity() {
             job.cycles.push(cycle);
+        }
+        if let Some(packages) = self.ending {
+            // The goal was reached and the stop word sent: the motion is complete once the
+            // program has ended and the arm is at rest, so that the state it reports (and
+            // the next motion starts from) is where the arm stays, not one from the last
+            // cycles of its creep (which package that is would depend on timing).
+            let waited = f64::from(packages) * link.period;
+            let safety_stop =
+                state.safety_mode != SafetyMode::Normal || state.robot_mode != RobotMode::Running;
+            if !state.program_running || safety_stop || waited >= PROGRAM_END_WAIT_S {
+                let max_err = self.max_err;
+                let final_state = *state;
+                if let Some(mut job) = slot.take() {
+                    drop(slot);
+                    self.finish(link, &mut job, |jitter| ExecutionOutcome::Completed {
+                        final_state,
+                        max_tracking_error: max_err,
+                        jitter,
+                    });
+                }
+            } else {
+                self.ending = Some(packages + 1);
+            }
+            return;
         }
         let q = state.joints.position;
         let last = self.index.saturating_sub(1).min(job.samples.len() - 1);
@@ -626,16 +658,7 @@ impl Streamer {
             let still = state.joints.velocity.iter().all(|v| v.abs() < 1e-3);
             if (err <= job.goal_tolerance && still) || self.settled_for >= self.settle_cycles {
                 let _ = link.write_inputs(SEQ_STOP, &target);
-                let max_err = self.max_err;
-                let final_state = *state;
-                if let Some(mut job) = slot.take() {
-                    drop(slot);
-                    self.finish(link, &mut job, |jitter| ExecutionOutcome::Completed {
-                        final_state,
-                        max_tracking_error: max_err,
-                        jitter,
-                    });
-                }
+                self.ending = Some(0);
                 return;
             }
             self.settled_for += 1;

@@ -78,10 +78,11 @@ pub struct UrSimConfig {
     pub flange_from_tcp: Transform<Flange, Tcp>,
     /// Table top height in the base frame (m); links below it raise a protective stop.
     pub floor_z: Option<f64>,
-    /// Lockstep: after each cycle, wait (one real period; 100 ms while a client streams) for its input
-    /// package before the next. With a [`cell_types::ManualClock`] shared by the simulator
-    /// and the driver, the pair then runs as fast as the round trip allows, faster than
-    /// real time, and each cycle still sees the driver's answer to the previous one.
+    /// Lockstep: after each cycle, wait (one period of the clock's time; up to 100 ms of wall
+    /// time while a client streams) for its input package before the next. With a
+    /// [`cell_types::TickClock`] (the simulated cell) or a [`cell_types::ManualClock`]
+    /// shared by the simulator and the driver, each cycle sees the driver's answer to the
+    /// one before whatever the load, and a slow answer delays the clock with the cycle.
     pub lockstep: bool,
 }
 
@@ -308,7 +309,9 @@ impl Shared {
         let mut streaming = false;
         while !self.stopping() {
             next += period;
-            self.clock.sleep_until(next);
+            // The controller keeps the simulated cell's time: on a `TickClock` this cycle's
+            // start is what moves it.
+            self.clock.advance_to(next);
             let now = self.clock.now();
             // Started after the next cycle was due: part of a catch-up burst.
             let late = now > next + period;
@@ -355,14 +358,14 @@ impl Shared {
             });
             if self.config.lockstep {
                 // Real-time wait on purpose: without a streaming client the simulator keeps
-                // real-time pace instead of spinning its simulated clock away. While a
-                // client streams (its last input came within the wait), it gets more
-                // patience, so that a client starved of CPU for a few periods on a loaded
-                // machine still answers every cycle.
+                // its clock's pace (one period of its time) instead of spinning its
+                // simulated clock away. While a client streams (its last input came within
+                // the wait), it gets more patience, so that a client starved of CPU for a
+                // few periods on a loaded machine still answers every cycle.
                 let patience = if streaming {
                     LOCKSTEP_STREAMING_PATIENCE.max(period)
                 } else {
-                    period
+                    period.div_f64(self.clock.speed())
                 };
                 let g = lock(&self.inputs_seen);
                 let (g, waited) = self
@@ -471,9 +474,14 @@ pub fn start(config: UrSimConfig, clock: Arc<dyn Clock>) -> Result<UrSimHandle, 
             .map_err(|source| UrSimError::Spawn { what, source })
     };
     let s = shared.clone();
-    handle
-        .threads
-        .push(spawn("control", Box::new(move || s.control_loop()))?);
+    handle.threads.push(spawn(
+        "control",
+        Box::new(move || {
+            s.control_loop();
+            // Whatever still waits on a clock this loop kept must not wait for it.
+            s.clock.keeper_stopped();
+        }),
+    )?);
     let s = shared.clone();
     handle.threads.push(spawn(
         "rtde-accept",
