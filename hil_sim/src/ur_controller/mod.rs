@@ -359,9 +359,14 @@ impl Shared {
             if self.config.lockstep {
                 // Real-time wait on purpose: without a streaming client the simulator keeps
                 // its clock's pace (one period of its time) instead of spinning its
-                // simulated clock away. While a client streams (its last input came within
-                // the wait), it gets more patience, so that a client starved of CPU for a
-                // few periods on a loaded machine still answers every cycle.
+                // simulated clock away. While a client streams (a servo program plays and
+                // the client's last input came within the wait), it gets more patience, so
+                // that a client starved of CPU for a few periods on a loaded machine still
+                // answers every cycle. Outside a program nothing waits on its inputs: an
+                // input then (the driver's hold word before a motion) must not stall the
+                // clock for the patience.
+                let playing =
+                    snap.program_state == firmware_iface::dashboard::ProgramState::Playing;
                 let patience = if streaming {
                     LOCKSTEP_STREAMING_PATIENCE.max(period)
                 } else {
@@ -372,7 +377,7 @@ impl Shared {
                     .input_arrived
                     .wait_timeout_while(g, patience, |n| *n == seen_before)
                     .unwrap_or_else(|e| e.into_inner());
-                streaming = !waited.timed_out() && *g != seen_before;
+                streaming = playing && !waited.timed_out() && *g != seen_before;
             }
         }
     }
