@@ -8,9 +8,9 @@
 //! Every server and device keeps the time of an injected [`cell_types::Clock`]: the wall
 //! clock ([`cell_types::SystemClock`]) for the real cell's pace, [`cell_types::ScaledClock`]
 //! to run faster than real time, or [`cell_types::TickClock`], whose time the simulated
-//! controller moves one control cycle at a time while waiting for its driver's answer to
-//! each (lockstep): the simulated cell of `equact run`, `eval` and `demos collect`, at any
-//! `--sim-speed` and bit for bit repeatable.
+//! controller moves one control cycle at a time, waiting while a servo program plays for its
+//! driver's answer to each cycle (lockstep): the simulated cell of `equact run`, `eval` and
+//! `demos collect`, at any `--sim-speed` and bit for bit repeatable.
 
 pub mod depth_camera;
 pub mod gripper;

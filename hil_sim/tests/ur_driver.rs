@@ -588,6 +588,113 @@ fn lockstep_on_a_shared_manual_clock_runs_on_simulated_time() {
     );
 }
 
+/// One motion in lockstep on a `TickClock` at `speed`: the final joints, every cycle's
+/// joints from the one before the arm moved to the first at rest again, and how many cycles
+/// after the servo program's first the arm moved.
+fn lockstep_motion(speed: f64) -> (Joints, Vec<Joints>, usize) {
+    let clock = Arc::new(cell_types::TickClock::new(speed).unwrap());
+    let h = start(
+        UrSimConfig {
+            lockstep: true,
+            ..UrSimConfig::for_tests().e_series()
+        },
+        clock.clone(),
+    )
+    .unwrap();
+    let mut arm = UrArm::connect(config_for(&h), clock.clone()).unwrap();
+    let start = arm.state().unwrap().joints.position;
+    let traj = quintic(start, goal_from(start), 1.0, arm.period());
+    let outcome = arm.execute(&traj).unwrap();
+    let ExecutionOutcome::Completed { final_state, .. } = outcome else {
+        panic!("{outcome:?}");
+    };
+    let mut log = Vec::new();
+    arm.drain_states(&mut log);
+    let states: Vec<_> = log.iter().map(|(_, s)| s).collect();
+    let running = states.iter().position(|s| s.program_running).unwrap();
+    let moved = states
+        .iter()
+        .position(|s| s.joints.position != start)
+        .unwrap();
+    // How many packages came before and after the motion depends on the test's wall time.
+    let mut path: Vec<Joints> = states.iter().map(|s| s.joints.position).collect();
+    let rest = path[path.len() - 1];
+    let end = path.iter().rposition(|q| *q != rest).unwrap() + 2;
+    path.truncate(end);
+    (
+        final_state.joints.position,
+        path.split_off(moved - 1),
+        moved - running,
+    )
+}
+
+/// Threads that keep every core busy until dropped (even when an assertion fails first).
+struct BusyCores {
+    stop: Arc<std::sync::atomic::AtomicBool>,
+    threads: Vec<std::thread::JoinHandle<u64>>,
+}
+
+impl BusyCores {
+    fn start(n: usize) -> Self {
+        let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let threads = (0..n)
+            .map(|_| {
+                let stop = stop.clone();
+                std::thread::spawn(move || {
+                    let mut x = 0u64;
+                    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        x = x.wrapping_add(1);
+                    }
+                    x
+                })
+            })
+            .collect();
+        Self { stop, threads }
+    }
+}
+
+impl Drop for BusyCores {
+    fn drop(&mut self) {
+        self.stop.store(true, std::sync::atomic::Ordering::Relaxed);
+        for t in self.threads.drain(..) {
+            let _ = t.join();
+        }
+    }
+}
+
+#[test]
+fn lockstep_moves_the_arm_the_same_at_any_speed() {
+    // The driver answers the servo program's first cycle with its first target and, from
+    // then on, the controller waits for its answer to every cycle, so neither the clock's
+    // speed nor the threads' timing (at 16x a cycle is 125 us of wall time, less than a
+    // loopback round trip; here both cores are busy too) can change the arm's path. Before,
+    // the first target went out from whichever package followed the caller's wake-up while
+    // the controller ran on: the arm started moving 2, 3 or more cycles after the program, and a
+    // stale or skipped target at the start left it 1e-12 rad elsewhere in some motions.
+    let (goal_1x, path_1x, start_1x) = lockstep_motion(1.0);
+    // The program's first cycle is answered with the first target (the start itself), the
+    // next with the second, the first that moves the arm.
+    assert_eq!(
+        start_1x, 2,
+        "the arm moved {start_1x} cycles after the program started"
+    );
+    let _busy = BusyCores::start(2);
+    for run in 0..20 {
+        let (goal, path, start) = lockstep_motion(16.0);
+        assert_eq!(
+            start, 2,
+            "run {run} at 16x moved {start} cycles after the program started"
+        );
+        assert_eq!(goal, goal_1x, "run {run} at 16x ended elsewhere");
+        assert_eq!(
+            path.len(),
+            path_1x.len(),
+            "run {run} at 16x took other cycles"
+        );
+        assert_eq!(path, path_1x, "run {run} at 16x moved otherwise");
+    }
+}
+
 #[test]
 fn delayed_packages_still_complete_and_a_long_delay_is_caught() {
     let h = sim(UrSimConfig::for_tests());

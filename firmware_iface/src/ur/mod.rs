@@ -279,20 +279,6 @@ impl Arm for UrArm {
                     .down
                     .unwrap_or_else(|| "no state package for 0.5 s".into()),
             })?;
-        self.upload(&params)?;
-        let wait = Duration::from_secs(2);
-        self.link
-            .wait_for(wait, |s| s.state.program_running && s.ack == 0)
-            .map_err(|s| ArmError::ProgramNotStarted {
-                waited: wait.as_secs_f64(),
-                detail: match s.down {
-                    Some(d) => d,
-                    None => format!(
-                        "runtime running = {}, ack = {}, robot {:?}, safety {:?}",
-                        s.state.program_running, s.ack, s.state.robot_mode, s.state.safety_mode
-                    ),
-                },
-            })?;
         self.stop.clear();
         let (tx, rx) = sync_channel(1);
         let settle_cycles = (self.config.settle_time / period).ceil() as u32;
@@ -313,8 +299,43 @@ impl Arm for UrArm {
                     + (rtde_link::PROGRAM_END_WAIT_S / period).ceil() as usize
                     + 8,
             ),
+            awaiting_program: true,
         };
+        // Installed before the program starts, so that the link thread answers the very
+        // first package that shows it running: the first target then always reaches the
+        // controller one cycle after the program's first cycle (a simulated controller in
+        // lockstep replays the same motion whatever the threads' timing).
         *self.link.job.lock().unwrap_or_else(|e| e.into_inner()) = Some(job);
+        if let Err(e) = self.upload(&params) {
+            self.link
+                .job
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .take();
+            return Err(e);
+        }
+        let wait = Duration::from_secs(2);
+        if let Err(s) = self
+            .link
+            .wait_for(wait, |s| s.state.program_running && s.ack == 0)
+        {
+            // A short motion may have started and ended while this thread waited: only a job
+            // still waiting for its program means the program never ran.
+            let mut job = self.link.job.lock().unwrap_or_else(|e| e.into_inner());
+            if job.as_ref().is_some_and(|j| j.awaiting_program) {
+                job.take();
+                return Err(ArmError::ProgramNotStarted {
+                    waited: wait.as_secs_f64(),
+                    detail: match s.down {
+                        Some(d) => d,
+                        None => format!(
+                            "runtime running = {}, ack = {}, robot {:?}, safety {:?}",
+                            s.state.program_running, s.ack, s.state.robot_mode, s.state.safety_mode
+                        ),
+                    },
+                });
+            }
+        }
         let limit = trajectory.duration() + self.config.settle_time + 2.0;
         match rx.recv_timeout(Duration::from_secs_f64(limit)) {
             Ok(outcome) => Ok(outcome),

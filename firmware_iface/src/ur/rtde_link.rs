@@ -129,6 +129,10 @@ pub(crate) struct Job {
     pub stop: StopHandle,
     pub done: SyncSender<ExecutionOutcome>,
     pub cycles: Vec<f64>,
+    /// Installed before the servo program started: the link answers from the first package
+    /// that shows it running (and its acknowledgement word cleared), not from whichever
+    /// package follows the caller's wake-up.
+    pub awaiting_program: bool,
 }
 
 /// Shared between the driver and its link thread.
@@ -570,6 +574,13 @@ impl Streamer {
                 state.joints.position,
             );
         };
+        if job.awaiting_program {
+            if !(state.program_running && *ack == 0) {
+                // Still the upload's few cycles: nothing to answer yet.
+                return;
+            }
+            job.awaiting_program = false;
+        }
         if !self.started {
             self.started = true;
             self.settle_cycles = job.settle_cycles;

@@ -306,7 +306,9 @@ impl Shared {
     fn control_loop(&self) {
         let period = Duration::from_secs_f64(self.config.period());
         let mut next = self.clock.now();
-        let mut streaming = false;
+        // The client let a streaming wait run out: wait only a period for it until it
+        // answers again, so that a client that stopped answering meets the watchdog soon.
+        let mut client_silent = false;
         while !self.stopping() {
             next += period;
             // The controller keeps the simulated cell's time: on a `TickClock` this cycle's
@@ -330,15 +332,17 @@ impl Shared {
                     f.stall_until = None;
                 }
             }
-            let seen_before = *lock(&self.inputs_seen);
-            let (snap, events) = {
+            let (snap, events, seen_before) = {
                 let mut core = self.core();
                 if late {
                     core.step_late();
                 } else {
                     core.step();
                 }
-                (Arc::new(core.snapshot()), core.take_events())
+                // Inputs are counted under the core's lock: those after this count came
+                // after the cycle (the answer a lockstep cycle waits for).
+                let seen = *lock(&self.inputs_seen);
+                (Arc::new(core.snapshot()), core.take_events(), seen)
             };
             for e in events {
                 self.log(e);
@@ -359,25 +363,26 @@ impl Shared {
             if self.config.lockstep {
                 // Real-time wait on purpose: without a streaming client the simulator keeps
                 // its clock's pace (one period of its time) instead of spinning its
-                // simulated clock away. While a client streams (a servo program plays and
-                // the client's last input came within the wait), it gets more patience, so
-                // that a client starved of CPU for a few periods on a loaded machine still
-                // answers every cycle. Outside a program nothing waits on its inputs: an
-                // input then (the driver's hold word before a motion) must not stall the
-                // clock for the patience.
-                let playing =
+                // simulated clock away. While a servo program plays, every cycle waits for
+                // the client's answer (the driver answers from the program's first cycle
+                // on) with more patience, so that a client starved of CPU for a few periods
+                // on a loaded machine still answers every cycle and the arm moves the same
+                // whatever the threads' timing. Outside a program nothing waits on inputs:
+                // one then (the driver's hold word before a motion) must not stall the clock
+                // for the patience.
+                let streaming =
                     snap.program_state == firmware_iface::dashboard::ProgramState::Playing;
-                let patience = if streaming {
+                let patience = if streaming && !client_silent {
                     LOCKSTEP_STREAMING_PATIENCE.max(period)
                 } else {
                     period.div_f64(self.clock.speed())
                 };
                 let g = lock(&self.inputs_seen);
-                let (g, waited) = self
+                let (g, _) = self
                     .input_arrived
                     .wait_timeout_while(g, patience, |n| *n == seen_before)
                     .unwrap_or_else(|e| e.into_inner());
-                streaming = playing && !waited.timed_out() && *g != seen_before;
+                client_silent = streaming && *g == seen_before;
             }
         }
     }

@@ -332,8 +332,10 @@ fn handle(
                 for (n, v) in r.names.iter().zip(decoded) {
                     apply_input(n, v, &mut core.registers);
                 }
+                // Counted under the core's lock, so that a control cycle (lockstep) knows
+                // exactly which inputs the registers it stepped on held.
+                shared.input_received();
             }
-            shared.input_received();
             Vec::new()
         }
         HostMessage::Text(t) => {
