@@ -5,7 +5,7 @@
 
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpStream};
-use std::sync::mpsc::SyncSender;
+use std::sync::mpsc::{sync_channel, SyncSender};
 use std::sync::{Arc, Condvar, Mutex, MutexGuard};
 use std::time::{Duration, Instant};
 
@@ -350,14 +350,21 @@ impl Link {
         c.s.set_read_timeout(Some(Duration::from_secs_f64(period)))
             .map_err(io)?;
         let l = link.clone();
+        // The thread waits at this gate until its priority is set, so that it answers no
+        // package at normal priority (the request needs the thread's handle first).
+        let (go, gate) = sync_channel::<()>(1);
         let thread = std::thread::Builder::new()
             .name("ur-rtde-link".into())
-            .spawn(move || l.run(c, out_layout, clock))
+            .spawn(move || {
+                let _ = gate.recv();
+                l.run(c, out_layout, clock)
+            })
             .map_err(io)?;
         let scheduling = match realtime_priority {
             Some(p) => crate::realtime::request_fifo(&thread, p),
             None => Scheduling::Normal,
         };
+        let _ = go.send(());
         if let Scheduling::Refused { .. } = &scheduling {
             log::warn!("UR driver link thread: {scheduling}");
         }
