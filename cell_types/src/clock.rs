@@ -171,10 +171,15 @@ struct TickState {
 impl TickState {
     fn now(&self, speed: f64) -> Duration {
         match self.free_since {
-            Some((wall, sim)) => sim + wall.elapsed().mul_f64(speed),
+            Some(since) => free_running_now(since, speed),
             None => self.now,
         }
     }
+}
+
+/// The time of a tick clock running by itself since `(wall, sim)` at `speed`.
+fn free_running_now((wall, sim): (Instant, Duration), speed: f64) -> Duration {
+    sim + wall.elapsed().mul_f64(speed)
 }
 
 impl TickClock {
@@ -215,10 +220,10 @@ impl Clock for TickClock {
     fn sleep_until(&self, deadline: Duration) {
         let mut s = self.state();
         loop {
-            if let Some((wall, sim)) = s.free_since {
+            if let Some(since) = s.free_since {
                 drop(s);
                 let speed = self.speed;
-                sleep_until_scaled(|| sim + wall.elapsed().mul_f64(speed), deadline, speed);
+                sleep_until_scaled(|| free_running_now(since, speed), deadline, speed);
                 return;
             }
             if s.now >= deadline {
