@@ -669,8 +669,8 @@ fn lockstep_moves_the_arm_the_same_at_any_speed() {
     // speed nor the threads' timing (at 16x a cycle is 125 us of wall time, less than a
     // loopback round trip; here both cores are busy too) can change the arm's path. Before,
     // the first target went out from whichever package followed the caller's wake-up while
-    // the controller ran on: the arm started moving 2, 3 or more cycles after the program, and a
-    // stale or skipped target at the start left it 1e-12 rad elsewhere in some motions.
+    // the controller ran on: the arm started moving 2, 3 or more cycles after the program,
+    // and a stale or skipped target at the start left it 1e-12 rad elsewhere in some motions.
     let (goal_1x, path_1x, start_1x) = lockstep_motion(1.0);
     // The program's first cycle is answered with the first target (the start itself), the
     // next with the second, the first that moves the arm.

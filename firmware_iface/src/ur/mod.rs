@@ -305,25 +305,19 @@ impl Arm for UrArm {
         // first package that shows it running: the first target then always reaches the
         // controller one cycle after the program's first cycle (a simulated controller in
         // lockstep replays the same motion whatever the threads' timing).
-        *self.link.job.lock().unwrap_or_else(|e| e.into_inner()) = Some(job);
+        self.link.set_job(job);
         if let Err(e) = self.upload(&params) {
-            self.link
-                .job
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .take();
+            self.link.take_job();
             return Err(e);
         }
         let wait = Duration::from_secs(2);
         if let Err(s) = self
             .link
-            .wait_for(wait, |s| s.state.program_running && s.ack == 0)
+            .wait_for(wait, |s| rtde_link::servo_program_started(&s.state, s.ack))
         {
             // A short motion may have started and ended while this thread waited: only a job
             // still waiting for its program means the program never ran.
-            let mut job = self.link.job.lock().unwrap_or_else(|e| e.into_inner());
-            if job.as_ref().is_some_and(|j| j.awaiting_program) {
-                job.take();
+            if self.link.take_unstarted_job() {
                 return Err(ArmError::ProgramNotStarted {
                     waited: wait.as_secs_f64(),
                     detail: match s.down {
@@ -342,12 +336,7 @@ impl Arm for UrArm {
             Err(_) => {
                 // The link thread never answered (it died without a job outcome): stop the
                 // motion by every means left and report it.
-                let job = self
-                    .link
-                    .job
-                    .lock()
-                    .unwrap_or_else(|e| e.into_inner())
-                    .take();
+                let job = self.link.take_job();
                 let _ = self.link.write_inputs(crate::urscript::SEQ_STOP, goal);
                 let _ = self.dashboard.command(&DashboardCommand::Stop);
                 let status = self

@@ -389,6 +389,27 @@ impl Link {
         lock(&self.writer).write_all(&pkg[..n]).map_err(io)
     }
 
+    /// Hands `job` to the link thread (it streams once the program has started).
+    pub(crate) fn set_job(&self, job: Job) {
+        *lock(&self.job) = Some(job);
+    }
+
+    /// Takes the job back from the link thread (`None`: it has finished it already).
+    pub(crate) fn take_job(&self) -> Option<Job> {
+        lock(&self.job).take()
+    }
+
+    /// Takes the job back if the link thread has not seen its program start yet; whether
+    /// it did.
+    pub(crate) fn take_unstarted_job(&self) -> bool {
+        let mut slot = lock(&self.job);
+        let unstarted = slot.as_ref().is_some_and(|j| j.awaiting_program);
+        if unstarted {
+            slot.take();
+        }
+        unstarted
+    }
+
     /// Closes the RTDE socket; the link thread sees the end of the stream and exits.
     pub(crate) fn close(&self) {
         let _ = lock(&self.writer).shutdown(std::net::Shutdown::Both);
@@ -526,6 +547,12 @@ struct Streamer {
     ending: Option<u32>,
 }
 
+/// Whether our servo program runs with its acknowledgement word cleared: the state a job
+/// waits for before it streams (a program still ending, or not yet started, fails it).
+pub(crate) fn servo_program_started(state: &ArmState, ack: i32) -> bool {
+    state.program_running && ack == 0
+}
+
 /// After a motion reached its goal and the stop word went out, how long (s) the driver waits
 /// for the servo program to end (its `stopj` brings the last sub-millimetre creep to rest)
 /// before it reports the motion completed anyway.
@@ -582,7 +609,7 @@ impl Streamer {
             );
         };
         if job.awaiting_program {
-            if !(state.program_running && *ack == 0) {
+            if !servo_program_started(state, *ack) {
                 // Still the upload's few cycles: nothing to answer yet.
                 return;
             }
