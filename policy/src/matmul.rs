@@ -4,11 +4,13 @@
 //! `f32` matrices nalgebra hands them to `matrixmultiply`'s cache-blocked sgemm, which picks
 //! its AVX2/FMA/AVX-512 kernel at run time (the crate itself is built for baseline x86-64).
 //! This is how the per-edge layers run as a few large products instead of per-row loops.
-//! Everything stays on the calling thread. Every product is counted (calls, multiply-adds,
-//! seconds) in process-wide totals, [`product_counts`], which `equact bench policy` reports
-//! per keyframe: two clock reads per product, about 0.05 % of a keyframe.
+//! Everything stays on the calling thread. Once [`count_products`] switched it on (`equact
+//! bench policy` and `bench matmul` do), every product is counted (calls, multiply-adds,
+//! seconds) in process-wide totals, [`product_counts`]: two clock reads per product, about
+//! 0.05 % of a keyframe, but 1-2 % of a training step (its tape multiplies each edge's
+//! rotation on its own), so it is off by default.
 
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::time::Instant;
 
 use nalgebra::{DMatrixView, DMatrixViewMut};
@@ -102,6 +104,7 @@ fn small_gemm_acc(a: &Strided<'_>, b: &Strided<'_>, c: &mut [f32], c_offset: usi
     }
 }
 
+static COUNTING: AtomicBool = AtomicBool::new(false);
 static PRODUCTS: AtomicU64 = AtomicU64::new(0);
 static MULTIPLY_ADDS: AtomicU64 = AtomicU64::new(0);
 static PRODUCT_NANOS: AtomicU64 = AtomicU64::new(0);
@@ -137,7 +140,13 @@ impl ProductCounts {
     }
 }
 
-/// The products counted so far in this process.
+/// Switches the counting of [`gemm_acc`]'s products on or off for the whole process (off
+/// when it starts).
+pub fn count_products(on: bool) {
+    COUNTING.store(on, Ordering::Relaxed);
+}
+
+/// The products counted so far in this process (while counting was on).
 pub fn product_counts() -> ProductCounts {
     ProductCounts {
         products: PRODUCTS.load(Ordering::Relaxed),
@@ -178,12 +187,15 @@ pub fn gemm_acc(
     if m == 0 || n == 0 || k == 0 {
         return Ok(());
     }
-    let start = Instant::now();
+    let start = COUNTING.load(Ordering::Relaxed).then(Instant::now);
     if m <= SMALL || n <= SMALL || k <= SMALL {
         small_gemm_acc(&a, &b, c_data, c_offset, c_rs);
     } else {
         large_gemm_acc(&a, &b, c_data, c_offset, c_rs);
     }
+    let Some(start) = start else {
+        return Ok(());
+    };
     let nanos = u64::try_from(start.elapsed().as_nanos()).unwrap_or(u64::MAX);
     PRODUCTS.fetch_add(1, Ordering::Relaxed);
     MULTIPLY_ADDS.fetch_add((m * k * n) as u64, Ordering::Relaxed);
@@ -273,6 +285,7 @@ mod tests {
         let a = Strided::row_major(&vals, 0, m, k);
         let b = Strided::row_major(&vals, m * k, k, n);
         let mut c = vec![0.0f32; m * n];
+        count_products(true);
         let before = product_counts();
         gemm_acc(a, b, &mut c, 0, n).unwrap_or_else(|e| panic!("{e}"));
         // An empty product is not counted.

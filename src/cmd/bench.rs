@@ -190,7 +190,11 @@ pub fn run(args: BenchArgs) -> anyhow::Result<()> {
     match args.what {
         BenchWhat::Planner(a) => run_planner(a),
         BenchWhat::Ur(a) => super::bench_ur::run(a),
-        BenchWhat::Policy(a) => run_policy(a),
+        BenchWhat::Policy(a) => {
+            // The report's `matrix_products` per keyframe.
+            policy::matmul::count_products(true);
+            run_policy(a)
+        }
         BenchWhat::Attention(a) => super::bench_attention::run(a),
         BenchWhat::Matmul(a) => super::bench_matmul::run(a),
     }

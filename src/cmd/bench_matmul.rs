@@ -2,7 +2,7 @@
 //! ceiling that `bench policy`'s `matrix_products` rate compares with.
 
 use clap::Args;
-use policy::matmul::{gemm_acc, product_counts, Strided};
+use policy::matmul::{count_products, gemm_acc, product_counts, Strided};
 
 /// The sixteen product shapes (m, k, n) with the most multiply-adds in one keyframe of the
 /// physical configuration (gated mode, 2048 points; traced from `matmul::gemm_acc` on
@@ -43,6 +43,7 @@ pub fn run(a: MatmulBenchArgs) -> anyhow::Result<()> {
 
 /// Times every shape of [`PHYSICAL_SHAPES`] for about `seconds` each.
 fn measure(seconds: f64) -> anyhow::Result<serde_json::Value> {
+    count_products(true);
     if !(seconds.is_finite() && seconds > 0.0) {
         anyhow::bail!("--seconds must be a positive number of seconds, got {seconds}");
     }

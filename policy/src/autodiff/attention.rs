@@ -297,15 +297,12 @@ pub fn so2_conv(
         let idx: Vec<usize> = (0..ne)
             .flat_map(|e| positions.iter().map(move |p| e * nr + p))
             .collect();
-        let v = t.gather_rows(xr, keep, &idx)?;
-        let v = t.reshape(v, &[ne, nl * keep])?;
         match rad {
-            Some(r) => {
-                let rs = t.slice_cols(r, rad_w, roff..roff + nl * cin)?;
-                let rs = keep_channels(t, rs, ne, (nl, cin, keep))?;
-                t.mul(v, rs)
+            Some(r) => gather_scaled(t, xr, &idx, (r, rad_w, roff), (nl, cin, keep)),
+            None => {
+                let v = t.gather_rows(xr, keep, &idx)?;
+                t.reshape(v, &[ne, nl * keep])
             }
-            None => Ok(v),
         }
     };
     // m = 0: one Linear with bias; its first outputs are the extra scalars.
@@ -339,6 +336,94 @@ pub fn so2_conv(
     }
     let y = so2_outputs(t, map, (o0, w0_out, extra), &pairs, cout, ne);
     Ok((y, extra_out))
+}
+
+/// Rows `idx` of `x` (`[ne·nl]` of them, rows of `keep` values, `nl` per edge) as `[ne,
+/// nl·keep]`, each value multiplied by its edge's radial weight: value (e, l·keep + c) by
+/// `r[e, roff + l·cin + c]` (`r` `[ne, rad_w]`). The SO(2) convolution's scaled input
+/// blocks in one pass: the values and gradients of `gather_rows`, `slice_cols`,
+/// `keep_channels` and `mul` (each product as they formed it, each accumulator's sums in
+/// the same order), without their three intermediate copies forward and two backward.
+fn gather_scaled(
+    t: &mut Tape,
+    x: Var,
+    idx: &[usize],
+    (r, rad_w, roff): (Var, usize, usize),
+    (nl, cin, keep): (usize, usize, usize),
+) -> Result<Var> {
+    let nx = rows_of("scaled gather input", t.value(x).len(), keep)?;
+    let ne = rows_of("scaled gather rows", idx.len(), nl.max(1))?;
+    if let Some(&bad) = idx.iter().find(|&&i| i >= nx) {
+        return Err(PolicyError::IndexOutOfRange {
+            name: "gathered row".into(),
+            value: bad as i64,
+            len: nx,
+        });
+    }
+    if keep > cin || roff + nl * cin > rad_w || t.value(r).len() != ne * rad_w {
+        return Err(mismatch(
+            "radial weights of a scaled gather",
+            vec![ne, roff + nl * cin],
+            t.shape(r).to_vec(),
+        ));
+    }
+    let (xv, rv) = (t.value(x), t.value(r));
+    // Row k = e·nl + l reads x row idx[k] and the radial columns at `rcol(k)`.
+    let rcol = move |k: usize| (k / nl) * rad_w + roff + (k % nl) * cin;
+    let mut y = Vec::with_capacity(idx.len() * keep);
+    for (k, &i) in idx.iter().enumerate() {
+        let (xr, rr) = (&xv[i * keep..(i + 1) * keep], &rv[rcol(k)..rcol(k) + keep]);
+        y.extend(xr.iter().zip(rr).map(|(a, b)| a * b));
+    }
+    let idx: Arc<[usize]> = idx.into();
+    Ok(t.push(
+        y,
+        vec![ne, nl * keep],
+        &[x, r],
+        Some(Box::new(move |vals, g, gr| {
+            // The product's gradient to the radial weights first (the slice was recorded
+            // after the gather, so the backward pass reached it first) ...
+            let xv = vals.get(x);
+            let grads = || {
+                idx.iter()
+                    .zip(g.chunks_exact(keep.max(1)))
+                    .map(|(&i, gk)| (i, gk))
+            };
+            if gr.starts(r) {
+                let mut fresh = Vec::with_capacity(ne * rad_w);
+                for (k, (i, gk)) in grads().enumerate() {
+                    if k % nl == 0 {
+                        fresh.resize(fresh.len() + roff, 0.0);
+                    }
+                    let xr = &xv[i * keep..(i + 1) * keep];
+                    fresh.extend(gk.iter().zip(xr).map(|(gi, xi)| gi * xi));
+                    fresh.resize(fresh.len() + cin - keep, 0.0);
+                    if k % nl == nl - 1 {
+                        fresh.resize(fresh.len() + rad_w - roff - nl * cin, 0.0);
+                    }
+                }
+                fresh.resize(ne * rad_w, 0.0);
+                gr.add_owned(r, fresh);
+            } else if let Some(acc) = gr.acc(r) {
+                for (k, (i, gk)) in grads().enumerate() {
+                    let xr = &xv[i * keep..(i + 1) * keep];
+                    for ((a, gi), xi) in acc[rcol(k)..rcol(k) + keep].iter_mut().zip(gk).zip(xr) {
+                        *a += gi * xi;
+                    }
+                }
+            }
+            // ... then to the gathered rows, added in the gather's order.
+            if let Some(acc) = gr.acc(x) {
+                let rv = vals.get(r);
+                for (k, (i, gk)) in grads().enumerate() {
+                    let rr = &rv[rcol(k)..rcol(k) + keep];
+                    for ((a, gi), ri) in acc[i * keep..(i + 1) * keep].iter_mut().zip(gk).zip(rr) {
+                        *a += gi * ri;
+                    }
+                }
+            }
+        })),
+    ))
 }
 
 /// One term of an SO(2) convolution output row: `sign ·` columns `col..col + cout` of
@@ -393,26 +478,49 @@ fn so2_outputs(
     }
     let rows: Arc<[Vec<So2Term>]> = rows.into();
     let nr = rows.len();
-    let mut y = vec![0.0f32; ne * nr * cout];
-    // No channels, no values (and no zero-width chunks).
-    if cout > 0 {
-        let values: Vec<&[f32]> = inputs.iter().map(|&(v, _)| t.value(v)).collect();
-        for (e, ye) in y.chunks_exact_mut(nr * cout).enumerate() {
-            for (terms, yr) in rows.iter().zip(ye.chunks_exact_mut(cout)) {
-                for (k, tm) in terms.iter().enumerate() {
-                    let at = e * inputs[tm.input].1 + tm.col;
-                    let src = &values[tm.input][at..at + cout];
-                    for (o, x) in yr.iter_mut().zip(src) {
-                        *o = if k == 0 {
-                            tm.sign * x
-                        } else {
-                            *o + tm.sign * x
-                        };
-                    }
+    // Written row by row (the first term of a row written, the others added), not into a
+    // zero-filled buffer.
+    let mut y = Vec::with_capacity(ne * nr * cout);
+    let values: Vec<&[f32]> = inputs.iter().map(|&(v, _)| t.value(v)).collect();
+    for e in 0..ne {
+        for terms in rows.iter() {
+            let start = y.len();
+            let Some((first, rest)) = terms.split_first() else {
+                y.resize(start + cout, 0.0);
+                continue;
+            };
+            let at = e * inputs[first.input].1 + first.col;
+            y.extend(
+                values[first.input][at..at + cout]
+                    .iter()
+                    .map(|x| first.sign * x),
+            );
+            for tm in rest {
+                let at = e * inputs[tm.input].1 + tm.col;
+                let src = &values[tm.input][at..at + cout];
+                for (o, x) in y[start..].iter_mut().zip(src) {
+                    *o += tm.sign * x;
                 }
             }
         }
     }
+    // Where each input's columns go: (column, output row, sign) in column order, so that
+    // a first gradient contribution can be written in the input's own order.
+    let mut by_input: Vec<Vec<(usize, usize, f32)>> = vec![Vec::new(); inputs.len()];
+    for (r, terms) in rows.iter().enumerate() {
+        for tm in terms {
+            by_input[tm.input].push((tm.col, r, tm.sign));
+        }
+    }
+    for cols in &mut by_input {
+        cols.sort_by_key(|&(col, _, _)| col);
+    }
+    // Written in order only where the columns do not overlap (they do not: each input value
+    // feeds one output value); otherwise added as they come.
+    let in_order = by_input.iter().zip(&inputs).all(|(cols, &(_, width))| {
+        cols.windows(2).all(|w| w[0].0 + cout <= w[1].0)
+            && cols.last().is_none_or(|&(col, _, _)| col + cout <= width)
+    });
     let parents: Vec<Var> = inputs.iter().map(|&(v, _)| v).collect();
     t.push(
         y,
@@ -422,9 +530,24 @@ fn so2_outputs(
             if cout == 0 {
                 return;
             }
-            // Each input value feeds exactly one output value: adding into the zeroed
-            // accumulators gives what the plain composition's chain of copies gave.
+            // Each input value feeds exactly one output value: writing a first contribution
+            // (zeros where no output reads the input, as the m = 0 product's extra scalars)
+            // or adding into an accumulator gives what the plain composition's chain of
+            // copies gave.
             for (input, &(v, width)) in inputs.iter().enumerate() {
+                if in_order && gr.starts(v) {
+                    let mut fresh = Vec::with_capacity(ne * width);
+                    for ge in g.chunks_exact(nr * cout) {
+                        let row_start = fresh.len();
+                        for &(col, r, sign) in &by_input[input] {
+                            fresh.resize(row_start + col, 0.0);
+                            fresh.extend(ge[r * cout..(r + 1) * cout].iter().map(|x| sign * x));
+                        }
+                        fresh.resize(row_start + width, 0.0);
+                    }
+                    gr.add_owned(v, fresh);
+                    continue;
+                }
                 let Some(acc) = gr.acc(v) else {
                     continue;
                 };
@@ -791,6 +914,66 @@ mod tests {
         assert!(rotate(&mut t, &one, &map, x, 3).is_err());
         let map4 = CoefficientMapping::new(4, 2).unwrap();
         assert!(rotate(&mut t, &e.wigners, &map4, x, 3).is_err());
+    }
+
+    #[test]
+    fn scaled_gathers_match_the_composition_they_replace_bit_for_bit() {
+        // Two blocks read the same radial columns (as an m > 0 pair does), so the radial
+        // weights' accumulator is written once and added to once; fewer channels kept than
+        // the radial MLP gives (a convolution on the first channels).
+        let (ne, nr, keep, cin) = (5, 16, 3, 4);
+        let (rad_w, roff) = (11 * cin, 2 * cin);
+        let positions: [&[usize]; 2] = [&[4, 9, 12], &[5, 10, 13]];
+        let idx = |ps: &[usize]| -> Vec<usize> {
+            (0..ne)
+                .flat_map(|e| ps.iter().map(move |p| e * nr + p))
+                .collect()
+        };
+        let x = random(ne * nr * keep, 21);
+        let r = random(ne * rad_w, 22);
+        let seed = random(2 * ne * 3 * keep, 23);
+        let run = |fused: bool| {
+            let mut t = Tape::new();
+            let xv = t.variable(x.clone(), &[ne * nr, keep]).unwrap();
+            let rv = t.variable(r.clone(), &[ne, rad_w]).unwrap();
+            let mut outs = Vec::new();
+            for ps in positions {
+                let nl = ps.len();
+                let y = if fused {
+                    gather_scaled(&mut t, xv, &idx(ps), (rv, rad_w, roff), (nl, cin, keep)).unwrap()
+                } else {
+                    let v = t.gather_rows(xv, keep, &idx(ps)).unwrap();
+                    let v = t.reshape(v, &[ne, nl * keep]).unwrap();
+                    let rs = t.slice_cols(rv, rad_w, roff..roff + nl * cin).unwrap();
+                    let rs = keep_channels(&mut t, rs, ne, (nl, cin, keep)).unwrap();
+                    t.mul(v, rs).unwrap()
+                };
+                outs.push(y);
+            }
+            let y = t.concat_cols(outs[0], 3 * keep, outs[1], 3 * keep).unwrap();
+            let g = t.backward(y, &seed).unwrap();
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            (
+                bits(t.value(y)),
+                bits(g.of(xv).unwrap()),
+                bits(g.of(rv).unwrap()),
+            )
+        };
+        let (fused, plain) = (run(true), run(false));
+        assert_eq!(fused.0, plain.0, "values");
+        assert_eq!(fused.1, plain.1, "gradient of the gathered rows");
+        assert_eq!(fused.2, plain.2, "gradient of the radial weights");
+        // Out-of-range rows are an error, not a panic.
+        let mut t = Tape::new();
+        let xv = t.variable(x.clone(), &[ne * nr, keep]).unwrap();
+        let rv = t.variable(r.clone(), &[ne, rad_w]).unwrap();
+        let mut bad = idx(positions[0]);
+        bad[0] = ne * nr;
+        let err = gather_scaled(&mut t, xv, &bad, (rv, rad_w, roff), (3, cin, keep));
+        assert!(
+            matches!(err, Err(PolicyError::IndexOutOfRange { .. })),
+            "{err:?}"
+        );
     }
 
     #[test]

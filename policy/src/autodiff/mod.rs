@@ -102,9 +102,15 @@ impl Grads {
         Some(self.grads[v.0].get_or_insert_with(|| vec![0.0; len]))
     }
 
+    /// Whether `v` is trained and has no accumulator yet: a contribution now would be its
+    /// first, which [`Grads::add_owned`] takes as it is.
+    pub fn starts(&self, v: Var) -> bool {
+        self.needs[v.0] && self.grads[v.0].is_none()
+    }
+
     /// Adds `g` into the accumulator of `v` (if it is trained), taking the buffer itself
     /// when `v` has none yet (the same values as adding it to zeros).
-    fn add_owned(&mut self, v: Var, g: Vec<f32>) {
+    pub fn add_owned(&mut self, v: Var, g: Vec<f32>) {
         if self.needs[v.0] && self.grads[v.0].is_none() {
             debug_assert_eq!(g.len(), self.lens[v.0]);
             self.grads[v.0] = Some(g);
@@ -113,11 +119,72 @@ impl Grads {
         }
     }
 
-    /// Adds `g` into the accumulator of `v` (if it is trained).
+    /// Adds `g` into the accumulator of `v` (if it is trained); a first contribution is
+    /// copied, not added to zeros.
     pub fn add(&mut self, v: Var, g: &[f32]) {
-        if let Some(a) = self.acc(v) {
-            for (x, y) in a.iter_mut().zip(g) {
-                *x += y;
+        self.add_iter(v, g.iter().copied());
+    }
+
+    /// Adds the values `g` yields (as many as `v` has) into the accumulator of `v`, if it is
+    /// trained. A first contribution becomes the accumulator as it is: the same values as
+    /// adding it to a zero-filled buffer (0 + x = x), without writing and reading the zeros
+    /// (zero-filling was about a tenth of a training step). `g` is not run when `v` is not
+    /// trained.
+    pub fn add_iter(&mut self, v: Var, g: impl Iterator<Item = f32>) {
+        if !self.needs[v.0] {
+            return;
+        }
+        match &mut self.grads[v.0] {
+            Some(a) => {
+                for (x, y) in a.iter_mut().zip(g) {
+                    *x += y;
+                }
+            }
+            slot @ None => {
+                let mut fresh = Vec::with_capacity(self.lens[v.0]);
+                fresh.extend(g);
+                debug_assert_eq!(fresh.len(), self.lens[v.0]);
+                // As the zip above would: missing values count as 0, extra ones are dropped.
+                fresh.resize(self.lens[v.0], 0.0);
+                *slot = Some(fresh);
+            }
+        }
+    }
+
+    /// Adds each of `rows` (all of one width) into columns `at..at + width` of the matching
+    /// row of the accumulator of `v` (rows of `stride` values), if `v` is trained. A first
+    /// contribution is written with zeros in the other columns instead of being added to a
+    /// zero-filled buffer (the same values); the gradient of a column slice or of one side
+    /// of a concatenation.
+    pub fn add_cols<'g>(
+        &mut self,
+        v: Var,
+        stride: usize,
+        at: usize,
+        rows: impl Iterator<Item = &'g [f32]>,
+    ) {
+        if !self.needs[v.0] {
+            return;
+        }
+        match &mut self.grads[v.0] {
+            Some(a) => {
+                for (dst, r) in a.chunks_exact_mut(stride.max(1)).zip(rows) {
+                    for (x, y) in dst[at..at + r.len()].iter_mut().zip(r) {
+                        *x += y;
+                    }
+                }
+            }
+            slot @ None => {
+                let len = self.lens[v.0];
+                let mut fresh = Vec::with_capacity(len);
+                for r in rows {
+                    fresh.resize(fresh.len() + at, 0.0);
+                    fresh.extend_from_slice(r);
+                    fresh.resize(fresh.len() + stride.saturating_sub(at + r.len()), 0.0);
+                }
+                // Rows of no width (a slice of no columns) still leave a full accumulator.
+                fresh.resize(len, 0.0);
+                *slot = Some(fresh);
             }
         }
     }

@@ -81,9 +81,10 @@ fn same_len(what: &str, a: usize, b: usize) -> Result<()> {
     Ok(())
 }
 
-/// `out[i] (=|+=) x[i] · s[a·C + c]` for `i = ((a·B + b)·C + c)·D + d`: the product of
-/// [`Tape::mul_broadcast`], in blocks of C runs of D values, each run scaled by its factor.
-fn scale_blocks(out: &mut [f32], x: &[f32], s: &[f32], [nb, nc, nd]: [usize; 3], accumulate: bool) {
+/// `out[i] += x[i] · s[a·C + c]` for `i = ((a·B + b)·C + c)·D + d`: the product of
+/// [`Tape::mul_broadcast`] added into `out`, in blocks of C runs of D values, each run
+/// scaled by its factor.
+fn scale_blocks(out: &mut [f32], x: &[f32], s: &[f32], [nb, nc, nd]: [usize; 3]) {
     let block = nc * nd;
     if block == 0 {
         return;
@@ -96,14 +97,33 @@ fn scale_blocks(out: &mut [f32], x: &[f32], s: &[f32], [nb, nc, nd]: [usize; 3],
         let f = &s[(ab / nb) * nc..(ab / nb + 1) * nc];
         if nd == 1 {
             for ((o, xi), fi) in ob.iter_mut().zip(xb).zip(f) {
-                *o = if accumulate { *o + xi * fi } else { xi * fi };
+                *o += xi * fi;
             }
             continue;
         }
         for ((oc, xc), fi) in ob.chunks_exact_mut(nd).zip(xb.chunks_exact(nd)).zip(f) {
             for (o, xi) in oc.iter_mut().zip(xc) {
-                *o = if accumulate { *o + xi * fi } else { xi * fi };
+                *o += xi * fi;
             }
+        }
+    }
+}
+
+/// The same product appended to `out` (a first gradient contribution or the forward
+/// value, written once instead of into zeros).
+fn scale_blocks_into(out: &mut Vec<f32>, x: &[f32], s: &[f32], [nb, nc, nd]: [usize; 3]) {
+    let block = nc * nd;
+    if block == 0 {
+        return;
+    }
+    for (ab, xb) in x.chunks_exact(block).enumerate() {
+        let f = &s[(ab / nb) * nc..(ab / nb + 1) * nc];
+        if nd == 1 {
+            out.extend(xb.iter().zip(f).map(|(xi, fi)| xi * fi));
+            continue;
+        }
+        for (xc, fi) in xb.chunks_exact(nd).zip(f) {
+            out.extend(xc.iter().map(|xi| xi * fi));
         }
     }
 }
@@ -149,14 +169,8 @@ impl Tape {
             shape,
             &[a, b],
             Some(Box::new(move |vals, g, gr| {
-                if gr.wants(a) {
-                    let d: Vec<f32> = g.iter().zip(vals.get(b)).map(|(g, y)| g * y).collect();
-                    gr.add(a, &d);
-                }
-                if gr.wants(b) {
-                    let d: Vec<f32> = g.iter().zip(vals.get(a)).map(|(g, x)| g * x).collect();
-                    gr.add(b, &d);
-                }
+                gr.add_iter(a, g.iter().zip(vals.get(b)).map(|(g, y)| g * y));
+                gr.add_iter(b, g.iter().zip(vals.get(a)).map(|(g, x)| g * x));
             })),
         ))
     }
@@ -170,11 +184,7 @@ impl Tape {
             shape,
             &[a],
             Some(Box::new(move |_, g, gr| {
-                if let Some(acc) = gr.acc(a) {
-                    for (x, y) in acc.iter_mut().zip(g) {
-                        *x += s * y;
-                    }
-                }
+                gr.add_iter(a, g.iter().map(|y| s * y));
             })),
         )
     }
@@ -189,11 +199,7 @@ impl Tape {
             &[a],
             Some(Box::new(move |vals, g, gr| {
                 let x = vals.get(a);
-                if let Some(acc) = gr.acc(a) {
-                    for ((s, gi), xi) in acc.iter_mut().zip(g).zip(x) {
-                        *s += gi * f.derivative(*xi);
-                    }
-                }
+                gr.add_iter(a, g.iter().zip(x).map(|(gi, xi)| gi * f.derivative(*xi)));
             })),
         )
     }
@@ -398,13 +404,7 @@ impl Tape {
             vec![n, w],
             &[x],
             Some(Box::new(move |_, g, gr| {
-                if let Some(acc) = gr.acc(x) {
-                    for (r, gr_row) in acc.chunks_exact_mut(cols).zip(g.chunks_exact(w.max(1))) {
-                        for (a, v) in r[start..start + w].iter_mut().zip(gr_row) {
-                            *a += v;
-                        }
-                    }
-                }
+                gr.add_cols(x, cols, start, g.chunks_exact(w.max(1)));
             })),
         ))
     }
@@ -429,26 +429,8 @@ impl Tape {
             vec![n, c],
             &[a, b],
             Some(Box::new(move |_, g, gr| {
-                if let Some(acc) = gr.acc(a) {
-                    for r in 0..n {
-                        for (x, v) in acc[r * ca..(r + 1) * ca]
-                            .iter_mut()
-                            .zip(&g[r * c..r * c + ca])
-                        {
-                            *x += v;
-                        }
-                    }
-                }
-                if let Some(acc) = gr.acc(b) {
-                    for r in 0..n {
-                        for (x, v) in acc[r * cb..(r + 1) * cb]
-                            .iter_mut()
-                            .zip(&g[r * c + ca..(r + 1) * c])
-                        {
-                            *x += v;
-                        }
-                    }
-                }
+                gr.add_cols(a, ca, 0, (0..n).map(|r| &g[r * c..r * c + ca]));
+                gr.add_cols(b, cb, 0, (0..n).map(|r| &g[r * c + ca..(r + 1) * c]));
             })),
         ))
     }
@@ -535,8 +517,8 @@ impl Tape {
         same_len("broadcast product factors", na * nc, self.value(s).len())?;
         let block = nc * nd;
         let (xv, sv) = (self.value(x), self.value(s));
-        let mut y = vec![0.0f32; xv.len()];
-        scale_blocks(&mut y, xv, sv, [nb, nc, nd], false);
+        let mut y = Vec::with_capacity(xv.len());
+        scale_blocks_into(&mut y, xv, sv, [nb, nc, nd]);
         let shape = self.shape(x).to_vec();
         Ok(self.push(
             y,
@@ -546,8 +528,12 @@ impl Tape {
                 if block == 0 {
                     return;
                 }
-                if let Some(acc) = gr.acc(x) {
-                    scale_blocks(acc, g, vals.get(s), [nb, nc, nd], true);
+                if gr.starts(x) {
+                    let mut fresh = Vec::with_capacity(g.len());
+                    scale_blocks_into(&mut fresh, g, vals.get(s), [nb, nc, nd]);
+                    gr.add_owned(x, fresh);
+                } else if let Some(acc) = gr.acc(x) {
+                    scale_blocks(acc, g, vals.get(s), [nb, nc, nd]);
                 }
                 if let Some(acc) = gr.acc(s) {
                     let xv = vals.get(x);
