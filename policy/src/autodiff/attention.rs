@@ -10,6 +10,7 @@ use crate::attention::{AttentionConfig, EdgeSet};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
 use crate::layers::{degree_of, rbf_basis_value, rows_of, sigmoid, softplus};
+use crate::matmul::{gemm_acc, Strided};
 use crate::so2_conv::{CoefficientMapping, EdgeWigners};
 use crate::so3::num_coefficients;
 use crate::weights::Scope;
@@ -208,6 +209,86 @@ pub fn rotate_back(
     }
     let mats = rotation_back_matrices(w, map)?;
     t.const_matmul(y, mats, (k, nr, c))
+}
+
+/// The attention's messages rotated into the edge frames: row e is `[x_src[src[e]] |
+/// x_dst[dst[e]]]` (`[(lmax+1)², c]` each side; the source side alone without `dst_side`)
+/// rotated as [`rotate`], `[E, n_reduced, present]`. The values and gradients of
+/// `gather_rows`, `concat_cols` and [`rotate`] (each product's sums in their order, the
+/// gathered rows' gradients added destination side first, as that composition's backward
+/// pass did), with no gathered or concatenated copy forward and none of their gradients
+/// backward: each edge's product reads the nodes' rows in place. Bit for bit the same as
+/// long as `c` exceeds [`crate::matmul`]'s small-product sizes (5; every network here has
+/// 16 channels or more): a side's product then takes the same kernel as both sides' did.
+fn rotate_messages(
+    t: &mut Tape,
+    w: &EdgeWigners,
+    map: &CoefficientMapping,
+    (x_src, src): (Var, &[usize]),
+    dst_side: Option<(Var, &[usize])>,
+    c: usize,
+) -> Result<Var> {
+    let (k, nr) = rotation_sizes(w, map)?;
+    let ne = w.edges;
+    let mut sides = vec![(x_src, Arc::<[usize]>::from(src))];
+    sides.extend(dst_side.map(|(x, idx)| (x, Arc::<[usize]>::from(idx))));
+    for &(x, ref idx) in &sides {
+        let n = rows_of("features to rotate", t.value(x).len(), k * c)?;
+        if idx.len() != ne {
+            return Err(mismatch("message edges", vec![ne], vec![idx.len()]));
+        }
+        if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "message node".into(),
+                value: bad as i64,
+                len: n,
+            });
+        }
+    }
+    let present = sides.len() * c;
+    let mats = rotation_matrices(w, map)?;
+    let mut y = vec![0.0f32; ne * nr * present];
+    for (side, (x, idx)) in sides.iter().enumerate() {
+        let xv = t.value(*x);
+        for (e, &i) in idx.iter().enumerate() {
+            gemm_acc(
+                Strided::row_major(&mats, e * nr * k, nr, k),
+                Strided::row_major(xv, i * k * c, k, c),
+                &mut y,
+                e * nr * present + side * c,
+                present,
+            )?;
+        }
+    }
+    let parents: Vec<Var> = sides.iter().map(|(x, _)| *x).collect();
+    Ok(t.push(
+        y,
+        vec![ne, nr, present],
+        &parents,
+        Some(Box::new(move |_, g, gr| {
+            for (side, (x, idx)) in sides.iter().enumerate().rev() {
+                let Some(acc) = gr.acc(*x) else {
+                    continue;
+                };
+                for (e, &i) in idx.iter().enumerate() {
+                    let _ = gemm_acc(
+                        Strided::row_major(&mats, e * nr * k, nr, k).t(),
+                        Strided {
+                            data: g,
+                            offset: e * nr * present + side * c,
+                            rows: nr,
+                            cols: c,
+                            row_stride: present,
+                            col_stride: 1,
+                        },
+                        acc,
+                        i * k * c,
+                        c,
+                    );
+                }
+            }
+        })),
+    ))
 }
 
 /// Sizes of a taped SO(2) convolution (the inference layer's constructor arguments).
@@ -671,8 +752,7 @@ pub fn graph_attention(
 
     // Messages concat(x_src[src], x_dst[dst]) per coefficient row (only the source half
     // when the destinations are zero: the zero half contributes nothing).
-    let xs = t.gather_rows(x_src, k * c, &edges.src)?;
-    let (msg, present) = match x_dst {
+    let dst_side = match x_dst {
         Some(xd) => {
             let n = rows_of("attention destination features", t.value(xd).len(), k * c)?;
             if n != nd {
@@ -682,14 +762,12 @@ pub fn graph_attention(
                     vec![n, k, c],
                 ));
             }
-            let xd = t.gather_rows(xd, k * c, dst)?;
-            let a = t.reshape(xs, &[ne * k, c])?;
-            let b = t.reshape(xd, &[ne * k, c])?;
-            (t.concat_cols(a, c, b, c)?, 2 * c)
+            Some((xd, &dst[..]))
         }
-        None => (xs, c),
+        None => None,
     };
-    let x_rot = rotate(t, &edges.wigners, &map, msg, present)?;
+    let present = if dst_side.is_some() { 2 * c } else { c };
+    let x_rot = rotate_messages(t, &edges.wigners, &map, (x_src, &edges.src), dst_side, c)?;
     let n_alpha = heads * ach;
     let n_extra = n_alpha + hidden;
     let (h, extra) = so2_conv(
@@ -914,6 +992,69 @@ mod tests {
         assert!(rotate(&mut t, &one, &map, x, 3).is_err());
         let map4 = CoefficientMapping::new(4, 2).unwrap();
         assert!(rotate(&mut t, &e.wigners, &map4, x, 3).is_err());
+    }
+
+    #[test]
+    fn rotated_messages_match_the_composition_they_replace_bit_for_bit() {
+        let w = small_weights();
+        // More channels than `matmul`'s small-product path takes, on each side alone too.
+        let (lmax, c) = (3, 8);
+        let map = CoefficientMapping::new(lmax, 2).unwrap();
+        let e = edges(&w, lmax);
+        let (ne, k, nr) = (e.len(), num_coefficients(lmax), map.len());
+        let n = 6;
+        let x = random(n * k * c, 31);
+        // Destinations: the same features (self-attention, where both sides' gradients meet
+        // in one accumulator) or none.
+        for with_dst in [true, false] {
+            let present = if with_dst { 2 * c } else { c };
+            let seed = random(ne * nr * present, 32);
+            let run = |fused: bool| {
+                let mut t = Tape::new();
+                let xv = t.variable(x.clone(), &[n, k, c]).unwrap();
+                let y = if fused {
+                    let dst_side = with_dst.then_some((xv, &e.dst[..]));
+                    rotate_messages(&mut t, &e.wigners, &map, (xv, &e.src), dst_side, c).unwrap()
+                } else {
+                    let xs = t.gather_rows(xv, k * c, &e.src).unwrap();
+                    let msg = if with_dst {
+                        let xd = t.gather_rows(xv, k * c, &e.dst).unwrap();
+                        let a = t.reshape(xs, &[ne * k, c]).unwrap();
+                        let b = t.reshape(xd, &[ne * k, c]).unwrap();
+                        t.concat_cols(a, c, b, c).unwrap()
+                    } else {
+                        xs
+                    };
+                    rotate(&mut t, &e.wigners, &map, msg, present).unwrap()
+                };
+                let g = t.backward(y, &seed).unwrap();
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                (bits(t.value(y)), bits(g.of(xv).unwrap()))
+            };
+            let (fused, plain) = (run(true), run(false));
+            let differ = |a: &[u32], b: &[u32]| a.iter().zip(b).filter(|(x, y)| x != y).count();
+            assert_eq!(fused.0.len(), plain.0.len());
+            assert_eq!(
+                differ(&fused.0, &plain.0),
+                0,
+                "values (destinations: {with_dst})"
+            );
+            assert_eq!(
+                differ(&fused.1, &plain.1),
+                0,
+                "gradients (destinations: {with_dst})"
+            );
+        }
+        // A node index past the features is an error, not a panic.
+        let mut t = Tape::new();
+        let xv = t.variable(x.clone(), &[n, k, c]).unwrap();
+        let mut bad = e.src.clone();
+        bad[0] = n;
+        let err = rotate_messages(&mut t, &e.wigners, &map, (xv, &bad), None, c);
+        assert!(
+            matches!(err, Err(PolicyError::IndexOutOfRange { .. })),
+            "{err:?}"
+        );
     }
 
     #[test]
