@@ -375,12 +375,12 @@ pub fn so2_conv(
     // Rows `positions` of every edge's input, scaled by the radial weights at `roff`.
     let block = |t: &mut Tape, positions: &[usize], roff: usize| -> Result<Var> {
         let nl = positions.len();
-        let idx: Vec<usize> = (0..ne)
-            .flat_map(|e| positions.iter().map(move |p| e * nr + p))
-            .collect();
         match rad {
-            Some(r) => gather_scaled(t, xr, &idx, (r, rad_w, roff), (nl, cin, keep)),
+            Some(r) => gather_scaled(t, (xr, nr), positions, (r, rad_w, roff), (cin, keep)),
             None => {
+                let idx: Vec<usize> = (0..ne)
+                    .flat_map(|e| positions.iter().map(move |p| e * nr + p))
+                    .collect();
                 let v = t.gather_rows(xr, keep, &idx)?;
                 t.reshape(v, &[ne, nl * keep])
             }
@@ -419,85 +419,93 @@ pub fn so2_conv(
     Ok((y, extra_out))
 }
 
-/// Rows `idx` of `x` (`[ne·nl]` of them, rows of `keep` values, `nl` per edge) as `[ne,
-/// nl·keep]`, each value multiplied by its edge's radial weight: value (e, l·keep + c) by
-/// `r[e, roff + l·cin + c]` (`r` `[ne, rad_w]`). The SO(2) convolution's scaled input
-/// blocks in one pass: the values and gradients of `gather_rows`, `slice_cols`,
-/// `keep_channels` and `mul` (each product as they formed it, each accumulator's sums in
-/// the same order), without their three intermediate copies forward and two backward.
+/// Rows `e·nr + positions[l]` of `x` (`[ne·nr, keep]`) for every edge e and l, as `[ne,
+/// nl·keep]` (nl = `positions.len()`), each value multiplied by its edge's radial weight:
+/// value (e, l·keep + c) by `r[e, roff + l·cin + c]` (`r` `[ne, rad_w]`). The SO(2)
+/// convolution's scaled input blocks in one pass: the values and gradients of
+/// `gather_rows`, `slice_cols`, `keep_channels` and `mul` (each product as they formed
+/// it, each accumulator's sums in the same order), without their three intermediate
+/// copies forward and two backward, nor a list of the gathered rows.
 fn gather_scaled(
     t: &mut Tape,
-    x: Var,
-    idx: &[usize],
+    (x, nr): (Var, usize),
+    positions: &[usize],
     (r, rad_w, roff): (Var, usize, usize),
-    (nl, cin, keep): (usize, usize, usize),
+    (cin, keep): (usize, usize),
 ) -> Result<Var> {
-    let nx = rows_of("scaled gather input", t.value(x).len(), keep)?;
-    let ne = rows_of("scaled gather rows", idx.len(), nl.max(1))?;
-    if let Some(&bad) = idx.iter().find(|&&i| i >= nx) {
+    let nl = positions.len();
+    let ne = rows_of("scaled gather input", t.value(x).len(), nr * keep)?;
+    if let Some(&bad) = positions.iter().find(|&&p| p >= nr) {
         return Err(PolicyError::IndexOutOfRange {
-            name: "gathered row".into(),
+            name: "gathered coefficient row".into(),
             value: bad as i64,
-            len: nx,
+            len: nr,
         });
     }
-    if keep > cin || roff + nl * cin > rad_w || t.value(r).len() != ne * rad_w {
+    if x == r || keep > cin || roff + nl * cin > rad_w || t.value(r).len() != ne * rad_w {
         return Err(mismatch(
             "radial weights of a scaled gather",
             vec![ne, roff + nl * cin],
             t.shape(r).to_vec(),
         ));
     }
+    let positions: Arc<[usize]> = positions.into();
     let (xv, rv) = (t.value(x), t.value(r));
-    // Row k = e·nl + l reads x row idx[k] and the radial columns at `rcol(k)`.
-    let rcol = move |k: usize| (k / nl) * rad_w + roff + (k % nl) * cin;
-    let mut y = Vec::with_capacity(idx.len() * keep);
-    for (k, &i) in idx.iter().enumerate() {
-        let (xr, rr) = (&xv[i * keep..(i + 1) * keep], &rv[rcol(k)..rcol(k) + keep]);
-        y.extend(xr.iter().zip(rr).map(|(a, b)| a * b));
+    let mut y = Vec::with_capacity(ne * nl * keep);
+    for e in 0..ne {
+        for (l, &p) in positions.iter().enumerate() {
+            let i = e * nr + p;
+            let rc = e * rad_w + roff + l * cin;
+            let (xr, rr) = (&xv[i * keep..(i + 1) * keep], &rv[rc..rc + keep]);
+            y.extend(xr.iter().zip(rr).map(|(a, b)| a * b));
+        }
     }
-    let idx: Arc<[usize]> = idx.into();
     Ok(t.push(
         y,
         vec![ne, nl * keep],
         &[x, r],
         Some(Box::new(move |vals, g, gr| {
-            // The product's gradient to the radial weights first (the slice was recorded
-            // after the gather, so the backward pass reached it first) ...
-            let xv = vals.get(x);
-            let grads = || {
-                idx.iter()
-                    .zip(g.chunks_exact(keep.max(1)))
-                    .map(|(&i, gk)| (i, gk))
+            let (xv, rv) = (vals.get(x), vals.get(r));
+            // Row (e, l) of the output and of its gradient `g`.
+            let rows = || {
+                (0..ne).flat_map(|e| {
+                    positions.iter().enumerate().map(move |(l, &p)| {
+                        let (i, rc, o) = (e * nr + p, e * rad_w + roff + l * cin, e * nl + l);
+                        (l, i, rc, &g[o * keep..(o + 1) * keep])
+                    })
+                })
             };
+            // The product's gradient to the radial weights first (the slice was recorded
+            // after the gather, so the backward pass reached it first): a first
+            // contribution written in their own order, zeros in the columns this block
+            // does not read ...
             if gr.starts(r) {
                 let mut fresh = Vec::with_capacity(ne * rad_w);
-                for (k, (i, gk)) in grads().enumerate() {
-                    if k % nl == 0 {
+                for (l, i, _, gk) in rows() {
+                    if l == 0 {
                         fresh.resize(fresh.len() + roff, 0.0);
                     }
                     let xr = &xv[i * keep..(i + 1) * keep];
                     fresh.extend(gk.iter().zip(xr).map(|(gi, xi)| gi * xi));
                     fresh.resize(fresh.len() + cin - keep, 0.0);
-                    if k % nl == nl - 1 {
+                    if l + 1 == nl {
                         fresh.resize(fresh.len() + rad_w - roff - nl * cin, 0.0);
                     }
                 }
                 fresh.resize(ne * rad_w, 0.0);
                 gr.add_owned(r, fresh);
             } else if let Some(acc) = gr.acc(r) {
-                for (k, (i, gk)) in grads().enumerate() {
+                for (_, i, rc, gk) in rows() {
                     let xr = &xv[i * keep..(i + 1) * keep];
-                    for ((a, gi), xi) in acc[rcol(k)..rcol(k) + keep].iter_mut().zip(gk).zip(xr) {
+                    for ((a, gi), xi) in acc[rc..rc + keep].iter_mut().zip(gk).zip(xr) {
                         *a += gi * xi;
                     }
                 }
             }
             // ... then to the gathered rows, added in the gather's order.
             if let Some(acc) = gr.acc(x) {
-                let rv = vals.get(r);
-                for (k, (i, gk)) in grads().enumerate() {
-                    let rr = &rv[rcol(k)..rcol(k) + keep];
+                for (_, i, rc, gk) in rows() {
+                    let rr = &rv[rc..rc + keep];
                     for ((a, gi), ri) in acc[i * keep..(i + 1) * keep].iter_mut().zip(gk).zip(rr) {
                         *a += gi * ri;
                     }
@@ -1081,7 +1089,7 @@ mod tests {
             for ps in positions {
                 let nl = ps.len();
                 let y = if fused {
-                    gather_scaled(&mut t, xv, &idx(ps), (rv, rad_w, roff), (nl, cin, keep)).unwrap()
+                    gather_scaled(&mut t, (xv, nr), ps, (rv, rad_w, roff), (cin, keep)).unwrap()
                 } else {
                     let v = t.gather_rows(xv, keep, &idx(ps)).unwrap();
                     let v = t.reshape(v, &[ne, nl * keep]).unwrap();
@@ -1108,11 +1116,21 @@ mod tests {
         let mut t = Tape::new();
         let xv = t.variable(x.clone(), &[ne * nr, keep]).unwrap();
         let rv = t.variable(r.clone(), &[ne, rad_w]).unwrap();
-        let mut bad = idx(positions[0]);
-        bad[0] = ne * nr;
-        let err = gather_scaled(&mut t, xv, &bad, (rv, rad_w, roff), (3, cin, keep));
+        let err = gather_scaled(&mut t, (xv, nr), &[4, nr], (rv, rad_w, roff), (cin, keep));
         assert!(
             matches!(err, Err(PolicyError::IndexOutOfRange { .. })),
+            "{err:?}"
+        );
+        // Radial weights too narrow for the block.
+        let err = gather_scaled(
+            &mut t,
+            (xv, nr),
+            &[4, 9, 12],
+            (rv, rad_w, 9 * cin),
+            (cin, keep),
+        );
+        assert!(
+            matches!(err, Err(PolicyError::ShapeMismatch { .. })),
             "{err:?}"
         );
     }
