@@ -70,11 +70,12 @@ pub fn gaussian_rbf(t: &mut Tape, s: &Scope<'_>, lengths: &[f32], cutoff: f64) -
             let sd: Vec<f64> = sl.iter().map(|v| f64::from(softplus(*v) + 1e-5)).collect();
             let dsd: Vec<f64> = sl.iter().map(|v| f64::from(sigmoid(*v))).collect();
             let sg: Vec<f64> = wl.iter().map(|v| f64::from(sigmoid(*v))).collect();
+            // The forward pass's f32 weights, once per basis (not an `expf` per value).
+            let w32: Vec<f32> = wl.iter().map(|v| sigmoid(*v) * 4.0).collect();
             for (&(u, env), gr_row) in ue.iter().zip(g.chunks_exact(k.max(1))) {
                 for i in 0..k {
                     // Where the forward value was cut to 0, so is its gradient.
-                    let w32 = sigmoid(wl[i]) * 4.0;
-                    if rbf_basis_value(u, mv[i], sd[i] as f32, w32, env, normalizer) == 0.0 {
+                    if rbf_basis_value(u, mv[i], sd[i] as f32, w32[i], env, normalizer) == 0.0 {
                         continue;
                     }
                     let z = (f64::from(u) - f64::from(mv[i])) / sd[i];
