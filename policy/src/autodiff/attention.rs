@@ -23,6 +23,18 @@ fn mismatch(name: &str, expected: Vec<usize>, got: Vec<usize>) -> PolicyError {
     }
 }
 
+/// An error naming the first of `idx` that is not below `len`.
+fn check_indices(name: &str, idx: &[usize], len: usize) -> Result<()> {
+    match idx.iter().find(|&&i| i >= len) {
+        Some(&bad) => Err(PolicyError::IndexOutOfRange {
+            name: name.into(),
+            value: bad as i64,
+            len,
+        }),
+        None => Ok(()),
+    }
+}
+
 /// `GaussianRadialBasisLayerFiniteCutoff` of the edge `lengths` (`mean`, `std_logit`,
 /// `weight_logit` `[1, K]`; offset 0.01 · cutoff): `[E, K]`, dense.
 pub fn gaussian_rbf(t: &mut Tape, s: &Scope<'_>, lengths: &[f32], cutoff: f64) -> Result<Var> {
@@ -238,13 +250,7 @@ fn rotate_messages(
         if idx.len() != ne {
             return Err(mismatch("message edges", vec![ne], vec![idx.len()]));
         }
-        if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
-            return Err(PolicyError::IndexOutOfRange {
-                name: "message node".into(),
-                value: bad as i64,
-                len: n,
-            });
-        }
+        check_indices("message node", idx, n)?;
     }
     let present = sides.len() * c;
     let mats = rotation_matrices(w, map)?;
@@ -436,13 +442,7 @@ fn gather_scaled(
 ) -> Result<Var> {
     let nl = positions.len();
     let ne = rows_of("scaled gather input", t.value(x).len(), nr * keep)?;
-    if let Some(&bad) = positions.iter().find(|&&p| p >= nr) {
-        return Err(PolicyError::IndexOutOfRange {
-            name: "gathered coefficient row".into(),
-            value: bad as i64,
-            len: nr,
-        });
-    }
+    check_indices("gathered coefficient row", positions, nr)?;
     if x == r || keep > cin || roff + nl * cin > rad_w || t.value(r).len() != ne * rad_w {
         return Err(mismatch(
             "radial weights of a scaled gather",
@@ -669,13 +669,7 @@ pub fn grouped_softmax(
     if dst.len() != ne {
         return Err(mismatch("softmax destinations", vec![ne], vec![dst.len()]));
     }
-    if let Some(&bad) = dst.iter().find(|&&d| d >= nd) {
-        return Err(PolicyError::IndexOutOfRange {
-            name: "softmax destination".into(),
-            value: bad as i64,
-            len: nd,
-        });
-    }
+    check_indices("softmax destination", dst, nd)?;
     let y = crate::attention::grouped_softmax(t.value(logit), dst, nd, heads);
     let yk = y.clone();
     let dst: Arc<[usize]> = dst.into();
