@@ -188,9 +188,9 @@ pub fn rotate(
     x: Var,
     c: usize,
 ) -> Result<Var> {
-    let (k, nr) = rotation_sizes(w, map)?;
+    let (k, _) = rotation_sizes(w, map)?;
     let ne = rows_of("features to rotate", t.value(x).len(), k * c)?;
-    // One matrix per edge: never the shared-matrix form of `const_matmul`.
+    // One row per edge.
     if ne != w.edges {
         return Err(mismatch(
             "features to rotate",
@@ -198,8 +198,9 @@ pub fn rotate(
             vec![ne, k, c],
         ));
     }
-    let mats = rotation_matrices(w, map)?;
-    t.const_matmul(x, mats, (nr, k, c))
+    // The attention's rotation with edge e reading row e: one implementation for both.
+    let rows: Vec<usize> = (0..ne).collect();
+    rotate_messages(t, w, map, (x, &rows), None, c)
 }
 
 /// Rotates `y` `[E, n_reduced, c]` back to the global frame, as
@@ -226,7 +227,7 @@ pub fn rotate_back(
 
 /// The attention's messages rotated into the edge frames: row e is `[x_src[src[e]] |
 /// x_dst[dst[e]]]` (`[(lmax+1)², c]` each side; the source side alone without `dst_side`)
-/// rotated as [`rotate`], `[E, n_reduced, present]`. The values and gradients of
+/// rotated as [`EdgeWigners::rotate`], `[E, n_reduced, present]`. The values and gradients of
 /// `gather_rows`, `concat_cols` and [`rotate`] (each product's sums in their order, the
 /// gathered rows' gradients added destination side first, as that composition's backward
 /// pass did), with no gathered or concatenated copy forward and none of their gradients
@@ -566,7 +567,6 @@ fn so2_outputs(
     for (j, &p) in map.m_major().iter().enumerate() {
         rows[p] = std::mem::take(&mut by_m[j]);
     }
-    let rows: Arc<[Vec<So2Term>]> = rows.into();
     let nr = rows.len();
     // Written row by row (the first term of a row written, the others added), not into a
     // zero-filled buffer.
@@ -594,8 +594,9 @@ fn so2_outputs(
             }
         }
     }
-    // Where each input's columns go: (column, output row, sign) in column order, so that
-    // a first gradient contribution can be written in the input's own order.
+    // Where each input's columns go: (column, output row, sign) in column order (a stable
+    // sort: equal columns keep the rows' order), which drives both backward paths: a first
+    // gradient contribution written in the input's own order, or added.
     let mut by_input: Vec<Vec<(usize, usize, f32)>> = vec![Vec::new(); inputs.len()];
     for (r, terms) in rows.iter().enumerate() {
         for tm in terms {
@@ -642,12 +643,11 @@ fn so2_outputs(
                     continue;
                 };
                 for (e, ge) in g.chunks_exact(nr * cout).enumerate() {
-                    for (terms, grow) in rows.iter().zip(ge.chunks_exact(cout)) {
-                        for tm in terms.iter().filter(|tm| tm.input == input) {
-                            let at = e * width + tm.col;
-                            for (a, x) in acc[at..at + cout].iter_mut().zip(grow) {
-                                *a += tm.sign * x;
-                            }
+                    for &(col, r, sign) in &by_input[input] {
+                        let at = e * width + col;
+                        let grow = &ge[r * cout..(r + 1) * cout];
+                        for (a, x) in acc[at..at + cout].iter_mut().zip(grow) {
+                            *a += sign * x;
                         }
                     }
                 }
