@@ -15,7 +15,7 @@ use crate::layers::{
     check_len, rows_of, separable_s2_activation, smooth_leaky_relu, EdgeFeatures, EdgeFeaturesRef,
     GaussianRbf, LayerNorm, So3Linear,
 };
-use crate::so2_conv::{CoefficientMapping, EdgeWigners, MProducts, So2Conv};
+use crate::so2_conv::{CoefficientMapping, EdgeWigners, M0Block, MProducts, So2Conv};
 use crate::so3::{num_coefficients, WignerCalculator};
 use crate::weights::Scope;
 
@@ -229,6 +229,9 @@ pub struct GraphAttention {
     /// `so2_conv_1` on the source half of the messages only, for all-zero destinations
     /// (built by [`GraphAttention::prepare_zero_destinations`]).
     conv1_sources: Option<So2Conv>,
+    /// The parts of the invariant readout onto all-zero destinations (built by
+    /// [`GraphAttention::prepare_zero_destinations`]).
+    readout: Option<InvariantReadout>,
     /// Threads of a forward pass ([`GraphAttention::set_threads`]).
     threads: usize,
     /// How the SO(2) convolutions compute their m > 0 blocks.
@@ -297,15 +300,32 @@ impl GraphAttention {
             grid,
             proj,
             conv1_sources: None,
+            readout: None,
             threads: 1,
             products: MProducts::Gauss,
         })
     }
 
-    /// Prepares [`GraphAttention::forward_zero_destinations`]: a first SO(2) convolution that
-    /// reads only the source channels of the messages.
+    /// Prepares [`GraphAttention::forward_zero_destinations`] and
+    /// [`GraphAttention::invariant_zero_destinations`]: a first SO(2) convolution that
+    /// reads only the source channels of the messages, and the m = 0 parts of the two
+    /// convolutions that the invariant readout needs.
     pub fn prepare_zero_destinations(&mut self) -> Result<()> {
-        self.conv1_sources = Some(self.conv1.first_channels(self.cfg.sphere_channels)?);
+        let conv1 = self.conv1.first_channels(self.cfg.sphere_channels)?;
+        // The gated activation replaces the l = 0 row by SiLU(gating) and scales each other
+        // row by an invariant: the second convolution's m = 0 rows then come from the first
+        // one's m = 0 rows (its l > 0 outputs) and its gating scalars alone. A grid
+        // activation mixes every row, so it needs the whole first convolution.
+        let conv1_m0 = if self.grid.gated {
+            Some(conv1.m0_block(&(1..=self.cfg.lmax).collect::<Vec<_>>())?)
+        } else {
+            None
+        };
+        self.readout = Some(InvariantReadout {
+            conv1_m0,
+            conv2_l0: self.conv2.m0_block(&[0])?,
+        });
+        self.conv1_sources = Some(conv1);
         Ok(())
     }
 
@@ -325,6 +345,98 @@ impl GraphAttention {
                 self.forward(x_src, &zeros, edges)
             }
         }
+    }
+
+    /// The l = 0 rows of [`GraphAttention::forward_zero_destinations`], `[Nd,
+    /// output_channels]`, bit for bit, without the work that only the other rows need: the
+    /// output projection keeps degrees apart and the rotation back leaves l = 0 as it is, so
+    /// only the second convolution's l = 0, m = 0 outputs are computed, and with the gated
+    /// activation only the first convolution's m = 0 block (the m > 0 rows of the edge
+    /// frames are never formed). The translation field reads nothing else. Runs on the
+    /// caller's thread (the field heads split their queries over threads themselves).
+    pub fn invariant_zero_destinations(
+        &self,
+        x_src: &[f32],
+        nd: usize,
+        edges: &EdgeSet,
+    ) -> Result<Vec<f32>> {
+        let (Some(conv1), Some(readout)) = (&self.conv1_sources, &self.readout) else {
+            return Err(PolicyError::ShapeMismatch {
+                name: "invariant readout (GraphAttention::prepare_zero_destinations first)".into(),
+                expected: vec![1],
+                got: vec![0],
+            });
+        };
+        let cfg = &self.cfg;
+        let k = num_coefficients(cfg.lmax);
+        let c = cfg.sphere_channels;
+        let (heads, vc) = (cfg.num_heads, cfg.value_channels);
+        let hv = heads * vc;
+        let ns = rows_of("attention source features", x_src.len(), k * c)?;
+        if edges.wigners.lmax != cfg.lmax {
+            return Err(PolicyError::UnsupportedDegree {
+                lmax: edges.wigners.lmax,
+                mmax: cfg.mmax,
+                max_supported: cfg.lmax,
+            });
+        }
+        // The aggregated values in the full layout (rows l > 0 stay zero) so that the
+        // projection is the one the whole layer applies.
+        let mut agg = vec![0.0f32; nd * k * hv];
+        for r in destination_chunks(&edges.dst, EDGE_CHUNK) {
+            let (src, dst) = (&edges.src[r.clone()], &edges.dst[r.clone()]);
+            check_edge_nodes(src, dst, ns, nd)?;
+            let wig = (&*edges.wigners, r.clone());
+            let attr = edges.attr.slice(r);
+            let (v0, mut alpha_in) = match &readout.conv1_m0 {
+                Some(m0) => {
+                    let out = m0.forward_rotated(wig, (x_src, src), attr)?;
+                    readout.gated_values(m0.outputs(), &out, cfg)?
+                }
+                None => {
+                    let (h, extra) = conv1.forward_rotated(
+                        wig,
+                        c,
+                        (x_src, src),
+                        None,
+                        Some(attr),
+                        self.products,
+                    )?;
+                    let (alpha_in, gating) = split_extra(&extra, cfg);
+                    let h = separable_s2_activation(&self.grid, &gating, &h, cfg.hidden_channels)?;
+                    // The activated m = 0 rows, l ascending.
+                    let nr = self.map.len();
+                    let hc = cfg.hidden_channels;
+                    let mut rows = Vec::with_capacity(src.len() * (cfg.lmax + 1) * hc);
+                    for he in h.chunks_exact(nr * hc) {
+                        for l in 0..=cfg.lmax {
+                            let p = self.map.position(l, 0);
+                            rows.extend_from_slice(&he[p * hc..(p + 1) * hc]);
+                        }
+                    }
+                    (readout.conv2_l0.forward(&rows)?, alpha_in)
+                }
+            };
+            let logit = self.logits(&mut alpha_in, src.len());
+            let alpha = grouped_softmax(&logit, dst, nd, heads);
+            // As the whole layer: each value times its weight, rotated back (l = 0: times
+            // D⁰ = 1), added at its destination in edge order.
+            for (e, &d) in dst.iter().enumerate() {
+                let out = &mut agg[d * k * hv..d * k * hv + hv];
+                for hd in 0..heads {
+                    let a = alpha[e * heads + hd];
+                    let vs = &v0[e * hv + hd * vc..e * hv + (hd + 1) * vc];
+                    for (o, v) in out[hd * vc..(hd + 1) * vc].iter_mut().zip(vs) {
+                        *o += v * a;
+                    }
+                }
+            }
+        }
+        let y = self.proj.forward(&agg)?;
+        let co = cfg.output_channels;
+        Ok(y.chunks_exact(k * co)
+            .flat_map(|row| row[..co].iter().copied())
+            .collect())
     }
 
     /// Attends from `x_src` `[Ns, K, C]` to `x_dst` `[Nd, K, C]` over `edges`; returns
@@ -522,16 +634,7 @@ impl GraphAttention {
                 got: vec![mc],
             });
         }
-        for e in 0..ne {
-            let (s, d) = (src[e], dst[e]);
-            if s >= ns || d >= nd {
-                return Err(PolicyError::IndexOutOfRange {
-                    name: "edge_src/edge_dst".into(),
-                    value: if s >= ns { s as i64 } else { d as i64 },
-                    len: if s >= ns { ns } else { nd },
-                });
-            }
-        }
+        check_edge_nodes(src, dst, ns, nd)?;
         // The messages are rotated straight from the node features into the convolution's
         // |m| blocks (no gathered copy, no rotated copy).
         let (h, extra) = conv1.forward_rotated(
@@ -542,19 +645,19 @@ impl GraphAttention {
             Some(attr),
             self.products,
         )?;
-        let n_alpha = cfg.num_heads * cfg.alpha_channels;
-        let n_extra = n_alpha + cfg.hidden_channels;
-        let mut alpha_in = Vec::with_capacity(ne * n_alpha);
-        let mut gating = Vec::with_capacity(ne * cfg.hidden_channels);
-        for row in extra.chunks_exact(n_extra) {
-            alpha_in.extend_from_slice(&row[..n_alpha]);
-            gating.extend_from_slice(&row[n_alpha..]);
-        }
+        let (mut alpha_in, gating) = split_extra(&extra, cfg);
         let h = separable_s2_activation(&self.grid, &gating, &h, cfg.hidden_channels)?;
         let (v, _) = self.conv2.forward_with(&h, None, self.products)?;
+        let logit = self.logits(&mut alpha_in, ne);
+        Ok((v, logit))
+    }
 
-        // Attention logits; the softmax over each destination's edges is the caller's.
-        self.alpha_norm.apply(&mut alpha_in);
+    /// The attention logits `[E, heads]` of the first convolution's logit outputs
+    /// `alpha_in` `[E, heads·alpha]` (normalised in place); the softmax over each
+    /// destination's edges is the caller's.
+    fn logits(&self, alpha_in: &mut [f32], ne: usize) -> Vec<f32> {
+        let cfg = &self.cfg;
+        self.alpha_norm.apply(alpha_in);
         let heads = cfg.num_heads;
         let mut logit = vec![0.0f32; ne * heads];
         for e in 0..ne {
@@ -569,7 +672,7 @@ impl GraphAttention {
                     .sum();
             }
         }
-        Ok((v, logit))
+        logit
     }
 
     /// Each head's values `v` `[E, n_reduced, heads·value]` weighted by its attention `alpha`
@@ -634,6 +737,83 @@ impl GraphAttention {
     }
 }
 
+/// The m = 0 parts of an attention's two convolutions for its invariant readout onto
+/// all-zero destinations ([`GraphAttention::invariant_zero_destinations`]).
+#[derive(Debug, Clone)]
+struct InvariantReadout {
+    /// The first convolution's m = 0 block on the source channels, with its extras and its
+    /// l > 0 outputs (gated activation only; None with a grid activation).
+    conv1_m0: Option<M0Block>,
+    /// The second convolution's m = 0 block, its l = 0 outputs only.
+    conv2_l0: M0Block,
+}
+
+impl InvariantReadout {
+    /// From the first convolution's m = 0 outputs `out` `[E, width]` (logit inputs, gating
+    /// scalars, then the l > 0 rows): the gated activation of the m = 0 rows (l = 0:
+    /// SiLU(gating), l > 0: times σ(gating), as [`crate::grids::gate_activation`]), the
+    /// second convolution's l = 0 values `[E, heads·value]`, and the logit inputs.
+    fn gated_values(
+        &self,
+        width: usize,
+        out: &[f32],
+        cfg: &AttentionConfig,
+    ) -> Result<(Vec<f32>, Vec<f32>)> {
+        let hc = cfg.hidden_channels;
+        let n_alpha = cfg.num_heads * cfg.alpha_channels;
+        let ne = rows_of("first convolution's m = 0 outputs", out.len(), width)?;
+        check_len(
+            "first convolution's m = 0 outputs",
+            width,
+            &[n_alpha + (cfg.lmax + 1) * hc],
+        )?;
+        let mut alpha_in = Vec::with_capacity(ne * n_alpha);
+        let mut rows = Vec::with_capacity(ne * (cfg.lmax + 1) * hc);
+        let mut sig = Vec::with_capacity(hc);
+        for row in out.chunks_exact(width) {
+            alpha_in.extend_from_slice(&row[..n_alpha]);
+            let gating = &row[n_alpha..n_alpha + hc];
+            sig.clear();
+            sig.extend(gating.iter().map(|&g| crate::layers::sigmoid(g)));
+            rows.extend(gating.iter().map(|&g| crate::layers::silu(g)));
+            for hl in row[n_alpha + hc..].chunks_exact(hc) {
+                rows.extend(hl.iter().zip(&sig).map(|(v, s)| v * s));
+            }
+        }
+        Ok((self.conv2_l0.forward(&rows)?, alpha_in))
+    }
+}
+
+/// The first convolution's extra outputs `[E, heads·alpha + hidden]` split into the logit
+/// inputs `[E, heads·alpha]` and the gating scalars `[E, hidden]`.
+fn split_extra(extra: &[f32], cfg: &AttentionConfig) -> (Vec<f32>, Vec<f32>) {
+    let n_alpha = cfg.num_heads * cfg.alpha_channels;
+    let n_extra = n_alpha + cfg.hidden_channels;
+    let ne = extra.len() / n_extra.max(1);
+    let mut alpha_in = Vec::with_capacity(ne * n_alpha);
+    let mut gating = Vec::with_capacity(ne * cfg.hidden_channels);
+    for row in extra.chunks_exact(n_extra) {
+        alpha_in.extend_from_slice(&row[..n_alpha]);
+        gating.extend_from_slice(&row[n_alpha..]);
+    }
+    (alpha_in, gating)
+}
+
+/// An error unless every edge's source is below `ns` and its destination below `nd`.
+fn check_edge_nodes(src: &[usize], dst: &[usize], ns: usize, nd: usize) -> Result<()> {
+    check_len("edge_dst", dst.len(), &[src.len()])?;
+    for (&s, &d) in src.iter().zip(dst) {
+        if s >= ns || d >= nd {
+            return Err(PolicyError::IndexOutOfRange {
+                name: "edge_src/edge_dst".into(),
+                value: if s >= ns { s as i64 } else { d as i64 },
+                len: if s >= ns { ns } else { nd },
+            });
+        }
+    }
+    Ok(())
+}
+
 /// Edges per thread below which a single destination chunk stays on one thread (at 128, the
 /// coarsest U-net level's 480 edges, 32 nodes in one chunk, are split too).
 const SPLIT_EDGES_PER_THREAD: usize = 128;
@@ -689,6 +869,75 @@ pub fn grouped_softmax(logit: &[f32], dst: &[usize], nd: usize, heads: usize) ->
 mod tests {
     use super::*;
     use crate::predict::PolicyConfig;
+
+    /// The translation field's attention (degree 1) onto zero destinations: its invariant
+    /// readout equals the l = 0 rows of the whole layer to the bit, with the gated
+    /// activation and with grid activations, for products on the small path (the tiny
+    /// widths) and through `matrixmultiply` (every side above 5), over several chunks.
+    #[test]
+    fn the_invariant_readout_equals_the_whole_layers_l0_rows_bit_for_bit() {
+        use crate::grids::S2Resolution;
+        use rand::{Rng, SeedableRng};
+        for wide in [true, false] {
+            let mut cfg = PolicyConfig::tiny();
+            if wide {
+                cfg.model.field_nn_c = 16;
+                cfg.model.attn_hidden_channels = vec![8; 3];
+                cfg.model.attn_alpha_channels = vec![8; 3];
+                cfg.model.attn_value_channels = vec![8; 3];
+            }
+            let w = crate::init::random_weights(&cfg.model, &cfg.extra, 9);
+            let acfg = cfg.model.heads_config().attention(1, 1);
+            let rbf = GaussianRbf::load(&w.scope("field_distance_expansion."), 1.98).unwrap();
+            let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+            let mut point =
+                || -> [f32; 3] { [0.0; 3].map(|_: f32| rng.random_range(-0.3f32..0.3)) };
+            let nodes: Vec<[f32; 3]> = (0..40).map(|_| point()).collect();
+            let queries: Vec<[f32; 3]> = (0..30).map(|_| point()).collect();
+            // Every node to every query, grouped by query: 1200 edges, three chunks.
+            let (src, dst): (Vec<usize>, Vec<usize>) = (0..queries.len())
+                .flat_map(|q| (0..nodes.len()).map(move |n| (n, q)))
+                .unzip();
+            let calc = WignerCalculator::new(1).unwrap();
+            let edges = EdgeSet::new(&calc, 1, &nodes, &queries, src, dst, &rbf).unwrap();
+            let (k, c) = (4, acfg.sphere_channels);
+            let x: Vec<f32> = (0..nodes.len() * k * c)
+                .map(|_| rng.random_range(-1.0f32..1.0))
+                .collect();
+            for res in [
+                S2Resolution::Gated,
+                S2Resolution::Reference,
+                S2Resolution::Square(8),
+            ] {
+                let mut ga = GraphAttention::load_with_grid(
+                    &w.scope("trans_field_layer.0."),
+                    acfg,
+                    res.grid(1, 1).unwrap(),
+                )
+                .unwrap();
+                assert!(
+                    ga.invariant_zero_destinations(&x, queries.len(), &edges)
+                        .is_err(),
+                    "not prepared: an error, not a guess"
+                );
+                ga.prepare_zero_destinations().unwrap();
+                let whole = ga
+                    .forward_zero_destinations(&x, queries.len(), &edges)
+                    .unwrap();
+                let want: Vec<f32> = whole
+                    .chunks_exact(k * acfg.output_channels)
+                    .flat_map(|row| row[..acfg.output_channels].iter().copied())
+                    .collect();
+                let got = ga
+                    .invariant_zero_destinations(&x, queries.len(), &edges)
+                    .unwrap();
+                assert_eq!(got.len(), queries.len() * acfg.output_channels);
+                let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+                assert_eq!(bits(&got), bits(&want), "{res:?}, wide {wide}");
+                assert!(got.iter().any(|v| *v != 0.0));
+            }
+        }
+    }
 
     #[test]
     fn an_edge_set_with_another_radial_basis_shares_its_frames() {

@@ -252,10 +252,11 @@ impl FieldHeads {
                 dst,
                 &self.rbf,
             )?;
+            // The field is the l = 0 row's first channel: only the invariant readout.
             let y = self
                 .trans
-                .forward_zero_destinations(&x, batch.len(), &edges)?;
-            Ok((0..batch.len()).map(|q| y[q * k * c]).collect())
+                .invariant_zero_destinations(&x, batch.len(), &edges)?;
+            Ok((0..batch.len()).map(|q| y[q * c]).collect())
         })
     }
 

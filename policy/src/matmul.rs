@@ -83,6 +83,13 @@ fn bad_operand(what: &str, expected: Vec<usize>, got: Vec<usize>) -> PolicyError
 /// products use [`small_gemm_acc`] instead.
 const SMALL: usize = 5;
 
+/// Whether a product with `n` output columns takes the same path (and so rounds each
+/// output the same way) as one with `full` columns and otherwise the same operands: a
+/// layer restricted to some of its outputs gives those outputs to the bit only then.
+pub fn same_rounding(full: usize, n: usize) -> bool {
+    (full <= SMALL) == (n <= SMALL)
+}
+
 /// `c += a · b` by the definition (products with a side of at most [`SMALL`]).
 fn small_gemm_acc(a: &Strided<'_>, b: &Strided<'_>, c: &mut [f32], c_offset: usize, c_rs: usize) {
     for r in 0..a.rows {

@@ -480,6 +480,100 @@ impl GaussProducts {
     }
 }
 
+/// An SO(2) convolution's m = 0 block with some of its output degrees
+/// ([`So2Conv::m0_block`]): reads the m = 0 rows (l = 0..=lmax) of the edge frame only.
+#[derive(Debug, Clone)]
+pub struct M0Block {
+    /// (lmax, 0): the m = 0 rows.
+    map: CoefficientMapping,
+    /// Input channels.
+    cin: usize,
+    /// The kept outputs of `fc_m0` (the extras, then the kept degrees' channels), or the
+    /// whole map and the outputs to pick from it.
+    fc: (Linear, Option<Vec<usize>>),
+    /// The radial MLP's m = 0 outputs, or the whole MLP and the outputs to pick.
+    rad: Option<(RadialMlp, Option<Vec<usize>>)>,
+}
+
+/// The columns `pick` of each `width`-wide row of `y` (all of `y` when None).
+fn pick_columns(y: Vec<f32>, width: usize, pick: &Option<Vec<usize>>) -> Vec<f32> {
+    match pick {
+        None => y,
+        Some(cols) => y
+            .chunks_exact(width)
+            .flat_map(|row| cols.iter().map(|&c| row[c]))
+            .collect(),
+    }
+}
+
+impl M0Block {
+    /// Outputs per edge (the extras, then `cout` per kept degree).
+    pub fn outputs(&self) -> usize {
+        match &self.fc {
+            (_, Some(pick)) => pick.len(),
+            (fc, None) => fc.out,
+        }
+    }
+
+    /// The kept outputs of the map on the m = 0 block `x`.
+    fn map(&self, x: &[f32]) -> Result<Vec<f32>> {
+        let (fc, pick) = &self.fc;
+        Ok(pick_columns(fc.forward(x)?, fc.out, pick))
+    }
+
+    /// The block on given m = 0 rows `x` `[E, lmax+1, cin]` (no radial MLP: an error if the
+    /// convolution has one).
+    pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
+        if let Some((r, _)) = &self.rad {
+            return Err(PolicyError::ShapeMismatch {
+                name: "SO(2) convolution edge features (required by its radial MLP)".into(),
+                expected: vec![r.inp()],
+                got: vec![0],
+            });
+        }
+        rows_of(
+            "m = 0 rows of an SO(2) convolution",
+            x.len(),
+            (self.map.lmax + 1) * self.cin,
+        )?;
+        self.map(x)
+    }
+
+    /// The block on the m = 0 rows of the messages `x_a[a[e]]` rotated into the frames of
+    /// the edges `range` of `wigners` (c channels; see
+    /// [`So2Conv::forward_rotated`]), scaled by the radial MLP of `x_edge`: `[E, outputs]`.
+    pub fn forward_rotated(
+        &self,
+        (wigners, range): (&EdgeWigners, std::ops::Range<usize>),
+        parts: (&[f32], &[usize]),
+        x_edge: EdgeFeaturesRef<'_>,
+    ) -> Result<Vec<f32>> {
+        let edges = wigners.range_len(&range)?;
+        let rad = match &self.rad {
+            Some((r, pick)) => {
+                if x_edge.rows() != edges || x_edge.cols() != r.inp() {
+                    return Err(PolicyError::ShapeMismatch {
+                        name: "SO(2) convolution edge features".into(),
+                        expected: vec![edges, r.inp()],
+                        got: vec![x_edge.rows(), x_edge.cols()],
+                    });
+                }
+                Some(pick_columns(r.forward_features(x_edge)?, r.out(), pick))
+            }
+            None => None,
+        };
+        let blocks = wigners.rotate_messages_blocks(
+            range,
+            &self.map,
+            self.cin,
+            parts,
+            None,
+            rad.as_deref(),
+        )?;
+        self.map(&blocks.m0)
+    }
+}
+
 /// Which products compute the m > 0 blocks.
 #[derive(Copy, Clone, Debug, PartialEq, Eq)]
 pub enum MProducts {
@@ -594,6 +688,57 @@ impl So2Conv {
             fc_m,
             rad,
         )
+    }
+
+    /// The m = 0 block alone, with the extra outputs and the outputs of the degrees
+    /// `degrees` only (ascending): for a reader of the invariant (m = 0) rows of the edge
+    /// frame that never needs the m > 0 rows or the other degrees (the field heads'
+    /// translation readout). Its outputs are those of the whole convolution to the bit.
+    pub fn m0_block(&self, degrees: &[usize]) -> Result<M0Block> {
+        let l1 = self.map.lmax + 1;
+        if let Some(&bad) = degrees.iter().find(|&&l| l >= l1) {
+            return Err(PolicyError::UnsupportedDegree {
+                lmax: bad,
+                mmax: 0,
+                max_supported: self.map.lmax,
+            });
+        }
+        if degrees.windows(2).any(|w| w[1] <= w[0]) {
+            return Err(PolicyError::ShapeMismatch {
+                name: "output degrees of an m = 0 block (ascending, each once)".into(),
+                expected: vec![],
+                got: degrees.to_vec(),
+            });
+        }
+        // fc_m0's outputs: the extras, then cout per degree l = 0..=lmax.
+        let keep: Vec<usize> = (0..self.extra)
+            .chain(degrees.iter().flat_map(|&l| {
+                let start = self.extra + l * self.cout;
+                start..start + self.cout
+            }))
+            .collect();
+        // The radial weights' first l1·cin outputs scale the m = 0 rows.
+        let rad_keep: Vec<usize> = (0..l1 * self.cin).collect();
+        let rad = match &self.rad {
+            Some(r) if crate::matmul::same_rounding(r.out(), rad_keep.len()) => {
+                Some((r.select_outputs(&rad_keep)?, None))
+            }
+            Some(r) => Some((r.clone(), Some(rad_keep))),
+            None => None,
+        };
+        // A product narrowed below matmul's small size would round differently: such a map
+        // stays whole and its kept outputs are picked after.
+        let fc = if crate::matmul::same_rounding(self.fc_m0.out, keep.len()) {
+            (self.fc_m0.select_outputs(&keep)?, None)
+        } else {
+            (self.fc_m0.clone(), Some(keep))
+        };
+        Ok(M0Block {
+            map: CoefficientMapping::new(self.map.lmax, 0)?,
+            cin: self.cin,
+            fc,
+            rad,
+        })
     }
 
     /// Input width of the radial MLP (0 without one).
