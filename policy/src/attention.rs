@@ -258,6 +258,13 @@ impl GraphAttention {
             n_alpha + cfg.hidden_channels,
             true,
         )?;
+        // The gated activation replaces the hidden l = 0 row by SiLU(gating): that row of
+        // the first convolution is never read.
+        let conv1 = if grid.gated {
+            conv1.without_l0_outputs()?
+        } else {
+            conv1
+        };
         let conv2 = So2Conv::load(
             &s.sub("so2_conv_2"),
             &map,

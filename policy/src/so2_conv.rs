@@ -447,6 +447,9 @@ pub struct So2Conv {
     /// Extra m = 0 outputs (0 for none).
     pub extra: usize,
     fc_m0: Linear,
+    /// The degrees whose m = 0 outputs `fc_m0` computes, ascending (all but those a reader
+    /// never uses; the others' rows come out as zeros).
+    m0_degrees: Vec<usize>,
     fc_m: Vec<Linear>,
     /// `fc_m` as Gauss's three products, one per |m|.
     gauss: Vec<GaussProducts>,
@@ -636,6 +639,7 @@ impl So2Conv {
     ) -> Result<Self> {
         let gauss = fc_m.iter().map(GaussProducts::of).collect::<Result<_>>()?;
         Ok(Self {
+            m0_degrees: (0..=map.lmax).collect(),
             map,
             cin,
             cout,
@@ -679,15 +683,46 @@ impl So2Conv {
             Some(r) => Some(r.select_outputs(&rad_keep)?),
             None => None,
         };
-        Self::assemble(
-            self.map.clone(),
-            keep,
-            self.cout,
-            self.extra,
-            fc_m0,
-            fc_m,
-            rad,
-        )
+        Ok(Self {
+            m0_degrees: self.m0_degrees.clone(),
+            ..Self::assemble(
+                self.map.clone(),
+                keep,
+                self.cout,
+                self.extra,
+                fc_m0,
+                fc_m,
+                rad,
+            )?
+        })
+    }
+
+    /// The convolution without the l = 0 outputs (m = 0 row of degree 0), which come out
+    /// as zeros: for a reader that replaces that row (the gated activation writes
+    /// SiLU(gating) there). The other outputs to the bit, one block of `cout` fewer
+    /// columns in the m = 0 product.
+    pub fn without_l0_outputs(&self) -> Result<Self> {
+        let Some(at) = self.m0_degrees.iter().position(|&l| l == 0) else {
+            return Ok(self.clone());
+        };
+        let start = self.extra + at * self.cout;
+        let keep: Vec<usize> = (0..self.fc_m0.out)
+            .filter(|&o| o < start || o >= start + self.cout)
+            .collect();
+        if !crate::matmul::same_rounding(self.fc_m0.out, keep.len()) {
+            // Narrower than matmul's small size: the other outputs would round differently.
+            return Ok(self.clone());
+        }
+        let mut out = self.clone();
+        out.fc_m0 = self.fc_m0.select_outputs(&keep)?;
+        out.m0_degrees.remove(at);
+        Ok(out)
+    }
+
+    /// The column of `fc_m0` where degree `l`'s m = 0 outputs start (None: not computed).
+    fn m0_column(&self, l: usize) -> Option<usize> {
+        let at = self.m0_degrees.iter().position(|&d| d == l)?;
+        Some(self.extra + at * self.cout)
     }
 
     /// The m = 0 block alone, with the extra outputs and the outputs of the degrees
@@ -710,13 +745,16 @@ impl So2Conv {
                 got: degrees.to_vec(),
             });
         }
-        // fc_m0's outputs: the extras, then cout per degree l = 0..=lmax.
-        let keep: Vec<usize> = (0..self.extra)
-            .chain(degrees.iter().flat_map(|&l| {
-                let start = self.extra + l * self.cout;
-                start..start + self.cout
-            }))
-            .collect();
+        // fc_m0's outputs: the extras, then cout per computed degree.
+        let mut keep: Vec<usize> = (0..self.extra).collect();
+        for &l in degrees {
+            let start = self.m0_column(l).ok_or(PolicyError::UnsupportedDegree {
+                lmax: l,
+                mmax: 0,
+                max_supported: self.map.lmax,
+            })?;
+            keep.extend(start..start + self.cout);
+        }
         // The radial weights' first l1·cin outputs scale the m = 0 rows.
         let rad_keep: Vec<usize> = (0..l1 * self.cin).collect();
         let rad = match &self.rad {
@@ -945,7 +983,10 @@ impl So2Conv {
                 let l = degree_of(i);
                 let m = i as i64 - (l * l + l) as i64;
                 if m == 0 {
-                    y.extend_from_slice(&oe[self.extra + l * cout..self.extra + (l + 1) * cout]);
+                    match self.m0_column(l) {
+                        Some(at) => y.extend_from_slice(&oe[at..at + cout]),
+                        None => y.resize(y.len() + cout, 0.0),
+                    }
                     continue;
                 }
                 let am = m.unsigned_abs() as usize;
@@ -1184,6 +1225,44 @@ mod tests {
 
     /// Gauss's three products give the plain four's outputs to f32 rounding, with and
     /// without the radial MLP, and for the source-only convolution.
+    /// Dropping the l = 0 outputs (read by nobody under the gated activation) leaves every
+    /// other output and the extras as they were, to the bit, and zeros in the l = 0 rows;
+    /// the m = 0 block of the narrowed convolution no longer offers degree 0.
+    #[test]
+    fn without_l0_outputs_the_other_outputs_stay_bit_for_bit() {
+        let (attn, map, conv1, _) = tiny_first_attention();
+        let narrow = conv1.without_l0_outputs().unwrap();
+        assert_eq!(narrow.fc_m0.out, conv1.fc_m0.out - conv1.cout);
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(6);
+        let edges = 19;
+        let x: Vec<f32> = (0..edges * map.len() * conv1.cin)
+            .map(|_| rng.random_range(-1.0..1.0f32))
+            .collect();
+        let xe: Vec<f32> = (0..edges * conv1.edge_features())
+            .map(|_| rng.random_range(0.0..1.0f32))
+            .collect();
+        let feats = Some(EdgeFeaturesRef::Dense {
+            cols: conv1.edge_features(),
+            values: &xe,
+        });
+        let (y, extra) = conv1.forward_features(&x, feats).unwrap();
+        let (yn, extra_n) = narrow.forward_features(&x, feats).unwrap();
+        assert_eq!(extra_n, extra);
+        let row = map.len() * conv1.cout;
+        for (e, (a, b)) in y.chunks_exact(row).zip(yn.chunks_exact(row)).enumerate() {
+            let l0 = map.position(0, 0) * conv1.cout..(map.position(0, 0) + 1) * conv1.cout;
+            assert!(b[l0.clone()].iter().all(|v| *v == 0.0), "edge {e}");
+            assert!(a[l0.clone()].iter().any(|v| *v != 0.0));
+            assert_eq!(&a[l0.end..], &b[l0.end..], "edge {e}");
+        }
+        // The zero-destination form keeps the narrowing.
+        let sources = narrow.first_channels(attn.sphere_channels).unwrap();
+        assert_eq!(sources.m0_degrees, narrow.m0_degrees);
+        assert!(narrow.m0_block(&[0]).is_err());
+        assert!(narrow.m0_block(&[1]).is_ok());
+        assert!(conv1.m0_block(&[1, 1]).is_err());
+    }
+
     #[test]
     fn gauss_products_equal_the_plain_four() {
         let (attn, map, conv1, conv2) = tiny_first_attention();
