@@ -264,14 +264,29 @@ impl WignerCalculator {
     /// `n_samples · (lmax+1)²` values. No allocation: the per-edge frames use this.
     pub fn wigner_all_into(&self, r: &Matrix3<f64>, sh: &mut Vec<f64>, out: &mut [f32]) {
         let k = num_coefficients(self.lmax);
+        out[..k * k].iter_mut().for_each(|v| *v = 0.0);
+        // Degrees 0 and 1 exactly: D⁰ = 1, and D¹ = R because the degree-1 harmonics are
+        // √3 (x, y, z) (e3nn's order). The samples' least squares gives them to f64
+        // rounding, so the same f32 values but for a rounding tie; the translation field's
+        // frames (degree 1) need no samples at all.
+        out[0] = 1.0;
+        if self.lmax >= 1 {
+            for i in 0..3 {
+                for j in 0..3 {
+                    out[(1 + i) * k + 1 + j] = r[(i, j)] as f32;
+                }
+            }
+        }
+        if self.lmax < 2 {
+            return;
+        }
         let (pts, pinv) = &self.shared;
         sh.resize(pts.len() * k, 0.0);
         for (p, y) in pts.iter().zip(sh.chunks_exact_mut(k)) {
             let rv = r * Vector3::new(p[0], p[1], p[2]);
             spherical_harmonics_unit_into(self.lmax, [rv[0], rv[1], rv[2]], y);
         }
-        out[..k * k].iter_mut().for_each(|v| *v = 0.0);
-        for (l, pl) in pinv.iter().enumerate() {
+        for (l, pl) in pinv.iter().enumerate().skip(2) {
             let d = 2 * l + 1;
             for i in 0..d {
                 let mut row = [0.0f64; 2 * MAX_DEGREE + 1];

@@ -74,6 +74,33 @@ fn sh_component_normalisation_and_l1_convention() {
     }
 }
 
+/// The edge frames' block-diagonal D in f32 (degrees 0 and 1 written directly, the others
+/// from the samples) is the per-degree D rounded to f32, for every calculator degree.
+#[test]
+fn edge_frame_wigners_are_the_wigner_matrices_in_f32() {
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    for lmax in 0..=4 {
+        let calc = WignerCalculator::new(lmax).unwrap();
+        let k = (lmax + 1) * (lmax + 1);
+        let (mut sh, mut out) = (Vec::new(), vec![f32::NAN; k * k]);
+        for _ in 0..200 {
+            let r = random_rotation(&mut rng);
+            calc.wigner_all_into(&r, &mut sh, &mut out);
+            let d = calc.wigner(lmax, &r).unwrap();
+            for i in 0..k {
+                for j in 0..k {
+                    let want = d[(i, j)];
+                    let got = f64::from(out[i * k + j]);
+                    assert!(
+                        (got - want).abs() <= 1e-7 * want.abs().max(1e-3),
+                        "lmax {lmax}: D[{i}, {j}] = {got}, want {want}"
+                    );
+                }
+            }
+        }
+    }
+}
+
 #[test]
 fn wigner_is_an_orthogonal_representation() {
     let mut rng = ChaCha8Rng::seed_from_u64(9);
