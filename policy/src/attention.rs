@@ -368,25 +368,18 @@ impl GraphAttention {
         edges: &EdgeSet,
     ) -> Result<Vec<f32>> {
         let (Some(conv1), Some(readout)) = (&self.conv1_sources, &self.readout) else {
-            return Err(PolicyError::ShapeMismatch {
-                name: "invariant readout (GraphAttention::prepare_zero_destinations first)".into(),
-                expected: vec![1],
-                got: vec![0],
-            });
+            return Err(PolicyError::BadConfig(
+                "the attention's invariant readout is not prepared: call \
+                 GraphAttention::prepare_zero_destinations first"
+                    .into(),
+            ));
         };
         let cfg = &self.cfg;
         let k = num_coefficients(cfg.lmax);
         let c = cfg.sphere_channels;
         let (heads, vc) = (cfg.num_heads, cfg.value_channels);
         let hv = heads * vc;
-        let ns = rows_of("attention source features", x_src.len(), k * c)?;
-        if edges.wigners.lmax != cfg.lmax {
-            return Err(PolicyError::UnsupportedDegree {
-                lmax: edges.wigners.lmax,
-                mmax: cfg.mmax,
-                max_supported: cfg.lmax,
-            });
-        }
+        let ns = self.source_nodes(x_src, edges)?;
         // The aggregated values in the full layout (rows l > 0 stay zero) so that the
         // projection is the one the whole layer applies.
         let mut agg = vec![0.0f32; nd * k * hv];
@@ -470,15 +463,7 @@ impl GraphAttention {
     ) -> Result<Vec<f32>> {
         let cfg = &self.cfg;
         let k = num_coefficients(cfg.lmax);
-        let c = cfg.sphere_channels;
-        let ns = rows_of("attention source features", x_src.len(), k * c)?;
-        if edges.wigners.lmax != cfg.lmax {
-            return Err(PolicyError::UnsupportedDegree {
-                lmax: edges.wigners.lmax,
-                mmax: cfg.mmax,
-                max_supported: cfg.lmax,
-            });
-        }
+        let ns = self.source_nodes(x_src, edges)?;
         let row = k * cfg.num_heads * cfg.value_channels;
         let mut agg = vec![0.0f32; nd * row];
         // Whole destination groups at a time keep the buffers small; the softmax is per
@@ -535,6 +520,26 @@ impl GraphAttention {
         }
         // The projection is per destination: runs of them on the threads.
         crate::parallel::map_rows(&agg, row, (self.threads, 64), |a| self.proj.forward(a))
+    }
+
+    /// The number of source nodes in `x_src` `[Ns, K, C]`, checked, and an error unless the
+    /// edges' frames are of this layer's degree.
+    fn source_nodes(&self, x_src: &[f32], edges: &EdgeSet) -> Result<usize> {
+        let cfg = &self.cfg;
+        let k = num_coefficients(cfg.lmax);
+        let ns = rows_of(
+            "attention source features",
+            x_src.len(),
+            k * cfg.sphere_channels,
+        )?;
+        if edges.wigners.lmax != cfg.lmax {
+            return Err(PolicyError::UnsupportedDegree {
+                lmax: edges.wigners.lmax,
+                mmax: cfg.mmax,
+                max_supported: cfg.lmax,
+            });
+        }
+        Ok(ns)
     }
 
     /// Threads of [`GraphAttention::forward`] (1: the caller's only; see [`crate::parallel`]).
