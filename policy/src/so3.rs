@@ -46,10 +46,11 @@ pub fn spherical_harmonics_unit_into(lmax: usize, u: [f64; 3], out: &mut [f64]) 
         cos_k[k] = cos_k[k - 1] * z - sin_k[k - 1] * x;
         sin_k[k] = sin_k[k - 1] * z + cos_k[k - 1] * x;
     }
+    let consts = sh_constants();
     // q[l] = P_l^k(y) / sin^k(b) for the current order k (no Condon-Shortley phase, as e3nn).
     for k in 0..=lmax.min(MAX_DEGREE) {
         let mut q_prev = 0.0f64;
-        let mut q = double_factorial(2 * k as i64 - 1);
+        let mut q = consts.start[k];
         for l in k..=lmax {
             if l > k {
                 let q_next = if l == k + 1 {
@@ -60,7 +61,7 @@ pub fn spherical_harmonics_unit_into(lmax: usize, u: [f64; 3], out: &mut [f64]) 
                 q_prev = q;
                 q = q_next;
             }
-            let norm = ((2 * l + 1) as f64 * factorial_ratio(l - k, l + k)).sqrt();
+            let norm = consts.norm[l][k];
             if k == 0 {
                 out[coefficient_index(l, 0)] = norm * q;
             } else {
@@ -70,6 +71,32 @@ pub fn spherical_harmonics_unit_into(lmax: usize, u: [f64; 3], out: &mut [f64]) 
             }
         }
     }
+}
+
+/// The harmonics' per-(l, k) constants, computed once: every edge frame evaluates the
+/// harmonics at a dozen directions, and the factorials and square roots were a third of it.
+struct ShConstants {
+    /// (2k − 1)!!, the recurrence's start for order k.
+    start: [f64; MAX_DEGREE + 1],
+    /// √((2l + 1) (l − k)! / (l + k)!) for k <= l.
+    norm: [[f64; MAX_DEGREE + 1]; MAX_DEGREE + 1],
+}
+
+fn sh_constants() -> &'static ShConstants {
+    static CONSTS: std::sync::OnceLock<ShConstants> = std::sync::OnceLock::new();
+    CONSTS.get_or_init(|| {
+        let mut c = ShConstants {
+            start: [0.0; MAX_DEGREE + 1],
+            norm: [[0.0; MAX_DEGREE + 1]; MAX_DEGREE + 1],
+        };
+        for k in 0..=MAX_DEGREE {
+            c.start[k] = double_factorial(2 * k as i64 - 1);
+            for l in k..=MAX_DEGREE {
+                c.norm[l][k] = ((2 * l + 1) as f64 * factorial_ratio(l - k, l + k)).sqrt();
+            }
+        }
+        c
+    })
 }
 
 /// Real spherical harmonics Y_lm(v/|v|) for l = 0..=lmax (component normalisation).
