@@ -418,6 +418,9 @@ impl Linear {
     }
 }
 
+/// Rows whose sums [`LayerNorm::apply`] interleaves.
+const LAYER_NORM_GROUP: usize = 4;
+
 /// LayerNorm over the last axis (eps 1e-5, affine).
 #[derive(Debug, Clone)]
 pub struct LayerNorm {
@@ -439,17 +442,42 @@ impl LayerNorm {
 
     /// Normalises each row of `x` in place.
     pub fn apply(&self, x: &mut [f32]) {
-        for row in x.chunks_exact_mut(self.dim) {
-            let n = self.dim as f64;
-            let mean = row.iter().map(|v| f64::from(*v)).sum::<f64>() / n;
-            let var = row
-                .iter()
-                .map(|v| (f64::from(*v) - mean).powi(2))
-                .sum::<f64>()
-                / n;
-            let inv = 1.0 / (var + 1e-5).sqrt();
+        if self.dim == 0 {
+            return;
+        }
+        // Rows a group at a time: each row's sums still add its values in order (the same
+        // rounding), but the groups' independent sums overlap instead of each waiting on
+        // its own chain of f64 additions (the per-edge norms are short rows, 8-64 wide).
+        let mut groups = x.chunks_exact_mut(LAYER_NORM_GROUP * self.dim);
+        for group in &mut groups {
+            self.apply_group::<LAYER_NORM_GROUP>(group);
+        }
+        for row in groups.into_remainder().chunks_exact_mut(self.dim) {
+            self.apply_group::<1>(row);
+        }
+    }
+
+    /// [`LayerNorm::apply`] on `G` consecutive rows, their sums interleaved.
+    fn apply_group<const G: usize>(&self, rows: &mut [f32]) {
+        let (dim, n) = (self.dim, self.dim as f64);
+        // -0.0: where `Iterator::sum` starts, so that even a row of negative zeros keeps its sign.
+        let mut mean = [-0.0f64; G];
+        for i in 0..dim {
+            for (g, m) in mean.iter_mut().enumerate() {
+                *m += f64::from(rows[g * dim + i]);
+            }
+        }
+        mean.iter_mut().for_each(|m| *m /= n);
+        let mut var = [-0.0f64; G];
+        for i in 0..dim {
+            for (g, v) in var.iter_mut().enumerate() {
+                *v += (f64::from(rows[g * dim + i]) - mean[g]).powi(2);
+            }
+        }
+        for (g, row) in rows.chunks_exact_mut(dim).enumerate() {
+            let inv = 1.0 / (var[g] / n + 1e-5).sqrt();
             for (i, v) in row.iter_mut().enumerate() {
-                *v = ((f64::from(*v) - mean) * inv) as f32 * self.w[i] + self.b[i];
+                *v = ((f64::from(*v) - mean[g]) * inv) as f32 * self.w[i] + self.b[i];
             }
         }
     }
@@ -1482,6 +1510,45 @@ mod tests {
         ] {
             assert!((erf(x) - want).abs() < 1e-9, "erf({x}) = {}", erf(x));
             assert_eq!(erf(-x), -erf(x));
+        }
+    }
+
+    /// The interleaved rows give each row's LayerNorm by its definition (sums in order,
+    /// from -0.0 as `Iterator::sum`), to the bit, for any row count (groups and the rest).
+    #[test]
+    fn layer_norm_rows_in_groups_equal_the_row_by_row_definition() {
+        let dim = 11;
+        let w: Vec<f32> = (0..dim).map(|i| 0.5 + i as f32 * 0.1).collect();
+        let b: Vec<f32> = (0..dim).map(|i| i as f32 * 0.01 - 0.05).collect();
+        let ln = LayerNorm {
+            dim,
+            w: w.clone(),
+            b: b.clone(),
+        };
+        for rows in 0..10 {
+            let mut x: Vec<f32> = (0..rows * dim)
+                .map(|i| ((i * 7919 % 1013) as f32 / 97.0).sin() * 10f32.powi((i % 5) as i32 - 2))
+                .collect();
+            if rows > 2 {
+                x[dim * 2..dim * 3].iter_mut().for_each(|v| *v = -0.0);
+            }
+            let mut want = x.clone();
+            for row in want.chunks_exact_mut(dim) {
+                let n = dim as f64;
+                let mean = row.iter().map(|v| f64::from(*v)).sum::<f64>() / n;
+                let var = row
+                    .iter()
+                    .map(|v| (f64::from(*v) - mean).powi(2))
+                    .sum::<f64>()
+                    / n;
+                let inv = 1.0 / (var + 1e-5).sqrt();
+                for (i, v) in row.iter_mut().enumerate() {
+                    *v = ((f64::from(*v) - mean) * inv) as f32 * w[i] + b[i];
+                }
+            }
+            ln.apply(&mut x);
+            let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&x), bits(&want), "{rows} rows");
         }
     }
 
