@@ -974,6 +974,7 @@ impl So2Conv {
         }
         // The outputs in reduced order, edge by edge.
         let w0 = self.fc_m0.out;
+        let m0_columns: Vec<Option<usize>> = (0..l1).map(|l| self.m0_column(l)).collect();
         let mut y = Vec::with_capacity(edges * nr * cout);
         let mut extra = Vec::with_capacity(edges * self.extra);
         for e in 0..edges {
@@ -983,7 +984,7 @@ impl So2Conv {
                 let l = degree_of(i);
                 let m = i as i64 - (l * l + l) as i64;
                 if m == 0 {
-                    match self.m0_column(l) {
+                    match m0_columns[l] {
                         Some(at) => y.extend_from_slice(&oe[at..at + cout]),
                         None => y.resize(y.len() + cout, 0.0),
                     }
@@ -1223,8 +1224,6 @@ mod tests {
             .is_err());
     }
 
-    /// Gauss's three products give the plain four's outputs to f32 rounding, with and
-    /// without the radial MLP, and for the source-only convolution.
     /// Dropping the l = 0 outputs (read by nobody under the gated activation) leaves every
     /// other output and the extras as they were, to the bit, and zeros in the l = 0 rows;
     /// the m = 0 block of the narrowed convolution no longer offers degree 0.
@@ -1263,6 +1262,8 @@ mod tests {
         assert!(conv1.m0_block(&[1, 1]).is_err());
     }
 
+    /// Gauss's three products give the plain four's outputs to f32 rounding, with and
+    /// without the radial MLP, and for the source-only convolution.
     #[test]
     fn gauss_products_equal_the_plain_four() {
         let (attn, map, conv1, conv2) = tiny_first_attention();
