@@ -11,8 +11,17 @@
 #   EVAL_ALL=1 scripts/roll_scratch_experiment.sh # also 20 episodes of every variation
 #
 # Environment: OUT (runs/roll_scratch), SEEDS ("0"), SHIFT_MM (20), SIM_SPEED (16),
-# NICE (19: the training yields the CPU to anything else), EQUACT (target/release/equact).
+# NICE (19: the training yields the CPU to anything else), EQUACT (target/release/equact),
+# KEEP (policy/weights/candidates).
+#
+# Across sittings: OUT is ignored by git, so a fresh clone starts without it. Each finished
+# run's weights are also copied to KEEP as roll_<arm>_s<seed>_run<N>.safetensors (2.4 MB);
+# commit them, and a later clone skips that run and starts the next from the kept file (the
+# demonstrations are re-collected, the same ones: they are seeded). Run 1 of both arms is
+# about 2.5 h of both cores, runs 2 and 3 about 2 h, the two roll evaluations about 20 min.
 set -euo pipefail
+# A failed training inside $(...) must stop the script, not pass its partial weights on.
+shopt -s inherit_errexit
 cd "$(dirname "$0")/.."
 
 OUT=${OUT:-runs/roll_scratch}
@@ -25,6 +34,7 @@ SIM_SPEED=${SIM_SPEED:-16}
 NICE=${NICE:-19}
 EQUACT=${EQUACT:-target/release/equact}
 EVAL_ALL=${EVAL_ALL:-0}
+KEEP=${KEEP:-policy/weights/candidates}
 
 [ -x "$EQUACT" ] || cargo build --release --bin equact
 mkdir -p "$OUT"
@@ -48,14 +58,28 @@ train_arm() {
     local base="$OUT/${arm}_s$seed"
     local common=(--demos "$demos" --network cpu --mode gated --batch 2 --threads 1
         --paired --sibling-negatives --seed "$seed" "${shift_flag[@]}")
-    nice -n "$NICE" "$EQUACT" train "${common[@]}" --out "$base/run1" \
-        --lr 5e-4 --iterations 6000 --queries 30 >> "$base.log" 2>&1
-    nice -n "$NICE" "$EQUACT" train "${common[@]}" --out "$base/run2" \
-        --init "$base/run1/model.safetensors" --lr 3e-4 --schedule cosine --warmup 100 \
-        --iterations 2400 --queries 99 --cloud-queries 0.5 >> "$base.log" 2>&1
-    nice -n "$NICE" "$EQUACT" train "${common[@]}" --out "$base/run3" \
-        --init "$base/run2/model.safetensors" --lr 2e-4 --schedule cosine --warmup 50 \
-        --iterations 900 --points 1024 --queries 99 --cloud-queries 0.5 >> "$base.log" 2>&1
+    # Run N: skipped when KEEP holds its weights (a committed earlier sitting's), else
+    # trained (resuming its checkpoint) and its weights copied to KEEP; prints the weights.
+    run() {
+        local n=$1
+        shift
+        local kept="$KEEP/roll_${arm}_s${seed}_run$n.safetensors"
+        if [ ! -f "$kept" ]; then
+            if ! nice -n "$NICE" "$EQUACT" train "${common[@]}" --out "$base/run$n" "$@" \
+                >> "$base.log" 2>&1; then
+                echo "run $n of $arm, seed $seed, failed or stopped: see $base.log" >&2
+                return 1
+            fi
+            cp "$base/run$n/model.safetensors" "$kept"
+        fi
+        echo "$kept"
+    }
+    local w1 w2
+    w1=$(run 1 --lr 5e-4 --iterations 6000 --queries 30)
+    w2=$(run 2 --init "$w1" --lr 3e-4 --schedule cosine --warmup 100 \
+        --iterations 2400 --queries 99 --cloud-queries 0.5)
+    run 3 --init "$w2" --lr 2e-4 --schedule cosine --warmup 50 \
+        --iterations 900 --points 1024 --queries 99 --cloud-queries 0.5 > /dev/null
 }
 
 for seed in $SEEDS; do
@@ -80,7 +104,7 @@ evaluate() {
 }
 for seed in $SEEDS; do
     for arm in control shift; do
-        model="$OUT/${arm}_s$seed/run3/model.safetensors"
+        model="$KEEP/roll_${arm}_s${seed}_run3.safetensors"
         evaluate "$model" install_toilet_roll "$OUT/eval_roll_${arm}_s$seed"
         [ "$EVAL_ALL" = 1 ] && evaluate "$model" all "$OUT/eval_all_${arm}_s$seed"
     done
