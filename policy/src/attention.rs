@@ -947,6 +947,24 @@ mod tests {
                 let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
                 assert_eq!(bits(&got), bits(&want), "{res:?}, wide {wide}");
                 assert!(got.iter().any(|v| *v != 0.0));
+                // Queries with no edges at all: the projection's bias, as the whole layer.
+                let none =
+                    EdgeSet::new(&calc, 1, &nodes, &queries, Vec::new(), Vec::new(), &rbf).unwrap();
+                let whole = ga.forward_zero_destinations(&x, 3, &none).unwrap();
+                let want: Vec<f32> = whole
+                    .chunks_exact(k * acfg.output_channels)
+                    .flat_map(|row| row[..acfg.output_channels].iter().copied())
+                    .collect();
+                let got = ga.invariant_zero_destinations(&x, 3, &none).unwrap();
+                assert_eq!(bits(&got), bits(&want), "no edges, {res:?}");
+                // Source features that are not whole nodes, or fewer nodes than the edges
+                // name: typed errors.
+                assert!(ga
+                    .invariant_zero_destinations(&x[1..], queries.len(), &edges)
+                    .is_err());
+                assert!(ga
+                    .invariant_zero_destinations(&x[k * c..], queries.len(), &edges)
+                    .is_err());
             }
         }
     }
