@@ -780,18 +780,16 @@ impl InvariantReadout {
             &[n_alpha + (cfg.lmax + 1) * hc],
         )?;
         let mut alpha_in = Vec::with_capacity(ne * n_alpha);
+        let mut gating = Vec::with_capacity(ne * hc);
+        // After the logit inputs each row is [gating | rows l = 1..=lmax]: the m = 0 rows
+        // with the gating scalars in the l = 0 slot, which the activation overwrites.
         let mut rows = Vec::with_capacity(ne * (cfg.lmax + 1) * hc);
-        let mut sig = Vec::with_capacity(hc);
         for row in out.chunks_exact(width) {
             alpha_in.extend_from_slice(&row[..n_alpha]);
-            let gating = &row[n_alpha..n_alpha + hc];
-            sig.clear();
-            sig.extend(gating.iter().map(|&g| crate::layers::sigmoid(g)));
-            rows.extend(gating.iter().map(|&g| crate::layers::silu(g)));
-            for hl in row[n_alpha + hc..].chunks_exact(hc) {
-                rows.extend(hl.iter().zip(&sig).map(|(v, s)| v * s));
-            }
+            gating.extend_from_slice(&row[n_alpha..n_alpha + hc]);
+            rows.extend_from_slice(&row[n_alpha..]);
         }
+        crate::grids::gate_activation_in_place(&mut rows, &gating, &gating, cfg.lmax + 1, hc);
         Ok((self.conv2_l0.forward(&rows)?, alpha_in))
     }
 }

@@ -233,6 +233,18 @@ impl S2Grid {
 /// exactly equivariant, at O(n·nr·c) instead of two products with the grid matrices.
 pub fn gate_activation(x: &[f32], scalars: &[f32], gates: &[f32], nr: usize, c: usize) -> Vec<f32> {
     let mut y = x.to_vec();
+    gate_activation_in_place(&mut y, scalars, gates, nr, c);
+    y
+}
+
+/// [`gate_activation`] on `y` in place.
+pub fn gate_activation_in_place(
+    y: &mut [f32],
+    scalars: &[f32],
+    gates: &[f32],
+    nr: usize,
+    c: usize,
+) {
     let mut sig = Vec::with_capacity(c);
     for (node, yn) in y.chunks_exact_mut(nr * c).enumerate() {
         let (s, g) = (
@@ -250,7 +262,6 @@ pub fn gate_activation(x: &[f32], scalars: &[f32], gates: &[f32], nr: usize, c: 
             }
         }
     }
-    y
 }
 
 /// e^x in f32 arithmetic only (no libm call), so loops over it vectorise. Relative error

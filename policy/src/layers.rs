@@ -25,6 +25,23 @@ pub fn check_len(name: &str, len: usize, shape: &[usize]) -> Result<()> {
     Ok(())
 }
 
+/// An error naming the first of `idx` that is not below `len` (`name` says what indexes
+/// what).
+pub fn check_indices<'a>(
+    name: &str,
+    idx: impl IntoIterator<Item = &'a usize>,
+    len: usize,
+) -> Result<()> {
+    match idx.into_iter().find(|&&i| i >= len) {
+        Some(&bad) => Err(PolicyError::IndexOutOfRange {
+            name: name.into(),
+            value: bad as i64,
+            len,
+        }),
+        None => Ok(()),
+    }
+}
+
 /// The degree l of full-basis coefficient index `i` (i = l² + m + l).
 pub fn degree_of(i: usize) -> usize {
     let mut l = 0;
@@ -257,13 +274,7 @@ impl Linear {
 
     /// The layer restricted to the inputs `keep` (the others taken as always zero).
     pub fn select_inputs(&self, keep: &[usize]) -> Result<Self> {
-        if let Some(&bad) = keep.iter().find(|&&i| i >= self.inp) {
-            return Err(PolicyError::IndexOutOfRange {
-                name: "linear input to keep".into(),
-                value: bad as i64,
-                len: self.inp,
-            });
-        }
+        check_indices("linear input to keep", keep, self.inp)?;
         let w = (0..self.out)
             .flat_map(|o| keep.iter().map(move |&i| (o, i)))
             .map(|(o, i)| self.w[o * self.inp + i])
@@ -273,13 +284,7 @@ impl Linear {
 
     /// The layer restricted to the outputs `keep`.
     pub fn select_outputs(&self, keep: &[usize]) -> Result<Self> {
-        if let Some(&bad) = keep.iter().find(|&&o| o >= self.out) {
-            return Err(PolicyError::IndexOutOfRange {
-                name: "linear output to keep".into(),
-                value: bad as i64,
-                len: self.out,
-            });
-        }
+        check_indices("linear output to keep", keep, self.out)?;
         let w = keep
             .iter()
             .flat_map(|&o| self.w[o * self.inp..(o + 1) * self.inp].iter().copied())

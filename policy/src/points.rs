@@ -8,6 +8,7 @@
 //! code) and the Euclidean distance in equivariant mode.
 
 use crate::error::{PolicyError, Result};
+use crate::layers::check_indices;
 
 /// Checks that every coordinate is finite.
 pub fn check_finite(what: &'static str, pos: &[[f32; 3]]) -> Result<()> {
@@ -175,13 +176,7 @@ pub fn coefficient_max_pool_choices_threads(
             got: vec![x.len()],
         });
     }
-    if let Some(&bad) = neighbours.iter().flatten().find(|&&j| j >= n) {
-        return Err(PolicyError::IndexOutOfRange {
-            name: "max-pool neighbours".into(),
-            value: bad as i64,
-            len: n,
-        });
-    }
+    check_indices("max-pool neighbours", neighbours.iter().flatten(), n)?;
     let slots = (lmax + 1) * c;
     let parts = threads.min(neighbours.len() / POOL_CENTRES_PER_THREAD);
     crate::parallel::map_ranges(neighbours.len(), parts, |centres| {

@@ -11,7 +11,9 @@
 
 use crate::error::{PolicyError, Result};
 use crate::grids::reduced_coefficients;
-use crate::layers::{check_len, degree_of, rows_of, EdgeFeaturesRef, Linear, RadialMlp};
+use crate::layers::{
+    check_indices, check_len, degree_of, rows_of, EdgeFeaturesRef, Linear, RadialMlp,
+};
 use crate::so3::{edge_rot_mat, num_coefficients, WignerCalculator};
 use crate::weights::Scope;
 
@@ -221,13 +223,7 @@ impl EdgeWigners {
         for (x, idx) in &parts {
             check_len("message node indices", idx.len(), &[ne])?;
             let n = rows_of("message node features", x.len(), k * c)?;
-            if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
-                return Err(PolicyError::IndexOutOfRange {
-                    name: "message node index".into(),
-                    value: bad as i64,
-                    len: n,
-                });
-            }
+            check_indices("message node index", idx.iter(), n)?;
         }
         Ok(parts)
     }
@@ -498,6 +494,18 @@ pub struct M0Block {
     rad: Option<(RadialMlp, Option<Vec<usize>>)>,
 }
 
+/// The radial MLP `r` of the edge features `xe`, which must hold one row per edge.
+fn radial_weights(r: &RadialMlp, xe: EdgeFeaturesRef<'_>, edges: usize) -> Result<Vec<f32>> {
+    if xe.rows() != edges || xe.cols() != r.inp() {
+        return Err(PolicyError::ShapeMismatch {
+            name: "SO(2) convolution edge features".into(),
+            expected: vec![edges, r.inp()],
+            got: vec![xe.rows(), xe.cols()],
+        });
+    }
+    r.forward_features(xe)
+}
+
 /// The columns `pick` of each `width`-wide row of `y` (all of `y` when None).
 fn pick_columns(y: Vec<f32>, width: usize, pick: &Option<Vec<usize>>) -> Vec<f32> {
     match pick {
@@ -553,16 +561,11 @@ impl M0Block {
     ) -> Result<Vec<f32>> {
         let edges = wigners.range_len(&range)?;
         let rad = match &self.rad {
-            Some((r, pick)) => {
-                if x_edge.rows() != edges || x_edge.cols() != r.inp() {
-                    return Err(PolicyError::ShapeMismatch {
-                        name: "SO(2) convolution edge features".into(),
-                        expected: vec![edges, r.inp()],
-                        got: vec![x_edge.rows(), x_edge.cols()],
-                    });
-                }
-                Some(pick_columns(r.forward_features(x_edge)?, r.out(), pick))
-            }
+            Some((r, pick)) => Some(pick_columns(
+                radial_weights(r, x_edge, edges)?,
+                r.out(),
+                pick,
+            )),
             None => None,
         };
         let blocks = wigners.rotate_messages_blocks(
@@ -909,16 +912,7 @@ impl So2Conv {
         edges: usize,
     ) -> Result<Option<Vec<f32>>> {
         match (&self.rad, x_edge) {
-            (Some(r), Some(xe)) => {
-                if xe.rows() != edges || xe.cols() != r.inp() {
-                    return Err(PolicyError::ShapeMismatch {
-                        name: "SO(2) convolution edge features".into(),
-                        expected: vec![edges, r.inp()],
-                        got: vec![xe.rows(), xe.cols()],
-                    });
-                }
-                Ok(Some(r.forward_features(xe)?))
-            }
+            (Some(r), Some(xe)) => Ok(Some(radial_weights(r, xe, edges)?)),
             (Some(r), None) => Err(PolicyError::ShapeMismatch {
                 name: "SO(2) convolution edge features (required by its radial MLP)".into(),
                 expected: vec![edges, r.inp()],

@@ -215,7 +215,8 @@ pub struct WignerCalculator {
     per_degree: Vec<(Vec<[f64; 3]>, DMatrix<f64>)>,
     /// One sample set for all degrees (that of degree lmax) and, per degree, the
     /// pseudo-inverse of its SH matrix on those samples, row-major [n_samples, 2l+1]: the
-    /// whole block-diagonal D from one SH evaluation per sample (`wigner_all_into`).
+    /// whole block-diagonal D from one SH evaluation per sample (`wigner_all_into`; empty
+    /// for degrees 0 and 1, which it writes directly).
     shared: (Vec<[f64; 3]>, Vec<Vec<f64>>),
 }
 
@@ -257,6 +258,11 @@ impl WignerCalculator {
             .unwrap_or_default();
         let mut shared_pinv = Vec::with_capacity(lmax + 1);
         for l in 0..=lmax {
+            if l < 2 {
+                // `wigner_all_into` writes degrees 0 and 1 directly.
+                shared_pinv.push(Vec::new());
+                continue;
+            }
             let d = 2 * l + 1;
             let mut a = DMatrix::<f64>::zeros(d, shared_pts.len());
             for (k, p) in shared_pts.iter().enumerate() {

@@ -9,7 +9,7 @@ use super::{layers, Act, Tape, Var};
 use crate::attention::{AttentionConfig, EdgeSet};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
-use crate::layers::{degree_of, rbf_basis_value, rows_of, sigmoid, softplus};
+use crate::layers::{check_indices, degree_of, rbf_basis_value, rows_of, sigmoid, softplus};
 use crate::matmul::{gemm_acc, Strided};
 use crate::so2_conv::{CoefficientMapping, EdgeWigners};
 use crate::so3::num_coefficients;
@@ -20,18 +20,6 @@ fn mismatch(name: &str, expected: Vec<usize>, got: Vec<usize>) -> PolicyError {
         name: name.to_string(),
         expected,
         got,
-    }
-}
-
-/// An error naming the first of `idx` that is not below `len`.
-fn check_indices(name: &str, idx: &[usize], len: usize) -> Result<()> {
-    match idx.iter().find(|&&i| i >= len) {
-        Some(&bad) => Err(PolicyError::IndexOutOfRange {
-            name: name.into(),
-            value: bad as i64,
-            len,
-        }),
-        None => Ok(()),
     }
 }
 
@@ -251,7 +239,7 @@ fn rotate_messages(
         if idx.len() != ne {
             return Err(mismatch("message edges", vec![ne], vec![idx.len()]));
         }
-        check_indices("message node", idx, n)?;
+        check_indices("message node", idx.iter(), n)?;
     }
     let present = sides.len() * c;
     let mats = rotation_matrices(w, map)?;

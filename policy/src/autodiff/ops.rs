@@ -6,7 +6,7 @@ use std::sync::Arc;
 use super::{check_shape, Tape, Var};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
-use crate::layers::{gelu, sigmoid, silu, smooth_leaky_relu};
+use crate::layers::{check_indices, gelu, sigmoid, silu, smooth_leaky_relu};
 use crate::matmul::{gemm_acc, Strided};
 
 /// An element-wise activation with its derivative.
@@ -298,13 +298,7 @@ impl Tape {
     /// Rows `idx` of `x` seen as rows of `row` values: `[idx.len(), row]`.
     pub fn gather_rows(&mut self, x: Var, row: usize, idx: &[usize]) -> Result<Var> {
         let n = rows("gather input", self.value(x).len(), row)?;
-        if let Some(&bad) = idx.iter().find(|&&i| i >= n) {
-            return Err(PolicyError::IndexOutOfRange {
-                name: "gathered row".into(),
-                value: bad as i64,
-                len: n,
-            });
-        }
+        check_indices("gathered row", idx, n)?;
         let xv = self.value(x);
         let mut y = Vec::with_capacity(idx.len() * row);
         for &i in idx {
@@ -340,13 +334,7 @@ impl Tape {
     ) -> Result<Var> {
         let n = rows("scatter input", self.value(x).len(), row)?;
         same_len("scatter indices", n, idx.len())?;
-        if let Some(&bad) = idx.iter().find(|&&i| i >= n_out) {
-            return Err(PolicyError::IndexOutOfRange {
-                name: "scatter destination".into(),
-                value: bad as i64,
-                len: n_out,
-            });
-        }
+        check_indices("scatter destination", idx, n_out)?;
         let xv = self.value(x);
         let mut y = vec![0.0f32; n_out * row];
         for (e, &i) in idx.iter().enumerate() {
