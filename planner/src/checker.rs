@@ -139,7 +139,7 @@ impl<'a> Checker<'a> {
                 break;
             }
             while i < n {
-                if i % stride != 0 {
+                if !i.is_multiple_of(stride) {
                     let t = i as f64 / n as f64;
                     let q = lerp(a, b, t);
                     if !self.is_free(&q) {

@@ -88,7 +88,7 @@ impl S2Grid {
     /// A grid with the given resolution (finer grids make the S2 activation closer to
     /// equivariant; the scale factors keep the reference's normalisation).
     pub fn with_resolution(lmax: usize, mmax: usize, lat: usize, long: usize) -> Result<Self> {
-        if lmax > MAX_DEGREE || mmax > lmax || lat < 2 || long < 1 || lat % 2 != 0 {
+        if lmax > MAX_DEGREE || mmax > lmax || lat < 2 || long < 1 || !lat.is_multiple_of(2) {
             return Err(PolicyError::UnsupportedDegree {
                 lmax,
                 mmax,

@@ -399,7 +399,7 @@ impl Linear {
 
     /// Applies the layer to every row of `x` (`[rows, inp]` → `[rows, out]`).
     pub fn forward(&self, x: &[f32]) -> Result<Vec<f32>> {
-        if self.inp == 0 || x.len() % self.inp != 0 {
+        if self.inp == 0 || !x.len().is_multiple_of(self.inp) {
             return Err(PolicyError::ShapeMismatch {
                 name: "linear input".into(),
                 expected: vec![0, self.inp],
@@ -579,7 +579,7 @@ impl So3Linear {
 
 /// The number of rows of a flat buffer of `len` values with `row` values per row.
 pub fn rows_of(what: &str, len: usize, row: usize) -> Result<usize> {
-    if row == 0 || len % row != 0 {
+    if row == 0 || !len.is_multiple_of(row) {
         return Err(PolicyError::ShapeMismatch {
             name: what.to_string(),
             expected: vec![0, row],

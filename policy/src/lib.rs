@@ -35,7 +35,9 @@
 //!
 //! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit) and,
 //! through its `gemm` on strided views, `matrixmultiply`'s cache-blocked sgemm for the large
-//! batched products (run-time AVX2/FMA/AVX-512 kernels, single-threaded); `safetensors` to
+//! batched products (run-time AVX2/FMA/AVX-512 kernels, single-threaded); `pulp` to compile
+//! the unpacked AVX-512 kernel that takes the thinner of those products (run-time dispatch
+//! without `unsafe` in this crate; it rounds as `matrixmultiply` does); `safetensors` to
 //! read the reference's tensor files, `serde_json` for their sidecars; `libm` (erf) and
 //! `unicode-normalization` (NFD) for the MiniLM encoder; `cpu-time` for the stage timings'
 //! per-thread CPU clock.

@@ -571,7 +571,7 @@ impl PolicyConfig {
                 "sampling.levels is 0: the translation needs at least one sampling level".into(),
             ));
         }
-        if s.top_k == 0 || s.per_level < s.top_k || s.per_level % s.top_k != 0 {
+        if s.top_k == 0 || s.per_level < s.top_k || !s.per_level.is_multiple_of(s.top_k) {
             return Err(PolicyError::BadConfig(format!(
                 "sampling.per_level is {}: the translation queries per level must be a \
                  positive multiple of the {} anchors kept per level (e.g. {})",

@@ -67,6 +67,10 @@ pub struct PolicyBenchArgs {
     /// the wall-clock speed-ups; the equivariance runs on the last).
     #[arg(long, default_value = "1", value_delimiter = ',')]
     pub threads: Vec<usize>,
+    /// Also time each prediction with every matrix product through `matrixmultiply`
+    /// (alternated with the normal ones): the baseline of the unpacked AVX-512 kernel.
+    #[arg(long)]
+    pub compare_packed: bool,
 }
 
 /// Arguments of `equact bench planner`.
@@ -422,11 +426,22 @@ fn time_predictions(
     ),
 ) -> anyhow::Result<(serde_json::Value, f64, Vec<serde_json::Value>)> {
     let (mut runs, mut products) = (Vec::new(), Vec::new());
+    let (mut packed_runs, mut packed_products) = (Vec::new(), Vec::new());
     for i in 0..a.predictions.max(1) {
         policy.seed = a.seed + i as u64;
         let before = policy::matmul::product_counts();
         runs.push(policy.predict_detailed(cloud, gripper, instruction)?);
         products.push(policy::matmul::product_counts().since(before));
+        // After the normal one, so that the first prediction is still the one that makes
+        // the FiLM maps.
+        if a.compare_packed {
+            policy::matmul::use_direct_products(false);
+            let before = policy::matmul::product_counts();
+            let run = policy.predict_detailed(cloud, gripper, instruction);
+            policy::matmul::use_direct_products(true);
+            packed_runs.push(run?);
+            packed_products.push(policy::matmul::product_counts().since(before));
+        }
         eprintln!(
             "{name}: {} threads: prediction {} of {}: {:.3} s CPU, {:.3} s wall",
             policy.threads(),
@@ -436,10 +451,12 @@ fn time_predictions(
             runs.last().map_or(0.0, |r| r.timings.wall_total)
         );
     }
-    let stage = |f: &dyn Fn(&policy::predict::StageTimings) -> f64| {
+    let stage_of = |runs: &[policy::predict::Prediction],
+                    f: &dyn Fn(&policy::predict::StageTimings) -> f64| {
         let mut v: Vec<f64> = runs.iter().map(|r| f(&r.timings)).collect();
         median(&mut v)
     };
+    let stage = |f: &dyn Fn(&policy::predict::StageTimings) -> f64| stage_of(&runs, f);
     let mut blocks = serde_json::Map::new();
     if let Some(first) = runs.first() {
         for (j, (bn, _)) in first.timings.blocks.iter().enumerate() {
@@ -450,11 +467,29 @@ fn time_predictions(
             blocks.insert(bn.clone(), serde_json::json!(median(&mut v)));
         }
     }
-    let product = |f: &dyn Fn(&policy::matmul::ProductCounts) -> f64| {
+    let product_of = |products: &[policy::matmul::ProductCounts],
+                      f: &dyn Fn(&policy::matmul::ProductCounts) -> f64| {
         let mut v: Vec<f64> = products.iter().map(f).collect();
         median(&mut v)
     };
+    let product = |f: &dyn Fn(&policy::matmul::ProductCounts) -> f64| product_of(&products, f);
     let wall = stage(&|t| t.wall_total);
+    // The baseline: the same predictions with every product through `matrixmultiply`.
+    let packed = a.compare_packed.then(|| {
+        let packed_wall = stage_of(&packed_runs, &|t| t.wall_total);
+        let answers = |runs: &[policy::predict::Prediction]| {
+            runs.iter().map(prediction_json).collect::<Vec<_>>()
+        };
+        serde_json::json!({
+            "total": stage_of(&packed_runs, &|t| t.total),
+            "wall_total": packed_wall,
+            "encoder": stage_of(&packed_runs, &|t| t.encoder),
+            "matrix_products_seconds": product_of(&packed_products, &|p| p.seconds),
+            "wall_speedup_of_direct": packed_wall / wall,
+            "cpu_speedup_of_direct": stage_of(&packed_runs, &|t| t.total) / stage(&|t| t.total),
+            "same_predictions": answers(&packed_runs) == answers(&runs),
+        })
+    });
     let timings = serde_json::json!({
         "input_prep": stage(&|t| t.input_prep),
         "language": stage(&|t| t.language),
@@ -476,6 +511,8 @@ fn time_predictions(
             "seconds": product(&|p| p.seconds),
             "gflops_per_second": product(&|p| p.flops_per_second() * 1e-9),
         },
+        // With --compare-packed (else null).
+        "packed_products_baseline": packed,
         // The first prediction also runs the hypernetwork FiLM for the instruction; the
         // later ones (an episode's next keyframes) reuse its maps.
         "first_prediction": {

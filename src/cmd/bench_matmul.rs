@@ -2,7 +2,10 @@
 //! ceiling that `bench policy`'s `matrix_products` rate compares with.
 
 use clap::Args;
-use policy::matmul::{count_products, gemm_acc, product_counts, Strided};
+use policy::matmul::{
+    count_products, direct_products_available, gemm_acc, product_counts, use_direct_products,
+    ProductCounts, Strided,
+};
 
 /// The sixteen product shapes (m, k, n) with the most multiply-adds in one keyframe of the
 /// physical configuration (gated mode, 2048 points; traced from `matmul::gemm_acc` on
@@ -41,7 +44,8 @@ pub fn run(a: MatmulBenchArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// Times every shape of [`PHYSICAL_SHAPES`] for about `seconds` each.
+/// Times every shape of [`PHYSICAL_SHAPES`] for about `seconds` each, as `gemm_acc` runs it
+/// and all through `matrixmultiply`.
 fn measure(seconds: f64) -> anyhow::Result<serde_json::Value> {
     count_products(true);
     if !(seconds.is_finite() && seconds > 0.0) {
@@ -58,25 +62,46 @@ fn measure(seconds: f64) -> anyhow::Result<serde_json::Value> {
             .collect();
         let mut out = vec![0.0f32; m * n];
         let reps = ((seconds * 1e11 / (2 * m * k * n) as f64) as usize).max(3);
-        let before = product_counts();
-        for _ in 0..reps {
-            gemm_acc(
-                Strided::row_major(&lhs, 0, m, k),
-                Strided::row_major(&rhs, 0, k, n),
-                &mut out,
-                0,
-                n,
-            )?;
+        // The product as `gemm_acc` runs it, then every product through `matrixmultiply`
+        // (the baseline), alternated in two halves each so that a drifting machine shares
+        // out evenly; the results are the same bits.
+        let (mut chosen, mut packed) = (ProductCounts::default(), ProductCounts::default());
+        for half in 0..4 {
+            use_direct_products(half % 2 == 0);
+            let before = product_counts();
+            for _ in 0..reps.div_ceil(2) {
+                gemm_acc(
+                    Strided::row_major(&lhs, 0, m, k),
+                    Strided::row_major(&rhs, 0, k, n),
+                    &mut out,
+                    0,
+                    n,
+                )?;
+            }
+            let counted = product_counts().since(before);
+            let total = if half % 2 == 0 {
+                &mut chosen
+            } else {
+                &mut packed
+            };
+            total.products += counted.products;
+            total.multiply_adds += counted.multiply_adds;
+            total.seconds += counted.seconds;
         }
-        let counted = product_counts().since(before);
+        use_direct_products(true);
+        let rate = chosen.flops_per_second() * 1e-9;
+        let packed_rate = packed.flops_per_second() * 1e-9;
         shapes.push(serde_json::json!({
             "m": m, "k": k, "n": n,
-            "products": reps,
-            "gflops_per_second": counted.flops_per_second() * 1e-9,
+            "products": chosen.products,
+            "gflops_per_second": rate,
+            "packed_gflops_per_second": packed_rate,
+            "speedup_over_packed": rate / packed_rate,
         }));
     }
     Ok(serde_json::json!({
-        "what": "the physical network's 16 largest product shapes alone, one thread, the same operands each time; compare bench policy's matrix_products.gflops_per_second",
+        "what": "the physical network's 16 largest product shapes alone, one thread, the same operands each time; compare bench policy's matrix_products.gflops_per_second. packed: every product through matrixmultiply, the baseline of the direct kernel",
+        "direct_kernel": direct_products_available(),
         "shapes": shapes,
     }))
 }
@@ -96,7 +121,9 @@ mod tests {
                 [m, k, n].map(serde_json::Value::from).each_ref()
             );
             assert!(s["products"].as_u64().unwrap_or(0) >= 3, "{s}");
-            assert!(s["gflops_per_second"].as_f64().unwrap_or(0.0) > 0.0, "{s}");
+            for rate in ["gflops_per_second", "packed_gflops_per_second"] {
+                assert!(s[rate].as_f64().unwrap_or(0.0) > 0.0, "{s}");
+            }
         }
     }
 

@@ -157,7 +157,7 @@ impl UrcapCommand {
         match words.next() {
             Some("SET") => {
                 let rest: Vec<&str> = words.collect();
-                if rest.is_empty() || rest.len() % 2 != 0 {
+                if rest.is_empty() || !rest.len().is_multiple_of(2) {
                     return Err(bad(format!("SET needs NAME VALUE pairs, got {line:?}")));
                 }
                 let pairs = rest

@@ -4,6 +4,9 @@
 //! `f32` matrices nalgebra hands them to `matrixmultiply`'s cache-blocked sgemm, which picks
 //! its AVX2/FMA/AVX-512 kernel at run time (the crate itself is built for baseline x86-64).
 //! This is how the per-edge layers run as a few large products instead of per-row loops.
+//! On AVX-512 CPUs the products with at most 256 columns and contiguous left rows take an
+//! unpacked kernel instead (the private `direct` module), which reads the left operand in
+//! place rather than packing it and rounds every output exactly as `matrixmultiply` does.
 //! Everything stays on the calling thread. Once [`count_products`] switched it on (`equact
 //! bench policy` and `bench matmul` do), every product is counted (calls, multiply-adds,
 //! seconds) in process-wide totals, [`product_counts`]: two clock reads per product, about
@@ -16,6 +19,8 @@ use std::time::Instant;
 use nalgebra::{DMatrixView, DMatrixViewMut};
 
 use crate::error::{PolicyError, Result};
+
+mod direct;
 
 /// A read-only strided matrix inside a flat slice: element (r, c) is
 /// `data[offset + r·row_stride + c·col_stride]`.
@@ -83,6 +88,11 @@ fn bad_operand(what: &str, expected: Vec<usize>, got: Vec<usize>) -> PolicyError
 /// products use [`small_gemm_acc`] instead.
 const SMALL: usize = 5;
 
+/// The widest right operand [`direct`] takes: beyond it `matrixmultiply`'s packed panels
+/// keep `b` in cache better (`equact bench matmul`, 2026-12-07: 448 and 4608 columns ran at
+/// 0.9× and 0.75× of its speed, 16-224 at 1.1-2.2×).
+const DIRECT_MAX_COLUMNS: usize = 256;
+
 /// Whether a product with `n` output columns takes the same path (and so rounds each
 /// output the same way) as one with `full` columns and otherwise the same operands: a
 /// layer restricted to some of its outputs gives those outputs to the bit only then.
@@ -109,6 +119,24 @@ fn small_gemm_acc(a: &Strided<'_>, b: &Strided<'_>, c: &mut [f32], c_offset: usi
             }
         }
     }
+}
+
+/// Whether [`gemm_acc`] may take [`direct`]'s kernel (on unless a benchmark's baseline
+/// switched it off).
+static DIRECT: AtomicBool = AtomicBool::new(true);
+
+/// Lets [`gemm_acc`] take the unpacked AVX-512 kernel for the products it suits (`true`,
+/// the default) or sends every product to `matrixmultiply` (`false`: the baseline that
+/// `equact bench matmul` and `bench policy --compare-packed` time it against). The results
+/// are the same bits either way.
+pub fn use_direct_products(on: bool) {
+    DIRECT.store(on, Ordering::Relaxed);
+}
+
+/// Whether this CPU has the unpacked kernel (AVX-512); without it every product goes to
+/// `matrixmultiply`.
+pub fn direct_products_available() -> bool {
+    direct::available()
 }
 
 static COUNTING: AtomicBool = AtomicBool::new(false);
@@ -197,6 +225,25 @@ pub fn gemm_acc(
     let start = COUNTING.load(Ordering::Relaxed).then(Instant::now);
     if m <= SMALL || n <= SMALL || k <= SMALL {
         small_gemm_acc(&a, &b, c_data, c_offset, c_rs);
+    } else if a.col_stride == 1 && n <= DIRECT_MAX_COLUMNS && DIRECT.load(Ordering::Relaxed) {
+        let ops = direct::Operands {
+            a: a.data,
+            a_offset: a.offset,
+            a_rs: a.row_stride,
+            b: b.data,
+            b_offset: b.offset,
+            b_rs: b.row_stride,
+            b_cs: b.col_stride,
+            m,
+            k,
+            n,
+            c: c_data,
+            c_offset,
+            c_rs,
+        };
+        if let Some(ops) = direct::try_gemm_acc(ops) {
+            large_gemm_acc(&a, &b, ops.c, c_offset, c_rs);
+        }
     } else {
         large_gemm_acc(&a, &b, c_data, c_offset, c_rs);
     }
@@ -283,6 +330,91 @@ mod tests {
             assert_eq!(&c[..m * n], &want[..], "{m}×{k}×{n}");
             assert!(c[m * n..].iter().all(|v| *v == 0.0));
         }
+    }
+
+    /// Values spread over six decades with both signs, so that sums round differently
+    /// when their order or fusing changes.
+    fn spread_values(len: usize, seed: u64) -> Vec<f32> {
+        let mut x = seed.wrapping_mul(0x9E37_79B9_7F4A_7C15) | 1;
+        (0..len)
+            .map(|_| {
+                x ^= x << 13;
+                x ^= x >> 7;
+                x ^= x << 17;
+                let unit = (x >> 40) as f32 / (1u64 << 24) as f32;
+                let scale = 10f32.powi((x % 7) as i32 - 3);
+                (2.0 * unit - 1.0) * scale
+            })
+            .collect()
+    }
+
+    #[test]
+    fn the_direct_kernel_rounds_every_output_as_matrixmultiply() {
+        if !direct_products_available() {
+            eprintln!("no AVX-512 on this CPU: every product goes to matrixmultiply");
+            return;
+        }
+        let mut differs_from_plain_sums = false;
+        // One to five vectors of columns with a partial last one, whole and partial row
+        // tiles and row chunks, depths across `direct`'s 256-deep blocks, b row-major and
+        // transposed, output rows wider than the product.
+        for (i, &(m, k, n, b_transposed, c_rs)) in [
+            (6, 6, 6, false, 6),
+            (37, 300, 33, false, 40),
+            (40, 513, 64, true, 64),
+            (23, 40, 70, false, 75),
+            (130, 64, 250, true, 256),
+            (67, 257, 16, false, 16),
+            (9, 7, 17, true, 17),
+        ]
+        .iter()
+        .enumerate()
+        {
+            let a_vals = spread_values(m * k + 3, 2 * i as u64);
+            let b_vals = spread_values(k * n, 2 * i as u64 + 1);
+            let a = Strided::row_major(&a_vals, 3, m, k);
+            let b = if b_transposed {
+                Strided::row_major(&b_vals, 0, n, k).t()
+            } else {
+                Strided::row_major(&b_vals, 0, k, n)
+            };
+            let start = spread_values(m * c_rs, 99);
+            let mut packed = start.clone();
+            large_gemm_acc(&a, &b, &mut packed, 0, c_rs);
+            let mut direct = start.clone();
+            let ops = direct::Operands {
+                a: a.data,
+                a_offset: a.offset,
+                a_rs: a.row_stride,
+                b: b.data,
+                b_offset: b.offset,
+                b_rs: b.row_stride,
+                b_cs: b.col_stride,
+                m,
+                k,
+                n,
+                c: &mut direct,
+                c_offset: 0,
+                c_rs,
+            };
+            assert!(direct::try_gemm_acc(ops).is_none(), "the kernel declined");
+            for r in 0..m {
+                for j in 0..c_rs {
+                    let (got, want) = (direct[r * c_rs + j], packed[r * c_rs + j]);
+                    assert_eq!(got.to_bits(), want.to_bits(), "{m}×{k}×{n} ({r}, {j})");
+                    if j >= n {
+                        assert_eq!(got.to_bits(), start[r * c_rs + j].to_bits());
+                    }
+                }
+            }
+            // The comparison sees rounding: plain (unfused, one-block) sums differ.
+            let plain = naive(&a, &b);
+            differs_from_plain_sums |= (0..m * n).any(|e| {
+                let (r, j) = (e / n, e % n);
+                (start[r * c_rs + j] + plain[e]).to_bits() != direct[r * c_rs + j].to_bits()
+            });
+        }
+        assert!(differs_from_plain_sums);
     }
 
     #[test]
