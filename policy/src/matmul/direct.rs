@@ -21,6 +21,8 @@ use std::cell::RefCell;
 
 use pulp::{Simd, WithSimd};
 
+use super::Strided;
+
 /// `matrixmultiply`'s depth block for `f32` (`archparam_defaults::S_KC`): its products add
 /// each block's sum to the output separately, so this one must too to round the same.
 const DEPTH_BLOCK: usize = 256;
@@ -34,20 +36,11 @@ thread_local! {
     static PACKED_B: RefCell<Vec<f32>> = const { RefCell::new(Vec::new()) };
 }
 
-/// The operands of one product, checked by the caller: `a` is `[m, k]` with contiguous rows
-/// (`a_rs` apart), `b` `[k, n]` with rows `b_rs` and columns `b_cs` apart, and `c`'s
-/// element (r, j) at `c_offset + r·c_rs + j`.
+/// The operands of one product, checked by the caller: `a` with contiguous rows
+/// (`col_stride` 1), `c`'s element (r, j) at `c_offset + r·c_rs + j`.
 pub(super) struct Operands<'a, 'c> {
-    pub a: &'a [f32],
-    pub a_offset: usize,
-    pub a_rs: usize,
-    pub b: &'a [f32],
-    pub b_offset: usize,
-    pub b_rs: usize,
-    pub b_cs: usize,
-    pub m: usize,
-    pub k: usize,
-    pub n: usize,
+    pub a: Strided<'a>,
+    pub b: Strided<'a>,
     pub c: &'c mut [f32],
     pub c_offset: usize,
     pub c_rs: usize,
@@ -86,16 +79,17 @@ impl WithSimd for Product<'_, '_, '_> {
     #[inline(always)]
     fn with_simd<S: Simd>(self, simd: S) {
         let Product { ops, packed } = self;
+        let (k, n) = (ops.a.cols, ops.b.cols);
         let lanes = S::F32_LANES;
-        let nv = ops.n.div_ceil(lanes);
+        let nv = n.div_ceil(lanes);
         // b's rows as whole vectors, the last one padded with zeros (the padded lanes'
         // outputs are never stored).
         packed.clear();
-        packed.resize(ops.k * nv * lanes, 0.0);
+        packed.resize(k * nv * lanes, 0.0);
         for (kk, row) in packed.chunks_exact_mut(nv * lanes).enumerate() {
-            let start = ops.b_offset + kk * ops.b_rs;
-            for (j, x) in row[..ops.n].iter_mut().enumerate() {
-                *x = ops.b[start + j * ops.b_cs];
+            let start = ops.b.offset + kk * ops.b.row_stride;
+            for (j, x) in row[..n].iter_mut().enumerate() {
+                *x = ops.b.data[start + j * ops.b.col_stride];
             }
         }
         let (bv, _) = S::as_simd_f32s(packed);
@@ -103,17 +97,12 @@ impl WithSimd for Product<'_, '_, '_> {
             c: ops.c,
             offset: ops.c_offset,
             rs: ops.c_rs,
-            n: ops.n,
+            n,
         };
-        let a = Left {
-            data: ops.a,
-            offset: ops.a_offset,
-            rs: ops.a_rs,
-            m: ops.m,
-        };
+        let a = ops.a;
         let cols = Columns { bv, nv };
-        for k0 in (0..ops.k).step_by(DEPTH_BLOCK) {
-            let depth = k0..(k0 + DEPTH_BLOCK).min(ops.k);
+        for k0 in (0..k).step_by(DEPTH_BLOCK) {
+            let depth = k0..(k0 + DEPTH_BLOCK).min(k);
             // Tiles whose accumulators, one broadcast and a row of b fit the 32 vector
             // registers (six rows by four vectors spilled). Up to four vectors of columns:
             // all rows down them. Wider: the rows in chunks, each down blocks of four
@@ -126,14 +115,6 @@ impl WithSimd for Product<'_, '_, '_> {
             }
         }
     }
-}
-
-/// The left operand: `m` rows of contiguous values, `rs` apart from `offset`.
-struct Left<'a> {
-    data: &'a [f32],
-    offset: usize,
-    rs: usize,
-    m: usize,
 }
 
 /// b's rows as vectors, `nv` per row.
@@ -154,17 +135,17 @@ struct Output<'c> {
 #[inline(always)]
 fn column_block<S: Simd, const R: usize, const V: usize>(
     simd: S,
-    a: &Left<'_>,
+    a: &Strided<'_>,
     cols: &Columns<'_, S::f32s>,
     depth: std::ops::Range<usize>,
     out: &mut Output<'_>,
 ) {
     let mut r0 = 0;
-    while r0 + R <= a.m {
+    while r0 + R <= a.rows {
         tile::<S, R, V>(simd, a, r0, cols, 0, depth.clone(), out);
         r0 += R;
     }
-    while r0 < a.m {
+    while r0 < a.rows {
         tile::<S, 1, V>(simd, a, r0, cols, 0, depth.clone(), out);
         r0 += 1;
     }
@@ -175,13 +156,13 @@ fn column_block<S: Simd, const R: usize, const V: usize>(
 #[inline(always)]
 fn row_blocks<S: Simd, const R: usize>(
     simd: S,
-    a: &Left<'_>,
+    a: &Strided<'_>,
     cols: &Columns<'_, S::f32s>,
     depth: std::ops::Range<usize>,
     out: &mut Output<'_>,
 ) {
-    for chunk in (0..a.m).step_by(ROW_CHUNK) {
-        let rows = chunk..(chunk + ROW_CHUNK).min(a.m);
+    for chunk in (0..a.rows).step_by(ROW_CHUNK) {
+        let rows = chunk..(chunk + ROW_CHUNK).min(a.rows);
         let mut v0 = 0;
         while v0 < cols.nv {
             match cols.nv - v0 {
@@ -199,7 +180,7 @@ fn row_blocks<S: Simd, const R: usize>(
 #[inline(always)]
 fn down<S: Simd, const R: usize, const V: usize>(
     simd: S,
-    a: &Left<'_>,
+    a: &Strided<'_>,
     rows: std::ops::Range<usize>,
     cols: &Columns<'_, S::f32s>,
     v0: usize,
@@ -222,7 +203,7 @@ fn down<S: Simd, const R: usize, const V: usize>(
 #[inline(always)]
 fn tile<S: Simd, const R: usize, const V: usize>(
     simd: S,
-    a: &Left<'_>,
+    a: &Strided<'_>,
     r0: usize,
     cols: &Columns<'_, S::f32s>,
     v0: usize,
@@ -231,7 +212,7 @@ fn tile<S: Simd, const R: usize, const V: usize>(
 ) {
     let len = depth.len();
     let rows: [&[f32]; R] = std::array::from_fn(|r| {
-        let start = a.offset + (r0 + r) * a.rs + depth.start;
+        let start = a.offset + (r0 + r) * a.row_stride + depth.start;
         &a.data[start..start + len]
     });
     let mut acc = [[simd.splat_f32s(0.0); V]; R];

@@ -227,16 +227,8 @@ pub fn gemm_acc(
         small_gemm_acc(&a, &b, c_data, c_offset, c_rs);
     } else if a.col_stride == 1 && n <= DIRECT_MAX_COLUMNS && DIRECT.load(Ordering::Relaxed) {
         let ops = direct::Operands {
-            a: a.data,
-            a_offset: a.offset,
-            a_rs: a.row_stride,
-            b: b.data,
-            b_offset: b.offset,
-            b_rs: b.row_stride,
-            b_cs: b.col_stride,
-            m,
-            k,
-            n,
+            a,
+            b,
             c: c_data,
             c_offset,
             c_rs,
@@ -383,16 +375,8 @@ mod tests {
             large_gemm_acc(&a, &b, &mut packed, 0, c_rs);
             let mut direct = start.clone();
             let ops = direct::Operands {
-                a: a.data,
-                a_offset: a.offset,
-                a_rs: a.row_stride,
-                b: b.data,
-                b_offset: b.offset,
-                b_rs: b.row_stride,
-                b_cs: b.col_stride,
-                m,
-                k,
-                n,
+                a,
+                b,
                 c: &mut direct,
                 c_offset: 0,
                 c_rs,
