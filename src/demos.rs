@@ -363,7 +363,9 @@ pub fn shard_bytes(kind: TaskKind, seed: u64, steps: &[DemoStep]) -> Result<Vec<
     .into_iter()
     .map(|(k, v)| (k.to_string(), v))
     .collect();
-    safetensors::serialize(tensors, Some(meta)).map_err(|e| format!("{e}"))
+    let bytes = safetensors::serialize(tensors, Some(meta)).map_err(|e| format!("{e}"))?;
+    // The same episode gives the same bytes in every process.
+    policy::weights::sorted_safetensors_header(bytes)
 }
 
 /// A demonstration episode read back from its shard.
@@ -695,6 +697,41 @@ fn record_episode(
 mod tests {
     #![allow(clippy::unwrap_used)] // tests may unwrap (CONVENTIONS 6)
     use super::*;
+
+    /// An episode's shard is the same bytes whichever process writes it (the metadata's
+    /// hash order is sorted away), and reads back to the same episode.
+    #[test]
+    fn a_shard_is_the_same_bytes_every_time() {
+        let kind = TaskKind::parse("pick_fruit/plum").unwrap();
+        let step = DemoStep {
+            cloud_xyz: vec![[0.5, 0.1, 0.02], [0.45, -0.1, 0.03]],
+            cloud_rgb: vec![[200, 10, 10], [0, 0, 0]],
+            joints: [0.0, -1.2, 1.4, -1.8, -1.57, 0.3],
+            gripper_width: 0.085,
+            gripper_open: true,
+            keyframe: Keyframe {
+                base_from_tcp: cell_types::Transform::from_xyz_rpy(
+                    [0.5, 0.1, 0.1],
+                    [std::f64::consts::PI, 0.0, 0.2],
+                ),
+                gripper_open: false,
+                ignore_collisions: false,
+            },
+        };
+        let first = shard_bytes(kind, 7, std::slice::from_ref(&step)).unwrap();
+        for _ in 0..8 {
+            assert!(shard_bytes(kind, 7, std::slice::from_ref(&step)).unwrap() == first);
+        }
+        let dir = std::env::temp_dir().join(format!("equact_shard_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let file = dir.join("seed_000007.safetensors");
+        std::fs::write(&file, &first).unwrap();
+        let back = read_shard(&file).unwrap();
+        assert_eq!(back.steps.len(), 1);
+        assert_eq!(back.steps[0].keyframe, step.keyframe);
+        assert_eq!(back.steps[0].cloud_xyz, step.cloud_xyz);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 
     /// A speed the simulator cannot run is refused, named, before anything is written.
     #[test]

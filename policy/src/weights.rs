@@ -86,6 +86,35 @@ fn read_header_metadata(path: &Path) -> Result<BTreeMap<String, String>> {
 }
 
 /// Parses a count of points recorded under `key`.
+/// A safetensors file's bytes with its header's keys in sorted order (the metadata's and
+/// the tensors' entries alike), padded as the crate pads it. The `safetensors` crate writes
+/// the metadata in its hash map's order, which differs from process to process, so the
+/// same tensors and metadata would otherwise give different files; readers take each
+/// tensor's place from its offsets, not from the order.
+pub fn sorted_safetensors_header(bytes: Vec<u8>) -> std::result::Result<Vec<u8>, String> {
+    let length: [u8; 8] = bytes
+        .get(..8)
+        .and_then(|b| b.try_into().ok())
+        .ok_or("shorter than a safetensors header length")?;
+    let n = usize::try_from(u64::from_le_bytes(length))
+        .map_err(|_| "header length past this machine's address space".to_string())?;
+    let header = bytes
+        .get(8..8 + n)
+        .ok_or_else(|| format!("header of {n} bytes past the end of {} bytes", bytes.len()))?;
+    // serde_json's map (without its `preserve_order` feature) is a BTreeMap: the keys come
+    // out sorted.
+    let value: serde_json::Value =
+        serde_json::from_slice(header).map_err(|e| format!("header: {e}"))?;
+    let mut text = serde_json::to_vec(&value).map_err(|e| format!("header: {e}"))?;
+    // Spaces up to a multiple of 8 bytes keep the data aligned, as the crate writes it.
+    text.resize(text.len().next_multiple_of(8), b' ');
+    let mut out = Vec::with_capacity(8 + text.len() + bytes.len() - 8 - n);
+    out.extend_from_slice(&(text.len() as u64).to_le_bytes());
+    out.extend_from_slice(&text);
+    out.extend_from_slice(&bytes[8 + n..]);
+    Ok(out)
+}
+
 fn parse_count(key: &str, value: Option<&str>) -> std::result::Result<Option<usize>, String> {
     value
         .map(|v| {
@@ -284,7 +313,12 @@ impl Weights {
                 .map(|(k, v)| (k.clone(), v.clone()))
                 .collect()
         });
-        safetensors::serialize_to_file(views, metadata, path).map_err(|e| bad(e.to_string()))
+        let bytes = safetensors::serialize(views, metadata).map_err(|e| bad(e.to_string()))?;
+        let bytes = sorted_safetensors_header(bytes).map_err(bad)?;
+        std::fs::write(path, bytes).map_err(|e| PolicyError::Io {
+            path: path.to_path_buf(),
+            source: e,
+        })
     }
 
     /// Where the tensors came from (for error messages).
@@ -466,5 +500,55 @@ mod tests {
         std::fs::write(&file, b"\x04\x00").unwrap();
         assert!(trained_points(&file).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn the_same_weights_and_metadata_save_to_the_same_bytes() {
+        let dir = std::env::temp_dir().join(format!("equact_weights_same_{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let cfg = PolicyConfig::tiny();
+        let mut w = random_weights(&cfg.model, &cfg.extra, 5);
+        // Six keys: the crate's hash map orders them differently from one map to the next.
+        for key in ["a", "format", "n", "seed", "task", "z"] {
+            w.set_metadata(key, format!("value of {key}"));
+        }
+        let file = dir.join("w.safetensors");
+        w.save(&file).unwrap();
+        let first = std::fs::read(&file).unwrap();
+        for _ in 0..8 {
+            w.save(&file).unwrap();
+            assert!(std::fs::read(&file).unwrap() == first);
+        }
+        // Still a safetensors file with the same tensors and metadata, its data aligned.
+        let back = Weights::from_file(&file).unwrap();
+        for key in w.keys() {
+            assert_eq!(
+                back.f32_any(key).unwrap().1,
+                w.f32_any(key).unwrap().1,
+                "{key}"
+            );
+        }
+        assert_eq!(back.metadata("task"), Some("value of task"));
+        let n = u64::from_le_bytes(first[..8].try_into().unwrap()) as usize;
+        assert_eq!(n % 8, 0);
+        assert!(safetensors::SafeTensors::deserialize(&first).is_ok());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn a_header_that_is_not_safetensors_is_named() {
+        assert!(sorted_safetensors_header(vec![1, 2])
+            .unwrap_err()
+            .contains("shorter"));
+        let mut past = 100u64.to_le_bytes().to_vec();
+        past.extend_from_slice(b"{}");
+        assert!(sorted_safetensors_header(past)
+            .unwrap_err()
+            .contains("past the end"));
+        let mut junk = 4u64.to_le_bytes().to_vec();
+        junk.extend_from_slice(b"{{{{");
+        assert!(sorted_safetensors_header(junk)
+            .unwrap_err()
+            .contains("header"));
     }
 }
