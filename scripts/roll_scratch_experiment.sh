@@ -48,8 +48,8 @@ CHECKPOINT_FILES=(model.safetensors optimizer.safetensors train.json log.jsonl)
 demos="$OUT/demos"
 # One checksum of the demonstrations' contents, so that a kept checkpoint resumes only on
 # the demonstrations it was trained on. A safetensors file counts by its tensors and its
-# header's meaning: re-collected demonstrations hold the same values, but each process
-# writes the header's metadata in its own (hash) order.
+# header's meaning: re-collected demonstrations hold the same values, but binaries before
+# d17d6dc wrote the header's metadata in an order of their own (a hash map's).
 demos_checksum() {
     python3 - "$demos" <<'PY'
 import hashlib, json, os, struct, sys

@@ -32,7 +32,8 @@ const PHYSICAL_SHAPES: [(usize, usize, usize); 16] = [
 /// Arguments of `equact bench matmul`.
 #[derive(Args, Debug)]
 pub struct MatmulBenchArgs {
-    /// Seconds to spend on each shape (at least three products each).
+    /// Seconds to spend on each shape each way (as `gemm_acc` chooses, and all through
+    /// `matrixmultiply`; at least three products each).
     #[arg(long, default_value_t = 0.5)]
     pub seconds: f64,
 }
