@@ -9,7 +9,7 @@
 #   scripts/roll_scratch_experiment.sh            # seed 0, both arms
 #   SEEDS="0 1 2" scripts/roll_scratch_experiment.sh
 #   EVAL_ALL=1 scripts/roll_scratch_experiment.sh # also 20 episodes of every variation
-#   scripts/roll_scratch_experiment.sh keep       # keep unfinished runs for a later clone
+#   scripts/roll_scratch_experiment.sh keep       # stop, keep unfinished runs for a later clone
 #
 # Environment: OUT (runs/roll_scratch), SEEDS ("0"), SHIFT_MM (20), SIM_SPEED (16),
 # NICE (19: the training yields the CPU to anything else), EQUACT (target/release/equact),
@@ -19,9 +19,9 @@
 # run's weights are also copied to KEEP as roll_<arm>_s<seed>_run<N>.safetensors (2.4 MB);
 # commit them, and a later clone skips that run and starts the next from the kept file (the
 # demonstrations are re-collected, the same ones: they are seeded). A run that a sitting
-# cannot finish is kept too: stop the script (Ctrl-C, or `kill -INT` the `equact train`
-# processes: each saves a checkpoint after its current step), then `... keep` copies each
-# unfinished run's checkpoint to KEEP as roll_<arm>_s<seed>_run<N>.checkpoint/ (weights,
+# cannot finish is kept too: `... keep` stops the running trainings as Ctrl-C would (each
+# saves a checkpoint after its current step; the script running them then stops) and copies
+# each unfinished run's checkpoint to KEEP as roll_<arm>_s<seed>_run<N>.checkpoint/ (weights,
 # optimiser moments, settings and log, about 7 MB, with the demonstrations' checksum). Commit
 # it, and a later clone resumes that run from it, bit for bit as if never stopped, once it
 # has checked that the re-collected demonstrations are the same. Run 1 of both arms is about
@@ -77,9 +77,18 @@ if [ "${1:-}" = keep ]; then
                 if [ -f "$kept.safetensors" ] || [ ! -f "$src/model.safetensors" ]; then
                     continue
                 fi
-                if pgrep -f -- "--out $src( |\$)" > /dev/null; then
-                    echo "$src is still training: stop it first (kill -INT its equact train)" >&2
-                    exit 1
+                # A running training is stopped the way Ctrl-C stops it: it saves a
+                # checkpoint after its current step (seconds) and exits.
+                if pkill -INT -f -- "--out $src( |\$)"; then
+                    echo "stopping the training in $src (a checkpoint after its current step)"
+                    for _ in $(seq 300); do
+                        pgrep -f -- "--out $src( |\$)" > /dev/null || break
+                        sleep 1
+                    done
+                    if pgrep -f -- "--out $src( |\$)" > /dev/null; then
+                        echo "the training in $src did not stop within 5 minutes" >&2
+                        exit 1
+                    fi
                 fi
                 rm -rf "$kept.checkpoint.partial"
                 mkdir -p "$kept.checkpoint.partial"
