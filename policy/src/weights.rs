@@ -91,7 +91,7 @@ fn read_header_metadata(path: &Path) -> Result<BTreeMap<String, String>> {
 /// the metadata in its hash map's order, which differs from process to process, so the
 /// same tensors and metadata would otherwise give different files; readers take each
 /// tensor's place from its offsets, not from the order.
-pub fn sorted_safetensors_header(bytes: Vec<u8>) -> std::result::Result<Vec<u8>, String> {
+pub fn sorted_safetensors_header(mut bytes: Vec<u8>) -> std::result::Result<Vec<u8>, String> {
     let length: [u8; 8] = bytes
         .get(..8)
         .and_then(|b| b.try_into().ok())
@@ -108,11 +108,11 @@ pub fn sorted_safetensors_header(bytes: Vec<u8>) -> std::result::Result<Vec<u8>,
     let mut text = serde_json::to_vec(&value).map_err(|e| format!("header: {e}"))?;
     // Spaces up to a multiple of 8 bytes keep the data aligned, as the crate writes it.
     text.resize(text.len().next_multiple_of(8), b' ');
-    let mut out = Vec::with_capacity(8 + text.len() + bytes.len() - 8 - n);
-    out.extend_from_slice(&(text.len() as u64).to_le_bytes());
-    out.extend_from_slice(&text);
-    out.extend_from_slice(&bytes[8 + n..]);
-    Ok(out)
+    // The new header replaces the old in place: a physical network's file is hundreds of
+    // megabytes, not worth a second copy (the lengths are mostly equal: nothing moves).
+    let prefix = (text.len() as u64).to_le_bytes().into_iter().chain(text);
+    bytes.splice(..8 + n, prefix);
+    Ok(bytes)
 }
 
 fn parse_count(key: &str, value: Option<&str>) -> std::result::Result<Option<usize>, String> {
