@@ -185,10 +185,18 @@ pub fn axpy_rows(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) -
 /// Outputs accumulated together by [`Linear::forward_sparse`] (one AVX-512 register).
 const SPARSE_BLOCK: usize = 16;
 
+/// Inputs [`axpy_rows_sparse`] tests for zero together.
+const ZERO_BLOCK: usize = 16;
+
 /// [`axpy_rows`] skipping zero inputs: each row is scanned in blocks of 16 values, blocks of
 /// zeros are passed over, and every non-zero input adds its weight row.
 fn axpy_rows_sparse(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]) {
-    const BLOCK: usize = 16;
+    if out.is_multiple_of(16) {
+        // Whole vectors of outputs: see [`SparseAxpy`].
+        pulp::Arch::new().dispatch(SparseAxpy { x, inp, wt, out, y });
+        return;
+    }
+    const BLOCK: usize = ZERO_BLOCK;
     for (xr, yr) in x.chunks_exact(inp).zip(y.chunks_exact_mut(out)) {
         for (bi, xb) in xr.chunks(BLOCK).enumerate() {
             if xb.iter().all(|v| *v == 0.0) {
@@ -205,6 +213,75 @@ fn axpy_rows_sparse(x: &[f32], inp: usize, wt: &[f32], out: usize, y: &mut [f32]
             }
         }
     }
+}
+
+/// [`axpy_rows_sparse`] for outputs in whole vectors: each output row held in registers (up
+/// to eight vectors at a time) while its row of `x` is scanned, each non-zero input's
+/// product then sum added in input order, as the plain loop adds them (bit for bit), the
+/// output loaded and stored once instead of once per input.
+struct SparseAxpy<'a> {
+    x: &'a [f32],
+    inp: usize,
+    wt: &'a [f32],
+    out: usize,
+    y: &'a mut [f32],
+}
+
+impl pulp::WithSimd for SparseAxpy<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        let SparseAxpy { x, inp, wt, out, y } = self;
+        let ov = out / S::F32_LANES;
+        let (wv, _) = S::as_simd_f32s(wt);
+        for (xr, yr) in x.chunks_exact(inp).zip(y.chunks_exact_mut(out)) {
+            let (yv, _) = S::as_mut_simd_f32s(yr);
+            let mut v0 = 0;
+            while v0 < ov {
+                let at = (xr, wv, ov, v0);
+                // No closure: it would not inherit the kernel's target features.
+                v0 += match ov - v0 {
+                    1 => sparse_axpy_block::<S, 1>(simd, at, yv),
+                    2 => sparse_axpy_block::<S, 2>(simd, at, yv),
+                    3 => sparse_axpy_block::<S, 3>(simd, at, yv),
+                    4 => sparse_axpy_block::<S, 4>(simd, at, yv),
+                    5 => sparse_axpy_block::<S, 5>(simd, at, yv),
+                    6 => sparse_axpy_block::<S, 6>(simd, at, yv),
+                    7 => sparse_axpy_block::<S, 7>(simd, at, yv),
+                    _ => sparse_axpy_block::<S, 8>(simd, at, yv),
+                };
+            }
+        }
+    }
+}
+
+/// Output vectors `v0..v0 + V` of one row of [`SparseAxpy`] (`xr`: the input row, `wv`: the
+/// weights, `ov` vectors per row); returns `V`.
+#[inline(always)]
+fn sparse_axpy_block<S: pulp::Simd, const V: usize>(
+    simd: S,
+    (xr, wv, ov, v0): (&[f32], &[S::f32s], usize, usize),
+    yv: &mut [S::f32s],
+) -> usize {
+    let mut acc: [S::f32s; V] = std::array::from_fn(|v| yv[v0 + v]);
+    for (bi, xb) in xr.chunks(ZERO_BLOCK).enumerate() {
+        if xb.iter().all(|v| *v == 0.0) {
+            continue;
+        }
+        for (j, &xi) in xb.iter().enumerate() {
+            if xi == 0.0 {
+                continue;
+            }
+            let xs = simd.splat_f32s(xi);
+            let start = (bi * ZERO_BLOCK + j) * ov + v0;
+            for (a, &w) in acc.iter_mut().zip(&wv[start..start + V]) {
+                *a = simd.add_f32s(*a, simd.mul_f32s(xs, w));
+            }
+        }
+    }
+    yv[v0..v0 + V].copy_from_slice(&acc);
+    V
 }
 
 /// The transpose of a row-major `[rows, cols]` matrix.
@@ -1719,6 +1796,46 @@ mod tests {
         let fresh = copy.prepare(&a, 2).unwrap();
         assert!(!Arc::ptr_eq(&again, &fresh));
         assert_eq!((&fresh.wt, &fresh.b), (&first.wt, &first.b));
+    }
+
+    #[test]
+    fn mostly_zero_inputs_add_their_nonzero_terms_in_order_bit_for_bit() {
+        let inp = 40;
+        // A remainder (the plain loop); one, three and nine vectors of outputs (the vector
+        // kernel, nine as eight and one).
+        for out in [20, 16, 48, 144] {
+            let w: Vec<f32> = (0..inp * out)
+                .map(|i| ((i * 53 % 97) as f32 - 48.0) / 31.0)
+                .collect();
+            let rows = 5;
+            // Mostly zeros: whole zero blocks, scattered values, a -0 (skipped as zero) and,
+            // in the last row, a NaN (added: the output turns NaN).
+            let mut x = vec![0.0f32; rows * inp];
+            for (i, v) in x.iter_mut().enumerate() {
+                if i % 7 == 3 && (i % inp) >= 16 {
+                    *v = (i as f32 * 0.37).sin() * 3.0;
+                }
+            }
+            x[inp + 20] = -0.0;
+            x[(rows - 1) * inp + 30] = f32::NAN;
+            let y0: Vec<f32> = (0..rows * out).map(|i| (i as f32 * 0.11).cos()).collect();
+            let mut want = y0.clone();
+            for r in 0..rows {
+                for i in 0..inp {
+                    let xi = x[r * inp + i];
+                    if xi != 0.0 {
+                        for o in 0..out {
+                            want[r * out + o] += xi * w[i * out + o];
+                        }
+                    }
+                }
+            }
+            let mut y = y0.clone();
+            axpy_rows(&x, inp, &w, out, &mut y).unwrap();
+            let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&y), bits(&want), "{out} outputs");
+            assert!(y[(rows - 1) * out].is_nan() && !y[0].is_nan());
+        }
     }
 
     #[test]

@@ -37,7 +37,8 @@
 //! through its `gemm` on strided views, `matrixmultiply`'s cache-blocked sgemm for the large
 //! batched products (run-time AVX2/FMA/AVX-512 kernels, single-threaded); `pulp` to compile
 //! the unpacked AVX-512 kernel that takes the thinner of those products (run-time dispatch
-//! without `unsafe` in this crate; it rounds as `matrixmultiply` does); `safetensors` to
+//! without `unsafe` in this crate; it rounds as `matrixmultiply` does) and the edge-frame
+//! rotations in whole vectors of channels (AVX-512 or AVX2, the plain loops' rounding); `safetensors` to
 //! read the reference's tensor files, `serde_json` for their sidecars; `libm` (erf) and
 //! `unicode-normalization` (NFD) for the MiniLM encoder; `cpu-time` for the stage timings'
 //! per-thread CPU clock.

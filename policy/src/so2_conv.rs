@@ -314,6 +314,19 @@ impl EdgeWigners {
                 [Vec::with_capacity(n), Vec::with_capacity(n)]
             })
             .collect();
+        if c.is_multiple_of(16) {
+            // Whole vectors of channels (every layer of the physical configuration).
+            pulp::Arch::new().dispatch(RotateMessages {
+                wigners: self,
+                edges: range,
+                map,
+                c,
+                parts: &parts,
+                rad: rad.map(|r| (r, rad_w)),
+                out: (&mut v0, &mut halves),
+            });
+            return Ok(MBlocks { m0: v0, halves });
+        }
         // One rotated row (both parts) into `out`, times its weights.
         let row = |e: usize, i: usize, w: Option<&[f32]>, out: &mut Vec<f32>| {
             let at = out.len();
@@ -372,12 +385,23 @@ impl EdgeWigners {
             })
             .collect();
         let rescale: Vec<f32> = (0..k).map(|j| map.rotate_inv_rescale(j)).collect();
-        // Appended in output order (edge, coefficient): no zero fill before.
+        let d = &self.d[range.start * k * k..(range.start + ne) * k * k];
         let mut x = Vec::with_capacity(ne * k * c);
+        if c.is_multiple_of(16) {
+            // Whole vectors of channels (every layer of the physical configuration): each
+            // output vector summed in registers, the same terms in the same order.
+            pulp::Arch::new().dispatch(RotateBack {
+                d,
+                y,
+                rows: (&map.reduced, &runs, &rescale),
+                shape: (k, nr, c),
+                x: &mut x,
+            });
+            return Ok(x);
+        }
+        // Appended in output order (edge, coefficient): no zero fill before.
         let mut w = [0.0f32; 2 * crate::so3::MAX_DEGREE + 1];
-        for e in 0..ne {
-            let d = &self.d[(range.start + e) * k * k..(range.start + e + 1) * k * k];
-            let ye = &y[e * nr * c..(e + 1) * nr * c];
+        for (d, ye) in d.chunks_exact(k * k).zip(y.chunks_exact(nr * c)) {
             // Output row j sums its degree's reduced rows in their order, as the
             // row-by-row loop of the transpose added them.
             for j in 0..k {
@@ -390,6 +414,176 @@ impl EdgeWigners {
             }
         }
         Ok(x)
+    }
+}
+
+/// One part of the messages: node features `[N, K, c]` and each edge's node.
+type MessagePart<'a> = (&'a [f32], &'a [usize]);
+
+/// [`EdgeWigners::rotate_messages_blocks`] for channels in whole vectors: each vector of a
+/// rotated row summed in a register from +0 over its degree's coefficients in order, a
+/// product then a sum per term, then times its radial weights ([`combine_rows`] and the
+/// scaling after it, bit for bit).
+struct RotateMessages<'a> {
+    wigners: &'a EdgeWigners,
+    /// The edges, indexing the Wigner matrices.
+    edges: std::ops::Range<usize>,
+    map: &'a CoefficientMapping,
+    /// Channels per part.
+    c: usize,
+    /// The message parts.
+    parts: &'a [MessagePart<'a>],
+    /// The radial weights `[E, rad_w]` and rad_w.
+    rad: Option<(&'a [f32], usize)>,
+    /// The m = 0 block and the (+m, −m) halves, appended to.
+    out: (&'a mut Vec<f32>, &'a mut Vec<[Vec<f32>; 2]>),
+}
+
+impl pulp::WithSimd for RotateMessages<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        let RotateMessages {
+            wigners,
+            edges,
+            map,
+            c,
+            parts,
+            rad,
+            out: (v0, halves),
+        } = self;
+        let k = num_coefficients(wigners.lmax);
+        let lmax = map.lmax;
+        let l1 = lmax + 1;
+        let mc = parts.len() * c;
+        let d = &wigners.d[edges.start * k * k..edges.end * k * k];
+        // No closure for the row: a closure would not inherit the kernel's target features
+        // (every vector operation would become a call).
+        for e in 0..edges.len() {
+            let re = rad.map(|(r, rad_w)| &r[e * rad_w..(e + 1) * rad_w]);
+            for l in 0..=lmax {
+                let w = re.map(|r| &r[l * mc..(l + 1) * mc]);
+                let de = &d[e * k * k..(e + 1) * k * k];
+                rotated_row(simd, (de, k), l * l + l, (parts, e, c), w, v0);
+            }
+            let mut off = l1 * mc;
+            for (mi, pair) in halves.iter_mut().enumerate() {
+                let m = mi + 1;
+                for (half, sign) in pair.iter_mut().zip([1i64, -1]) {
+                    for (li, l) in (m..=lmax).enumerate() {
+                        let w = re.map(|r| &r[off + li * mc..off + (li + 1) * mc]);
+                        let i = (l * l + l) as i64 + sign * m as i64;
+                        let de = &d[e * k * k..(e + 1) * k * k];
+                        rotated_row(simd, (de, k), i as usize, (parts, e, c), w, half);
+                    }
+                }
+                off += (l1 - m) * mc;
+            }
+        }
+    }
+}
+
+/// One rotated row (every part, `c` channels each) of an edge with Wigner matrix `d` (K × K)
+/// appended to `out`, times its weights `w`: [`RotateMessages`]'s row.
+#[inline(always)]
+fn rotated_row<S: pulp::Simd>(
+    simd: S,
+    (d, k): (&[f32], usize),
+    i: usize,
+    (parts, e, c): (&[MessagePart<'_>], usize, usize),
+    w: Option<&[f32]>,
+    out: &mut Vec<f32>,
+) {
+    let cv = c / S::F32_LANES;
+    let l = degree_of(i);
+    let block = l * l..(l + 1) * (l + 1);
+    let di = &d[i * k + block.start..i * k + block.end];
+    let at = out.len();
+    out.resize(at + parts.len() * c, 0.0);
+    let (ov, _) = S::as_mut_simd_f32s(&mut out[at..]);
+    for (p, ((x, idx), op)) in parts.iter().zip(ov.chunks_exact_mut(cv)).enumerate() {
+        let node = idx[e] * k * c;
+        let (xv, _) = S::as_simd_f32s(&x[node + block.start * c..node + block.end * c]);
+        let wv = w.map(|w| S::as_simd_f32s(&w[p * c..(p + 1) * c]).0);
+        for (b, o) in op.iter_mut().enumerate() {
+            let mut acc = simd.splat_f32s(0.0);
+            for (&dt, &xt) in di.iter().zip(xv[b..].iter().step_by(cv)) {
+                acc = simd.add_f32s(acc, simd.mul_f32s(simd.splat_f32s(dt), xt));
+            }
+            *o = match wv {
+                Some(wv) => simd.mul_f32s(acc, wv[b]),
+                None => acc,
+            };
+        }
+    }
+}
+
+/// [`EdgeWigners::rotate_back_range`] for channels in whole vectors: per edge and output
+/// row, each vector of channels summed in a register from +0 over its degree's reduced rows
+/// in order, a product then a sum per term ([`combine_rows`]'s rounding, bit for bit).
+struct RotateBack<'a> {
+    /// The edges' matrices `[E, K, K]`.
+    d: &'a [f32],
+    /// The edge-frame features `[E, n_reduced, c]`.
+    y: &'a [f32],
+    /// Each reduced row's full index, each degree's run of reduced rows, each output row's
+    /// rescaling.
+    rows: (&'a [usize], &'a [std::ops::Range<usize>], &'a [f32]),
+    /// (K, n_reduced, c).
+    shape: (usize, usize, usize),
+    /// The output `[E, K, c]`, appended to.
+    x: &'a mut Vec<f32>,
+}
+
+impl pulp::WithSimd for RotateBack<'_> {
+    type Output = ();
+
+    #[inline(always)]
+    fn with_simd<S: pulp::Simd>(self, simd: S) {
+        let RotateBack {
+            d,
+            y,
+            rows,
+            shape,
+            x,
+        } = self;
+        let (reduced, runs, rescale) = rows;
+        let (k, nr, c) = shape;
+        let cv = c / S::F32_LANES;
+        const MAX_ROWS: usize = 2 * crate::so3::MAX_DEGREE + 1;
+        // One degree's weights, [reduced row][output row of the degree].
+        let mut w = [[0.0f32; MAX_ROWS]; MAX_ROWS];
+        for (de, ye) in d.chunks_exact(k * k).zip(y.chunks_exact(nr * c)) {
+            let (yv, _) = S::as_simd_f32s(ye);
+            let start = x.len();
+            x.resize(start + k * c, 0.0);
+            let (xv, _) = S::as_mut_simd_f32s(&mut x[start..]);
+            for (l, run) in runs.iter().enumerate() {
+                let outs = l * l..(l + 1) * (l + 1);
+                // Row i of Dᵀ's block is row i of D read along the degree's columns.
+                for (wt, &i) in w.iter_mut().zip(&reduced[run.clone()]) {
+                    let di = &de[i * k + outs.start..i * k + outs.end];
+                    for ((wtj, &dij), &sj) in wt.iter_mut().zip(di).zip(&rescale[outs.clone()]) {
+                        *wtj = dij * sj;
+                    }
+                }
+                let w = &w[..run.len()];
+                let rows = &yv[run.start * cv..run.end * cv];
+                for (jj, xj) in xv[outs.start * cv..outs.end * cv]
+                    .chunks_exact_mut(cv)
+                    .enumerate()
+                {
+                    for (b, out) in xj.iter_mut().enumerate() {
+                        let mut acc = simd.splat_f32s(0.0);
+                        for (wt, yt) in w.iter().zip(rows[b..].iter().step_by(cv)) {
+                            acc = simd.add_f32s(acc, simd.mul_f32s(simd.splat_f32s(wt[jj]), *yt));
+                        }
+                        *out = acc;
+                    }
+                }
+            }
+        }
     }
 }
 
@@ -1013,8 +1207,9 @@ mod tests {
             .map(|_| [0; 3].map(|_| rng.random_range(-1.0..1.0f32)))
             .collect();
         let w = EdgeWigners::new(&calc, lmax, &vecs).unwrap();
-        // Below, at and past one register block of channels, with a tail.
-        for c in [5, 16, 37] {
+        // Below, at and past one register block of channels, with a tail; whole vectors of
+        // channels (the vector kernel's rotation back).
+        for c in [5, 16, 37, 48] {
             let x: Vec<f32> = (0..ne * k * c)
                 .map(|_| rng.random_range(-1.0..1.0f32))
                 .collect();
@@ -1050,12 +1245,90 @@ mod tests {
                 back_want,
                 "rotate back, c = {c}"
             );
+            // A range of the edges: their rows of the whole.
+            assert_eq!(
+                w.rotate_back_range(2..5, &map, &y[2 * nr * c..5 * nr * c], c)
+                    .unwrap(),
+                back_want[2 * k * c..5 * k * c],
+                "rotate back edges 2..5, c = {c}"
+            );
         }
         // A mapping for another degree is an error, not a panic.
         let other = CoefficientMapping::new(2, 2).unwrap();
         let x = vec![0.0f32; ne * k];
         assert!(w.rotate(&other, &x, 1).is_err());
         assert!(w.rotate_back(&other, &x[..ne * other.len()], 1).is_err());
+    }
+
+    #[test]
+    fn message_blocks_are_the_rotated_rows_times_their_weights_bit_for_bit() {
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        let (lmax, mmax, nodes, ne) = (3, 2, 9, 30);
+        let k = num_coefficients(lmax);
+        let calc = WignerCalculator::new(lmax).unwrap();
+        let map = CoefficientMapping::new(lmax, mmax).unwrap();
+        let nr = map.len();
+        let vecs: Vec<[f32; 3]> = (0..ne)
+            .map(|_| [0; 3].map(|_| rng.random_range(-1.0..1.0f32)))
+            .collect();
+        let w = EdgeWigners::new(&calc, lmax, &vecs).unwrap();
+        let a: Vec<usize> = (0..ne).map(|e| (e * 7) % nodes).collect();
+        let b: Vec<usize> = (0..ne).map(|e| (e * 3 + 1) % nodes).collect();
+        let range = 4..21;
+        let (ra, rb) = (&a[range.clone()], &b[range.clone()]);
+        // A tail of channels (the plain loops) and whole vectors (the vector kernel).
+        for c in [5, 16, 32] {
+            let mut feats =
+                |n: usize| -> Vec<f32> { (0..n).map(|_| rng.random_range(-1.0..1.0f32)).collect() };
+            let (xa, xb) = (feats(nodes * k * c), feats(nodes * k * c));
+            for two in [false, true] {
+                let mc = if two { 2 * c } else { c };
+                let second = two.then_some((xb.as_slice(), rb));
+                let rad_w =
+                    (lmax + 1) * mc + (1..=mmax).map(|m| (lmax + 1 - m) * mc).sum::<usize>();
+                let rad = feats(range.len() * rad_w);
+                let rows = w
+                    .rotate_messages(range.clone(), &map, c, (&xa, ra), second)
+                    .unwrap();
+                for weights in [None, Some(rad.as_slice())] {
+                    let blocks = w
+                        .rotate_messages_blocks(range.clone(), &map, c, (&xa, ra), second, weights)
+                        .unwrap();
+                    // Row (l, m) of edge e times the weights at `off` of the edge's.
+                    let want = |e: usize, l: usize, m: i64, off: usize| -> Vec<f32> {
+                        let r = map.position(l, m);
+                        let row = &rows[(e * nr + r) * mc..(e * nr + r + 1) * mc];
+                        match weights {
+                            Some(wt) => row
+                                .iter()
+                                .zip(&wt[e * rad_w + off..e * rad_w + off + mc])
+                                .map(|(v, w)| v * w)
+                                .collect(),
+                            None => row.to_vec(),
+                        }
+                    };
+                    let mut m0 = Vec::new();
+                    let mut halves = vec![[Vec::new(), Vec::new()]; mmax];
+                    for e in 0..range.len() {
+                        for l in 0..=lmax {
+                            m0.extend(want(e, l, 0, l * mc));
+                        }
+                        let mut off = (lmax + 1) * mc;
+                        for m in 1..=mmax {
+                            for (half, sign) in halves[m - 1].iter_mut().zip([1i64, -1]) {
+                                for (li, l) in (m..=lmax).enumerate() {
+                                    half.extend(want(e, l, sign * m as i64, off + li * mc));
+                                }
+                            }
+                            off += (lmax + 1 - m) * mc;
+                        }
+                    }
+                    let what = format!("c = {c}, two parts {two}, weights {}", weights.is_some());
+                    assert_eq!(blocks.m0, m0, "m = 0 block, {what}");
+                    assert_eq!(blocks.halves, halves, "halves, {what}");
+                }
+            }
+        }
     }
 
     #[test]
