@@ -80,21 +80,74 @@ fn knn_serial(points: &[[f32; 3]], queries: &[[f32; 3]], k: usize) -> Result<Vec
         });
     }
     let k = k.min(points.len());
+    let mut dist: Vec<f32> = Vec::with_capacity(points.len());
     let mut order: Vec<(f32, usize)> = Vec::with_capacity(points.len());
+    let mut heap: std::collections::BinaryHeap<(u32, usize)> =
+        std::collections::BinaryHeap::with_capacity(k + 1);
     Ok(queries
         .iter()
         .map(|q| {
-            order.clear();
-            order.extend(points.iter().enumerate().map(|(i, p)| (dist2(p, q), i)));
-            // Partial selection, then a stable order of the kept k.
-            if k < order.len() {
-                order.select_nth_unstable_by(k - 1, |a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                order.truncate(k);
+            if k == 0 {
+                return Vec::new();
             }
-            order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-            order.iter().map(|&(_, i)| i).collect()
+            if k > HEAP_SELECT_MAX {
+                // Partial selection, then a stable order of the kept k.
+                order.clear();
+                order.extend(points.iter().enumerate().map(|(i, p)| (dist2(p, q), i)));
+                if k < order.len() {
+                    order.select_nth_unstable_by(k - 1, |a, b| {
+                        a.0.total_cmp(&b.0).then(a.1.cmp(&b.1))
+                    });
+                    order.truncate(k);
+                }
+                order.sort_unstable_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                return order.iter().map(|&(_, i)| i).collect();
+            }
+            // The k smallest (distance, index) pairs in a max-heap while the distances are
+            // scanned in index order: once it is full, a point at or beyond the worst kept
+            // distance cannot enter (an equal distance loses on its larger index), one
+            // float compare for nearly every point.
+            dist.clear();
+            dist.extend(points.iter().map(|p| dist2(p, q)));
+            heap.clear();
+            for (i, &d) in dist.iter().enumerate().take(k) {
+                heap.push((distance_key(d), i));
+            }
+            let mut worst = heap.peek().map_or(f32::INFINITY, |w| dist[w.1]);
+            for (i, &d) in dist.iter().enumerate().skip(k) {
+                // (A NaN cannot arise from the finite points checked above; were it to, it
+                // would sort last, so it must not enter either.)
+                if d >= worst || d.is_nan() {
+                    continue;
+                }
+                if let Some(mut top) = heap.peek_mut() {
+                    *top = (distance_key(d), i);
+                }
+                worst = heap.peek().map_or(f32::INFINITY, |w| dist[w.1]);
+            }
+            let mut kept = std::mem::take(&mut heap).into_sorted_vec();
+            let out = kept.iter().map(|&(_, i)| i).collect();
+            kept.clear();
+            heap = kept.into();
+            out
         })
         .collect())
+}
+
+/// Largest neighbour count [`knn`] keeps in a heap while it scans; above it, a selection
+/// over all the distances is faster (measured: 16 neighbours of 2048 points 1.25× faster by
+/// the heap, 100 neighbours 2× slower).
+const HEAP_SELECT_MAX: usize = 32;
+
+/// A squared distance as an integer of the same order as `f32::total_cmp`'s.
+fn distance_key(d: f32) -> u32 {
+    let bits = d.to_bits();
+    // Negative values (only −0 can arise) reversed and below the positive ones.
+    if bits >> 31 == 1 {
+        !bits
+    } else {
+        bits | (1 << 31)
+    }
 }
 
 /// The spherical-coefficient max-pool (`CoefficientMaxPool`): for every centre, degree l and

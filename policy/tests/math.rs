@@ -10,7 +10,7 @@ use policy::grids::{reduced_coefficients, so3_healpix_grid, S2Grid};
 use policy::layers::{rotate_embedding, separable_s2_activation};
 use policy::points::{
     coefficient_max_pool, coefficient_max_pool_choices, coefficient_max_pool_threads,
-    farthest_point_sampling, knn, upsample_weights, UpsampleDistance,
+    farthest_point_sampling, knn, knn_threads, upsample_weights, UpsampleDistance,
 };
 use policy::so3::{
     angles_to_matrix, edge_rot_mat, matrix_to_angles, spherical_harmonics, WignerCalculator,
@@ -314,6 +314,31 @@ fn fps_picks_are_spread_and_knn_matches_brute_force() {
             0.0,
             "a cloud point is its own nearest neighbour"
         );
+    }
+}
+
+#[test]
+fn knn_breaks_distance_ties_by_index_for_any_count() {
+    // A 5 × 5 × 5 grid: every query has many neighbours at exactly equal distances.
+    let pts: Vec<[f32; 3]> = (0..125)
+        .map(|i| [(i % 5) as f32, ((i / 5) % 5) as f32, (i / 25) as f32])
+        .collect();
+    let queries = [
+        [2.0, 2.0, 2.0],
+        [0.0, 0.0, 0.0],
+        [0.5, 4.0, 1.5],
+        [-3.0, 9.0, 2.0],
+    ];
+    for k in [0, 1, 6, 7, 33, 124, 125, 200] {
+        let nn = knn_threads(&pts, &queries, k, 2).unwrap();
+        for (q, nb) in queries.iter().zip(&nn) {
+            let d2 = |p: &[f32; 3]| (0..3).map(|a| (p[a] - q[a]) * (p[a] - q[a])).sum::<f32>();
+            let mut all: Vec<(f32, usize)> =
+                pts.iter().enumerate().map(|(i, p)| (d2(p), i)).collect();
+            all.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+            let expect: Vec<usize> = all.iter().take(k).map(|x| x.1).collect();
+            assert_eq!(nb, &expect, "k = {k}, query {q:?}");
+        }
     }
 }
 
