@@ -117,11 +117,7 @@ pub fn map_ranges<T: Send>(
     if ranges.len() < 2 {
         return f(0..n);
     }
-    let mut out = Vec::new();
-    for part in run_parts(ranges, f) {
-        out.extend(part?);
-    }
-    Ok(out)
+    concat(run_parts(ranges, f))
 }
 
 /// Runs `f` on every `chunk`-long slice of `items` (the last may be shorter) on up to
@@ -134,9 +130,23 @@ pub fn map_chunks<T: Sync, R: Send>(
     f: impl Fn(&[T]) -> crate::error::Result<Vec<R>> + Sync,
 ) -> crate::error::Result<Vec<R>> {
     let chunks: Vec<&[T]> = items.chunks(chunk.max(1)).collect();
-    let mut out = Vec::new();
-    for part in run_dynamic(chunks, threads, f) {
-        out.extend(part?);
+    concat(run_dynamic(chunks, threads, f))
+}
+
+/// The parts' outputs joined in order (the first error if any). The first part's buffer is
+/// grown in place (a large one is remapped, not copied) and only the others are copied into
+/// it: appending every part to a new, growing buffer copied the whole output once or twice
+/// more on one thread, and touched fresh pages, after every parallel stage.
+fn concat<T>(parts: Vec<crate::error::Result<Vec<T>>>) -> crate::error::Result<Vec<T>> {
+    let parts = parts
+        .into_iter()
+        .collect::<crate::error::Result<Vec<_>>>()?;
+    let total = parts.iter().map(Vec::len).sum::<usize>();
+    let mut parts = parts.into_iter();
+    let mut out = parts.next().unwrap_or_default();
+    out.reserve_exact(total - out.len());
+    for part in parts {
+        out.extend(part);
     }
     Ok(out)
 }
