@@ -687,6 +687,42 @@ pub fn rms_centre_and_scale(node: &mut [f32], lmax: usize, c: usize) -> f64 {
     (norm + 1e-5).powf(-0.5)
 }
 
+/// Nodes whose sums [`RmsNormSh::forward`] interleaves.
+const RMS_GROUP: usize = 4;
+
+/// [`rms_centre_and_scale`] of the [`RMS_GROUP`] nodes of `group` at once: the same f64
+/// sums in the same order per node (from −0, as `Iterator::sum`), interleaved so that the
+/// nodes' chains of dependent additions overlap instead of each waiting on the last.
+fn rms_centre_and_scale_group(group: &mut [f32], lmax: usize, c: usize) -> [f64; RMS_GROUP] {
+    let len = group.len() / RMS_GROUP;
+    let mut mean = [-0.0f64; RMS_GROUP];
+    for ch in 0..c {
+        for (g, m) in mean.iter_mut().enumerate() {
+            *m += f64::from(group[g * len + ch]);
+        }
+    }
+    for (g, m) in mean.iter_mut().enumerate() {
+        *m /= c as f64;
+        for v in &mut group[g * len..g * len + c] {
+            *v = (f64::from(*v) - *m) as f32;
+        }
+    }
+    let mut norm = [0.0f64; RMS_GROUP];
+    for i in 0..len / c {
+        let mut rows = [-0.0f64; RMS_GROUP];
+        for ch in 0..c {
+            for (g, r) in rows.iter_mut().enumerate() {
+                *r += f64::from(group[g * len + i * c + ch]).powi(2);
+            }
+        }
+        let w = balance_weight(i, lmax);
+        for (n, r) in norm.iter_mut().zip(rows) {
+            *n += w * r;
+        }
+    }
+    norm.map(|n| (n / c as f64 + 1e-5).powf(-0.5))
+}
+
 /// `rms_norm_sh`: centre l = 0 over channels, divide by the degree-balanced RMS, scale per
 /// (degree, channel), add a bias on l = 0.
 #[derive(Debug, Clone)]
@@ -727,21 +763,33 @@ impl RmsNormSh {
         let c = self.c;
         let n = rows_of("RMS norm input", x.len(), k * c)?;
         let mut y = x.to_vec();
-        for node in y.chunks_exact_mut(k * c) {
-            let scale = rms_centre_and_scale(node, self.lmax, c);
-            for i in 0..k {
-                let l = degree_of(i);
-                for ch in 0..c {
-                    let v = &mut node[i * c + ch];
-                    *v = (f64::from(*v) * scale) as f32 * self.w[l * c + ch];
-                    if i == 0 {
-                        *v += self.b[ch];
-                    }
-                }
+        let mut groups = y.chunks_exact_mut(RMS_GROUP * k * c);
+        for group in &mut groups {
+            let scales = rms_centre_and_scale_group(group, self.lmax, c);
+            for (node, scale) in group.chunks_exact_mut(k * c).zip(scales) {
+                self.scale_node(node, scale);
             }
+        }
+        for node in groups.into_remainder().chunks_exact_mut(k * c) {
+            let scale = rms_centre_and_scale(node, self.lmax, c);
+            self.scale_node(node, scale);
         }
         debug_assert_eq!(y.len(), n * k * c);
         Ok(y)
+    }
+
+    /// One centred node times its scale, then the affine map.
+    fn scale_node(&self, node: &mut [f32], scale: f64) {
+        let c = self.c;
+        for (i, row) in node.chunks_exact_mut(c).enumerate() {
+            let l = degree_of(i);
+            for (ch, v) in row.iter_mut().enumerate() {
+                *v = (f64::from(*v) * scale) as f32 * self.w[l * c + ch];
+                if i == 0 {
+                    *v += self.b[ch];
+                }
+            }
+        }
     }
 }
 
@@ -1796,6 +1844,45 @@ mod tests {
         let fresh = copy.prepare(&a, 2).unwrap();
         assert!(!Arc::ptr_eq(&again, &fresh));
         assert_eq!((&fresh.wt, &fresh.b), (&first.wt, &first.b));
+    }
+
+    #[test]
+    fn rms_norm_of_interleaved_nodes_equals_one_node_at_a_time_bit_for_bit() {
+        let (lmax, c) = (2, 6);
+        let k = num_coefficients(lmax);
+        let norm = RmsNormSh {
+            lmax,
+            c,
+            w: (0..(lmax + 1) * c).map(|i| 0.5 + i as f32 * 0.07).collect(),
+            // A −0 bias keeps the sign of a zero.
+            b: (0..c)
+                .map(|i| if i == 0 { -0.0 } else { i as f32 * 0.1 - 0.2 })
+                .collect(),
+        };
+        // Nine nodes: two groups and one left over; one node all −0 (the sums' starting
+        // sign shows), one with a huge and a tiny value.
+        let n = 9;
+        let mut x: Vec<f32> = (0..n * k * c)
+            .map(|i| ((i * 37 % 101) as f32 - 50.0) / 13.0)
+            .collect();
+        x[2 * k * c..3 * k * c].iter_mut().for_each(|v| *v = -0.0);
+        x[5 * k * c + 3] = 3.0e30;
+        x[5 * k * c + 4] = 1.0e-30;
+        let mut want = x.clone();
+        for node in want.chunks_exact_mut(k * c) {
+            let scale = rms_centre_and_scale(node, lmax, c);
+            for i in 0..k {
+                for ch in 0..c {
+                    let v = &mut node[i * c + ch];
+                    *v = (f64::from(*v) * scale) as f32 * norm.w[degree_of(i) * c + ch];
+                    if i == 0 {
+                        *v += norm.b[ch];
+                    }
+                }
+            }
+        }
+        let bits = |v: &[f32]| v.iter().map(|f| f.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&norm.forward(&x).unwrap()), bits(&want));
     }
 
     #[test]
