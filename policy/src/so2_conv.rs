@@ -400,7 +400,7 @@ impl EdgeWigners {
             return Ok(x);
         }
         // Appended in output order (edge, coefficient): no zero fill before.
-        let mut w = [0.0f32; 2 * crate::so3::MAX_DEGREE + 1];
+        let mut w = [0.0f32; MAX_ROWS];
         for (d, ye) in d.chunks_exact(k * k).zip(y.chunks_exact(nr * c)) {
             // Output row j sums its degree's reduced rows in their order, as the
             // row-by-row loop of the transpose added them.
@@ -536,6 +536,9 @@ struct RotateBack<'a> {
     x: &'a mut Vec<f32>,
 }
 
+/// Most reduced rows, and most output rows, of one degree.
+const MAX_ROWS: usize = 2 * crate::so3::MAX_DEGREE + 1;
+
 impl pulp::WithSimd for RotateBack<'_> {
     type Output = ();
 
@@ -551,7 +554,6 @@ impl pulp::WithSimd for RotateBack<'_> {
         let (reduced, runs, rescale) = rows;
         let (k, nr, c) = shape;
         let cv = c / S::F32_LANES;
-        const MAX_ROWS: usize = 2 * crate::so3::MAX_DEGREE + 1;
         // One degree's weights, [reduced row][output row of the degree].
         let mut w = [[0.0f32; MAX_ROWS]; MAX_ROWS];
         for (de, ye) in d.chunks_exact(k * k).zip(y.chunks_exact(nr * c)) {
