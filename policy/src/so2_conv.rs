@@ -314,45 +314,21 @@ impl EdgeWigners {
                 [Vec::with_capacity(n), Vec::with_capacity(n)]
             })
             .collect();
+        let kernel = RotateMessages {
+            wigners: self,
+            edges: range,
+            map,
+            c,
+            parts: &parts,
+            rad: rad.map(|r| (r, rad_w)),
+            out: (&mut v0, &mut halves),
+        };
         if c.is_multiple_of(16) {
             // Whole vectors of channels (every layer of the physical configuration).
-            pulp::Arch::new().dispatch(RotateMessages {
-                wigners: self,
-                edges: range,
-                map,
-                c,
-                parts: &parts,
-                rad: rad.map(|r| (r, rad_w)),
-                out: (&mut v0, &mut halves),
-            });
-            return Ok(MBlocks { m0: v0, halves });
-        }
-        // One rotated row (both parts) into `out`, times its weights.
-        let row = |e: usize, i: usize, w: Option<&[f32]>, out: &mut Vec<f32>| {
-            let at = out.len();
-            self.append_rotated_row(range.start + e, e, i, c, &parts, out);
-            if let Some(w) = w {
-                out[at..].iter_mut().zip(w).for_each(|(v, w)| *v *= w);
-            }
-        };
-        for e in 0..ne {
-            let re = rad.map(|r| &r[e * rad_w..(e + 1) * rad_w]);
-            for l in 0..=lmax {
-                let w = re.map(|r| &r[l * mc..(l + 1) * mc]);
-                row(e, l * l + l, w, &mut v0);
-            }
-            let mut off = l1 * mc;
-            for (mi, pair) in halves.iter_mut().enumerate() {
-                let m = mi + 1;
-                for (half, sign) in pair.iter_mut().zip([1i64, -1]) {
-                    for (li, l) in (m..=lmax).enumerate() {
-                        let w = re.map(|r| &r[off + li * mc..off + (li + 1) * mc]);
-                        let i = (l * l + l) as i64 + sign * m as i64;
-                        row(e, i as usize, w, half);
-                    }
-                }
-                off += (l1 - m) * mc;
-            }
+            pulp::Arch::new().dispatch(kernel);
+        } else {
+            // The same loop one channel at a time (the same sums).
+            pulp::WithSimd::with_simd(kernel, pulp::Scalar::new());
         }
         Ok(MBlocks { m0: v0, halves })
     }
@@ -420,7 +396,8 @@ impl EdgeWigners {
 /// One part of the messages: node features `[N, K, c]` and each edge's node.
 type MessagePart<'a> = (&'a [f32], &'a [usize]);
 
-/// [`EdgeWigners::rotate_messages_blocks`] for channels in whole vectors: each vector of a
+/// [`EdgeWigners::rotate_messages_blocks`] in vectors of channels (one channel each at
+/// `pulp`'s scalar level, for any channel count): each vector of a
 /// rotated row summed in a register from +0 over its degree's coefficients in order, a
 /// product then a sum per term, then times its radial weights ([`combine_rows`] and the
 /// scaling after it, bit for bit).
