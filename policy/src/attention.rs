@@ -12,8 +12,8 @@ use std::sync::Arc;
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
 use crate::layers::{
-    check_len, rows_of, separable_s2_activation, smooth_leaky_relu, EdgeFeatures, EdgeFeaturesRef,
-    GaussianRbf, LayerNorm, So3Linear,
+    check_len, rows_of, separable_s2_activation, smooth_leaky_relu_of, EdgeFeatures,
+    EdgeFeaturesRef, GaussianRbf, LayerNorm, So3Linear,
 };
 use crate::so2_conv::{CoefficientMapping, EdgeWigners, M0Block, MProducts, So2Conv};
 use crate::so3::{num_coefficients, WignerCalculator};
@@ -671,16 +671,20 @@ impl GraphAttention {
         let cfg = &self.cfg;
         self.alpha_norm.apply(alpha_in);
         let heads = cfg.num_heads;
+        let ac = cfg.alpha_channels;
+        // σ of every input at once, eight at a time, for the smooth leaky ReLU.
+        let mut sig = alpha_in[..ne * heads * ac].to_vec();
+        crate::vector_exp::sigmoid_in_place(&mut sig);
         let mut logit = vec![0.0f32; ne * heads];
         for e in 0..ne {
             for hd in 0..heads {
-                let a = &alpha_in[(e * heads + hd) * cfg.alpha_channels
-                    ..(e * heads + hd + 1) * cfg.alpha_channels];
-                let w = &self.alpha_dot[hd * cfg.alpha_channels..(hd + 1) * cfg.alpha_channels];
-                logit[e * heads + hd] = a
+                let at = (e * heads + hd) * ac..(e * heads + hd + 1) * ac;
+                let w = &self.alpha_dot[hd * ac..(hd + 1) * ac];
+                logit[e * heads + hd] = alpha_in[at.clone()]
                     .iter()
+                    .zip(&sig[at])
                     .zip(w)
-                    .map(|(x, y)| smooth_leaky_relu(*x, 0.2) * y)
+                    .map(|((x, s), y)| smooth_leaky_relu_of(*x, *s, 0.2) * y)
                     .sum();
             }
         }

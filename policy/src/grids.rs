@@ -244,19 +244,20 @@ pub fn gate_activation_in_place(
     nr: usize,
     c: usize,
 ) {
-    let mut sig = Vec::with_capacity(c);
-    for (node, yn) in y.chunks_exact_mut(nr * c).enumerate() {
-        let (s, g) = (
-            &scalars[node * c..(node + 1) * c],
-            &gates[node * c..(node + 1) * c],
-        );
-        sig.clear();
-        sig.extend(g.iter().map(|&v| crate::layers::sigmoid(v)));
-        for (v, &s) in yn[..c].iter_mut().zip(s) {
-            *v = crate::layers::silu(s);
-        }
+    // SiLU and σ of every node's scalars and gates at once, eight values at a time.
+    let nodes = y.len() / (nr * c).max(1);
+    let mut act = scalars[..nodes * c].to_vec();
+    crate::vector_exp::silu_in_place(&mut act);
+    let mut sig = gates[..nodes * c].to_vec();
+    crate::vector_exp::sigmoid_in_place(&mut sig);
+    for ((yn, act), sig) in y
+        .chunks_exact_mut(nr * c)
+        .zip(act.chunks_exact(c))
+        .zip(sig.chunks_exact(c))
+    {
+        yn[..c].copy_from_slice(act);
         for row in yn[c..].chunks_exact_mut(c) {
-            for (v, sg) in row.iter_mut().zip(&sig) {
+            for (v, sg) in row.iter_mut().zip(sig) {
                 *v *= sg;
             }
         }

@@ -90,7 +90,13 @@ pub fn mish(x: f32) -> f32 {
 
 /// The reference's smooth leaky ReLU with slope `alpha`: ((1+α)/2)x + ((1−α)/2)x(2σ(x) − 1).
 pub fn smooth_leaky_relu(x: f32, alpha: f32) -> f32 {
-    0.5 * (1.0 + alpha) * x + 0.5 * (1.0 - alpha) * x * (2.0 * sigmoid(x) - 1.0)
+    smooth_leaky_relu_of(x, sigmoid(x), alpha)
+}
+
+/// [`smooth_leaky_relu`] of `x` given its sigmoid `sig` = σ(x) (e.g. from
+/// [`crate::vector_exp::sigmoid_in_place`]): the same bits.
+pub fn smooth_leaky_relu_of(x: f32, sig: f32, alpha: f32) -> f32 {
+    0.5 * (1.0 + alpha) * x + 0.5 * (1.0 - alpha) * x * (2.0 * sig - 1.0)
 }
 
 /// Exact (erf) GELU.
@@ -1339,11 +1345,11 @@ impl RadialMlp {
         rest: &[(Linear, LayerNorm)],
     ) -> Result<Vec<f32>> {
         ln.apply(&mut h);
-        h.iter_mut().for_each(|v| *v = silu(*v));
+        crate::vector_exp::silu_in_place(&mut h);
         for (lin, ln) in rest {
             h = lin.forward(&h)?;
             ln.apply(&mut h);
-            h.iter_mut().for_each(|v| *v = silu(*v));
+            crate::vector_exp::silu_in_place(&mut h);
         }
         self.last.forward(&h)
     }
@@ -1607,10 +1613,10 @@ pub fn separable_s2_activation(
         return Ok(crate::grids::gate_activation(x, gating, gating, nr, c));
     }
     let mut y = grid.activate(x, n, c)?;
-    for node in 0..n {
-        for ch in 0..c {
-            y[node * nr * c + ch] = silu(gating[node * c + ch]);
-        }
+    let mut scalars = gating.to_vec();
+    crate::vector_exp::silu_in_place(&mut scalars);
+    for (yn, s) in y.chunks_exact_mut(nr * c).zip(scalars.chunks_exact(c)) {
+        yn[..c].copy_from_slice(s);
     }
     Ok(y)
 }

@@ -31,14 +31,16 @@
 //! - [`builtin`]: the trained model and instruction embeddings compiled into the binary;
 //! - [`fixtures`]: parity checks against fixture folders (`equact policy check-fixtures`);
 //! - [`matmul`]: the dense f32 matrix products the batched layers run on;
-//! - [`parallel`]: the explicit, per-call worker threads of a prediction.
+//! - [`parallel`]: the explicit, per-call worker threads of a prediction;
+//! - [`vector_exp`]: e^x, SiLU and σ over slices, eight at a time, `f32::exp`'s bits.
 //!
 //! Libraries: `nalgebra` for small dense linear algebra (3×3 rotations, the Wigner fit) and,
 //! through its `gemm` on strided views, `matrixmultiply`'s cache-blocked sgemm for the large
 //! batched products (run-time AVX2/FMA/AVX-512 kernels, single-threaded); `pulp` to compile
 //! the unpacked AVX-512 kernel that takes the thinner of those products (run-time dispatch
 //! without `unsafe` in this crate; it rounds as `matrixmultiply` does) and the edge-frame
-//! rotations in whole vectors of channels (AVX-512 or AVX2, the plain loops' rounding); `safetensors` to
+//! rotations, the S2 grid's SiLU and glibc's `expf` ([`vector_exp`]) in whole vectors
+//! (AVX-512 or AVX2, the plain loops' rounding, bit for bit); `safetensors` to
 //! read the reference's tensor files, `serde_json` for their sidecars; `libm` (erf) and
 //! `unicode-normalization` (NFD) for the MiniLM encoder; `cpu-time` for the stage timings'
 //! per-thread CPU clock.
@@ -67,6 +69,7 @@ pub mod so3;
 pub mod trainer;
 pub mod training;
 pub mod transblock;
+pub mod vector_exp;
 pub mod weights;
 
 pub use error::{PolicyError, Result};
