@@ -6,7 +6,7 @@ use std::sync::Arc;
 use super::{check_shape, Tape, Var};
 use crate::error::{PolicyError, Result};
 use crate::grids::S2Grid;
-use crate::layers::{check_indices, gelu, sigmoid, silu, smooth_leaky_relu};
+use crate::layers::{check_indices, gelu, sigmoid, silu, smooth_leaky_relu, smooth_leaky_relu_of};
 use crate::matmul::{gemm_acc, Strided};
 
 /// An element-wise activation with its derivative.
@@ -40,6 +40,25 @@ impl Act {
             Act::Mish => crate::layers::mish(x),
             Act::Softplus => crate::layers::softplus(x),
         }
+    }
+
+    /// [`Act::apply`] of every value of `x`, the same bits: e^x, SiLU and σ (the smooth
+    /// leaky ReLU's too) through [`crate::vector_exp`], eight values at a time.
+    pub fn apply_all(self, x: &[f32]) -> Vec<f32> {
+        let mut v = x.to_vec();
+        match self {
+            Act::Silu => crate::vector_exp::silu_in_place(&mut v),
+            Act::Sigmoid => crate::vector_exp::sigmoid_in_place(&mut v),
+            Act::Exp => crate::vector_exp::exp_in_place(&mut v),
+            Act::SmoothLeakyRelu(a) => {
+                crate::vector_exp::sigmoid_in_place(&mut v);
+                for (s, &x) in v.iter_mut().zip(x) {
+                    *s = smooth_leaky_relu_of(x, *s, a);
+                }
+            }
+            Act::Gelu | Act::Mish | Act::Softplus => v.iter_mut().for_each(|x| *x = self.apply(*x)),
+        }
+        v
     }
 
     /// Its derivative at `x`.
@@ -191,7 +210,7 @@ impl Tape {
 
     /// The activation `f` applied element-wise.
     pub fn act(&mut self, a: Var, f: Act) -> Var {
-        let v = self.value(a).iter().map(|&x| f.apply(x)).collect();
+        let v = f.apply_all(self.value(a));
         let shape = self.shape(a).to_vec();
         self.push(
             v,
@@ -591,5 +610,50 @@ impl Tape {
         };
         let y = self.concat_cols(scalars, c, higher, (nr - 1) * c)?;
         self.reshape(y, &[n, nr, c])
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Act;
+
+    #[test]
+    fn activations_of_whole_slices_equal_one_value_at_a_time_bit_for_bit() {
+        // Ordinary values, the exp's edges (|x| near 88 and beyond) and non-finite ones, 83
+        // of them so that the eight-value kernels also end in a remainder.
+        let mut x: Vec<f32> = (-30..30).map(|i| i as f32 * 0.37 + 0.011).collect();
+        x.extend([
+            88.0,
+            -88.0,
+            87.9,
+            -87.9,
+            100.0,
+            -104.0,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            f32::NAN,
+            0.0,
+            -0.0,
+        ]);
+        x.extend((0..12).map(|i| i as f32 * -9.1));
+        for act in [
+            Act::Silu,
+            Act::Sigmoid,
+            Act::Gelu,
+            Act::SmoothLeakyRelu(0.2),
+            Act::Exp,
+            Act::Mish,
+            Act::Softplus,
+        ] {
+            let all = act.apply_all(&x);
+            assert_eq!(all.len(), x.len());
+            for (&xi, y) in x.iter().zip(&all) {
+                let want = act.apply(xi);
+                assert!(
+                    y.to_bits() == want.to_bits() || (y.is_nan() && want.is_nan()),
+                    "{act:?}({xi}) = {y}, one at a time {want}"
+                );
+            }
+        }
     }
 }
