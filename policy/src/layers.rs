@@ -982,47 +982,77 @@ impl GaussianRbf {
                 values: self.forward(d),
             };
         }
-        let (mut ptr, mut idx, mut val) = (vec![0], Vec::new(), Vec::new());
-        ptr.reserve(d.len());
-        let mut row: Vec<(u32, f32)> = Vec::with_capacity(window);
-        // The non-zero values of a row, in column order: what scanning the dense row would
-        // record, without writing and scanning all of it.
-        let mut push_nonzero = |entries: &mut dyn Iterator<Item = (u32, f32)>| {
-            for (i, v) in entries.filter(|e| e.1 != 0.0) {
-                idx.push(i);
-                val.push(v);
-            }
-            ptr.push(idx.len());
+        let mut rows = SparseRows {
+            ptr: Vec::with_capacity(d.len() + 1),
+            ..SparseRows::default()
         };
-        for &di in d {
-            let u = (di - self.offset) / self.span;
-            let env = rbf_envelope(u);
-            if !u.is_finite() {
-                push_nonzero(&mut (0..self.num_basis).map(|i| (i as u32, self.value(i, u, env))));
-                continue;
-            }
-            // A basis farther than its own reach is 0 (the window is the widest basis's):
-            // skipped before its division and exponential.
-            let mut values = self
-                .within_reach(u)
-                .iter()
-                .filter(|b| (u - b.mean).abs() <= b.reach)
-                .map(|b| (b.index, b.value(u, env, self.normalizer)));
-            if self.index_ordered {
-                // Mean order is column order: straight into the compressed row.
-                push_nonzero(&mut values);
-            } else {
-                row.clear();
-                row.extend(values);
-                row.sort_unstable_by_key(|e| e.0);
-                push_nonzero(&mut row.iter().copied());
-            }
+        rows.ptr.push(0);
+        let mut block = RbfBlock::default();
+        for part in d.chunks(RBF_ROW_BLOCK) {
+            self.sparse_block(part, &mut block, &mut rows);
         }
+        let SparseRows { ptr, idx, val, .. } = rows;
         EdgeFeatures::Sparse {
             cols: self.num_basis,
             ptr,
             idx,
             val,
+        }
+    }
+
+    /// [`GaussianRbf::features`]' compressed rows of the distances `d` appended to `rows`:
+    /// first every kept basis's exponent of the block (a basis farther than its own reach,
+    /// or with z² beyond [`RBF_Z2_MAX`], is 0: skipped before its division and
+    /// exponential), then their exponentials at once ([`crate::vector_exp`], `f32::exp`'s
+    /// bits), then the values in [`rbf_basis_value`]'s order, zeros left out.
+    fn sparse_block(&self, d: &[f32], block: &mut RbfBlock, rows: &mut SparseRows) {
+        block.clear();
+        for &di in d {
+            let u = (di - self.offset) / self.span;
+            let env = rbf_envelope(u);
+            if u.is_finite() {
+                for b in self.within_reach(u) {
+                    if (u - b.mean).abs() > b.reach {
+                        continue;
+                    }
+                    let z = (u - b.mean) / b.std;
+                    let z2 = z * z;
+                    if z2 > RBF_Z2_MAX {
+                        continue;
+                    }
+                    block.exp.push(-0.5 * z2);
+                    block.basis.push((b.index, b.weight));
+                }
+            }
+            block.row_end.push((u, env, block.exp.len()));
+        }
+        crate::vector_exp::exp_in_place(&mut block.exp);
+        let mut start = 0;
+        for &(u, env, end) in &block.row_end {
+            if !u.is_finite() {
+                rows.push_row((0..self.num_basis).map(|i| (i as u32, self.value(i, u, env))));
+                continue;
+            }
+            let values = block.basis[start..end]
+                .iter()
+                .zip(&block.exp[start..end])
+                .map(|(&(i, weight), &e)| {
+                    // As `rbf_basis_value`: a product below RBF_MIN_VALUE is 0, a NaN stays.
+                    let v = weight * e * env * self.normalizer;
+                    (i, if v < RBF_MIN_VALUE { 0.0 } else { v })
+                });
+            if self.index_ordered {
+                // Mean order is column order: straight into the compressed row.
+                rows.push_row(values);
+            } else {
+                rows.scratch.clear();
+                rows.scratch.extend(values);
+                rows.scratch.sort_unstable_by_key(|e| e.0);
+                let row = std::mem::take(&mut rows.scratch);
+                rows.push_row(row.iter().copied());
+                rows.scratch = row;
+            }
+            start = end;
         }
     }
 
@@ -1033,6 +1063,48 @@ impl GaussianRbf {
             self.eval_into(di, &mut y[i * self.num_basis..(i + 1) * self.num_basis]);
         }
         y
+    }
+}
+
+/// Distances per block of [`GaussianRbf::sparse_block`]: its exponents stay in cache.
+const RBF_ROW_BLOCK: usize = 256;
+
+/// [`GaussianRbf::sparse_block`]'s buffers, reused from block to block.
+#[derive(Default)]
+struct RbfBlock {
+    /// Each kept basis's −z²/2, then its exponential.
+    exp: Vec<f32>,
+    /// Each kept basis's index and weight.
+    basis: Vec<(u32, f32)>,
+    /// Per distance: u, its envelope, and where its kept bases end in `exp`.
+    row_end: Vec<(f32, f32, usize)>,
+}
+
+impl RbfBlock {
+    fn clear(&mut self) {
+        self.exp.clear();
+        self.basis.clear();
+        self.row_end.clear();
+    }
+}
+
+/// Compressed rows being built: [`EdgeFeatures::Sparse`]'s vectors and a row to sort in.
+#[derive(Default)]
+struct SparseRows {
+    ptr: Vec<usize>,
+    idx: Vec<u32>,
+    val: Vec<f32>,
+    scratch: Vec<(u32, f32)>,
+}
+
+impl SparseRows {
+    /// Appends a row's non-zero entries (in the order given) and closes it.
+    fn push_row(&mut self, entries: impl Iterator<Item = (u32, f32)>) {
+        for (i, v) in entries.filter(|e| e.1 != 0.0) {
+            self.idx.push(i);
+            self.val.push(v);
+        }
+        self.ptr.push(self.idx.len());
     }
 }
 
