@@ -363,31 +363,20 @@ impl EdgeWigners {
         let rescale: Vec<f32> = (0..k).map(|j| map.rotate_inv_rescale(j)).collect();
         let d = &self.d[range.start * k * k..(range.start + ne) * k * k];
         let mut x = Vec::with_capacity(ne * k * c);
+        let kernel = RotateBack {
+            d,
+            y,
+            rows: (&map.reduced, &runs, &rescale),
+            shape: (k, nr, c),
+            x: &mut x,
+        };
         if c.is_multiple_of(16) {
             // Whole vectors of channels (every layer of the physical configuration): each
             // output vector summed in registers, the same terms in the same order.
-            pulp::Arch::new().dispatch(RotateBack {
-                d,
-                y,
-                rows: (&map.reduced, &runs, &rescale),
-                shape: (k, nr, c),
-                x: &mut x,
-            });
-            return Ok(x);
-        }
-        // Appended in output order (edge, coefficient): no zero fill before.
-        let mut w = [0.0f32; MAX_ROWS];
-        for (d, ye) in d.chunks_exact(k * k).zip(y.chunks_exact(nr * c)) {
-            // Output row j sums its degree's reduced rows in their order, as the
-            // row-by-row loop of the transpose added them.
-            for j in 0..k {
-                let run = &runs[degree_of(j)];
-                let w = &mut w[..run.len()];
-                for (wr, &i) in w.iter_mut().zip(&map.reduced[run.clone()]) {
-                    *wr = d[i * k + j] * rescale[j];
-                }
-                combine_rows(w, &ye[run.start * c..run.end * c], c, &mut x);
-            }
+            pulp::Arch::new().dispatch(kernel);
+        } else {
+            // The same loop one channel at a time (the same sums).
+            pulp::WithSimd::with_simd(kernel, pulp::Scalar::new());
         }
         Ok(x)
     }
@@ -496,9 +485,10 @@ fn rotated_row<S: pulp::Simd>(
     }
 }
 
-/// [`EdgeWigners::rotate_back_range`] for channels in whole vectors: per edge and output
-/// row, each vector of channels summed in a register from +0 over its degree's reduced rows
-/// in order, a product then a sum per term ([`combine_rows`]'s rounding, bit for bit).
+/// [`EdgeWigners::rotate_back_range`] in vectors of channels (one channel each at `pulp`'s
+/// scalar level, for any channel count): per edge and output row, each vector of channels
+/// summed in a register from +0 over its degree's reduced rows in order, a product then a
+/// sum per term ([`combine_rows`]'s rounding, bit for bit).
 struct RotateBack<'a> {
     /// The edges' matrices `[E, K, K]`.
     d: &'a [f32],
