@@ -248,6 +248,29 @@ mod tests {
     }
 
     #[test]
+    fn the_table_holds_the_powers_of_two_and_the_constants_their_values() {
+        // Entry i plus i << 47 is 2^(i/32) (to the last bit of an f64, within one ulp of
+        // the library's exp2).
+        for (i, &t) in super::TABLE.iter().enumerate() {
+            let got = f64::from_bits(t + ((i as u64) << 47));
+            let want = (i as f64 / 32.0).exp2();
+            assert!(
+                got.to_bits().abs_diff(want.to_bits()) <= 1,
+                "2^({i}/32): {got} vs {want}"
+            );
+        }
+        let inv = f64::from_bits(super::INV_LN2_32);
+        assert!((inv - 32.0 / std::f64::consts::LN_2).abs() < 1e-13);
+        assert_eq!(f64::from_bits(super::SHIFT), 1.5 * 2f64.powi(52));
+        // The cubic approximates 2^(r/32) − 1 ≈ (ln2/32) r + (ln2/32)²/2 r² + (ln2/32)³/6 r³.
+        let a = std::f64::consts::LN_2 / 32.0;
+        for (c, want) in super::POLY.iter().zip([a * a * a / 6.0, a * a / 2.0, a]) {
+            let c = f64::from_bits(*c);
+            assert!(((c - want) / want).abs() < 1e-3, "{c} vs {want}");
+        }
+    }
+
+    #[test]
     fn silu_and_sigmoid_of_slices_equal_the_scalar_forms_bit_for_bit() {
         let xs = samples();
         assert_same("silu", &xs, silu, silu_in_place);
