@@ -195,14 +195,14 @@ fn exp4(v3: pulp::x86::V3, x: pulp::f32x4) -> pulp::f32x4 {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::{exp_in_place, sigmoid_in_place, silu_in_place};
     use crate::layers::{sigmoid, silu};
 
     /// Every 4099th f32 bit pattern (both signs, all exponents, NaN included), then the
     /// edges of the library's main path and its hardest inputs mixed into vectors of
     /// ordinary values.
-    fn samples() -> Vec<f32> {
+    pub(crate) fn samples() -> Vec<f32> {
         let mut v: Vec<f32> = (0..=u32::MAX / 4099)
             .map(|i| f32::from_bits(i * 4099))
             .collect();

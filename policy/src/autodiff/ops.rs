@@ -619,23 +619,11 @@ mod tests {
 
     #[test]
     fn activations_of_whole_slices_equal_one_value_at_a_time_bit_for_bit() {
-        // Ordinary values, the exp's edges (|x| near 88 and beyond) and non-finite ones, 83
-        // of them so that the eight-value kernels also end in a remainder.
-        let mut x: Vec<f32> = (-30..30).map(|i| i as f32 * 0.37 + 0.011).collect();
-        x.extend([
-            88.0,
-            -88.0,
-            87.9,
-            -87.9,
-            100.0,
-            -104.0,
-            f32::INFINITY,
-            f32::NEG_INFINITY,
-            f32::NAN,
-            0.0,
-            -0.0,
-        ]);
-        x.extend((0..12).map(|i| i as f32 * -9.1));
+        // Every 4099th f32 and the exp's edges (the vector kernels' own samples), in a
+        // length with a remainder after the eight-value vectors.
+        let mut x = crate::vector_exp::tests::samples();
+        x.extend(std::iter::repeat_n(0.75f32, 8 - x.len() % 8 + 3));
+        assert_eq!(x.len() % 8, 3);
         for act in [
             Act::Silu,
             Act::Sigmoid,
