@@ -244,8 +244,11 @@ pub fn gate_activation_in_place(
     nr: usize,
     c: usize,
 ) {
+    if nr * c == 0 {
+        return;
+    }
     // SiLU and σ of every node's scalars and gates at once, eight values at a time.
-    let nodes = y.len() / (nr * c).max(1);
+    let nodes = y.len() / (nr * c);
     let mut act = scalars[..nodes * c].to_vec();
     crate::vector_exp::silu_in_place(&mut act);
     let mut sig = gates[..nodes * c].to_vec();

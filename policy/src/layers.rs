@@ -1685,6 +1685,9 @@ pub fn separable_s2_activation(
         return Ok(crate::grids::gate_activation(x, gating, gating, nr, c));
     }
     let mut y = grid.activate(x, n, c)?;
+    if nr * c == 0 {
+        return Ok(y);
+    }
     let mut scalars = gating.to_vec();
     crate::vector_exp::silu_in_place(&mut scalars);
     for (yn, s) in y.chunks_exact_mut(nr * c).zip(scalars.chunks_exact(c)) {
