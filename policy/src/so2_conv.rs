@@ -323,13 +323,7 @@ impl EdgeWigners {
             rad: rad.map(|r| (r, rad_w)),
             out: (&mut v0, &mut halves),
         };
-        if c.is_multiple_of(16) {
-            // Whole vectors of channels (every layer of the physical configuration).
-            pulp::Arch::new().dispatch(kernel);
-        } else {
-            // The same loop one channel at a time (the same sums).
-            pulp::WithSimd::with_simd(kernel, pulp::Scalar::new());
-        }
+        run_on_channels(c, kernel);
         Ok(MBlocks { m0: v0, halves })
     }
 
@@ -370,15 +364,20 @@ impl EdgeWigners {
             shape: (k, nr, c),
             x: &mut x,
         };
-        if c.is_multiple_of(16) {
-            // Whole vectors of channels (every layer of the physical configuration): each
-            // output vector summed in registers, the same terms in the same order.
-            pulp::Arch::new().dispatch(kernel);
-        } else {
-            // The same loop one channel at a time (the same sums).
-            pulp::WithSimd::with_simd(kernel, pulp::Scalar::new());
-        }
+        run_on_channels(c, kernel);
         Ok(x)
+    }
+}
+
+/// Runs a rotation kernel over `c` channels: on whole vectors (AVX-512 or AVX2, `pulp`'s
+/// run-time dispatch) where `c` is a multiple of 16, as in every layer of the physical
+/// configuration, else one channel at a time at `pulp`'s scalar level; the same sums in
+/// the same order either way.
+fn run_on_channels<K: pulp::WithSimd<Output = ()>>(c: usize, kernel: K) {
+    if c.is_multiple_of(16) {
+        pulp::Arch::new().dispatch(kernel);
+    } else {
+        kernel.with_simd(pulp::Scalar::new());
     }
 }
 

@@ -76,8 +76,8 @@ impl Op {
     fn scalar(self, x: f32) -> f32 {
         match self {
             Op::Exp => x.exp(),
-            Op::Silu => x / (1.0 + (-x).exp()),
-            Op::Sigmoid => 1.0 / (1.0 + (-x).exp()),
+            Op::Silu => crate::layers::silu(x),
+            Op::Sigmoid => crate::layers::sigmoid(x),
         }
     }
 }
