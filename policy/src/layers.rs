@@ -13,6 +13,8 @@ use crate::matmul::{gemm_acc, Strided};
 use crate::so3::num_coefficients;
 use crate::weights::Scope;
 
+mod sparse_rbf;
+
 /// Checks that `len` equals the product of `shape`, naming the tensor otherwise.
 pub fn check_len(name: &str, len: usize, shape: &[usize]) -> Result<()> {
     if len != shape.iter().product::<usize>() {
@@ -878,6 +880,8 @@ pub struct GaussianRbf {
     /// Largest |u − mean| with a non-zero value, √[`RBF_Z2_MAX`] · max std (infinite:
     /// evaluate all).
     reach: f32,
+    /// `by_mean` one column per parameter, for the vector scan of [`GaussianRbf::features`].
+    columns: sparse_rbf::BasisColumns,
 }
 
 impl GaussianRbf {
@@ -910,6 +914,13 @@ impl GaussianRbf {
         by_mean.sort_by(|a, b| a.mean.total_cmp(&b.mean));
         let index_ordered = by_mean.windows(2).all(|w| w[0].index < w[1].index);
         let finite = mean.iter().chain(&std).all(|v| v.is_finite());
+        // Z2_REACH keeps a margin so rounding in z never hides a non-zero basis.
+        let reach = if finite {
+            Z2_REACH * max_std
+        } else {
+            f32::INFINITY
+        };
+        let columns = sparse_rbf::BasisColumns::new(&by_mean, reach);
         Ok(Self {
             num_basis: k,
             offset: offset as f32,
@@ -920,19 +931,14 @@ impl GaussianRbf {
             normalizer: (k as f64).sqrt() as f32,
             by_mean,
             index_ordered,
-            // Z2_REACH keeps a margin so rounding in z never hides a non-zero basis.
-            reach: if finite {
-                Z2_REACH * max_std
-            } else {
-                f32::INFINITY
-            },
+            reach,
+            columns,
         })
     }
 
     /// The basis values of one distance, written to `out[..num_basis]`.
     pub fn eval_into(&self, d: f32, out: &mut [f32]) {
-        let u = (d - self.offset) / self.span;
-        let env = rbf_envelope(u);
+        let (u, env) = self.normalised(d);
         // Only the bases whose mean lies within `reach` of u have z² <= RBF_Z2_MAX; all
         // others are exactly 0 (the narrow field-head bases are sparse, so this skips most
         // of them).
@@ -952,9 +958,20 @@ impl GaussianRbf {
     /// The bases, by mean, whose mean lies within `reach` of the normalised distance `u`:
     /// every other basis is exactly 0 there.
     fn within_reach(&self, u: f32) -> &[SortedBasis] {
+        self.by_mean.get(self.reach_range(u)).unwrap_or_default()
+    }
+
+    /// [`GaussianRbf::within_reach`] as positions in mean order.
+    fn reach_range(&self, u: f32) -> std::ops::Range<usize> {
         let lo = self.by_mean.partition_point(|b| b.mean < u - self.reach);
         let hi = self.by_mean.partition_point(|b| b.mean <= u + self.reach);
-        &self.by_mean[lo..hi]
+        lo..hi.max(lo)
+    }
+
+    /// A distance normalised to the basis's span, and its envelope.
+    fn normalised(&self, d: f32) -> (f32, f32) {
+        let u = (d - self.offset) / self.span;
+        (u, rbf_envelope(u))
     }
 
     /// Basis `i` at normalised distance `u` with envelope `env`.
@@ -982,78 +999,7 @@ impl GaussianRbf {
                 values: self.forward(d),
             };
         }
-        let mut rows = SparseRows {
-            ptr: Vec::with_capacity(d.len() + 1),
-            ..SparseRows::default()
-        };
-        rows.ptr.push(0);
-        let mut block = RbfBlock::default();
-        for part in d.chunks(RBF_ROW_BLOCK) {
-            self.sparse_block(part, &mut block, &mut rows);
-        }
-        let SparseRows { ptr, idx, val, .. } = rows;
-        EdgeFeatures::Sparse {
-            cols: self.num_basis,
-            ptr,
-            idx,
-            val,
-        }
-    }
-
-    /// [`GaussianRbf::features`]' compressed rows of the distances `d` appended to `rows`:
-    /// first every kept basis's exponent of the block (a basis farther than its own reach,
-    /// or with z² beyond [`RBF_Z2_MAX`], is 0: skipped before its division and
-    /// exponential), then their exponentials at once ([`crate::vector_exp`], `f32::exp`'s
-    /// bits), then the values in [`rbf_basis_value`]'s order, zeros left out.
-    fn sparse_block(&self, d: &[f32], block: &mut RbfBlock, rows: &mut SparseRows) {
-        block.clear();
-        for &di in d {
-            let u = (di - self.offset) / self.span;
-            let env = rbf_envelope(u);
-            if u.is_finite() {
-                for b in self.within_reach(u) {
-                    if (u - b.mean).abs() > b.reach {
-                        continue;
-                    }
-                    let z = (u - b.mean) / b.std;
-                    let z2 = z * z;
-                    if z2 > RBF_Z2_MAX {
-                        continue;
-                    }
-                    block.exp.push(-0.5 * z2);
-                    block.basis.push((b.index, b.weight));
-                }
-            }
-            block.row_end.push((u, env, block.exp.len()));
-        }
-        crate::vector_exp::exp_in_place(&mut block.exp);
-        let mut start = 0;
-        for &(u, env, end) in &block.row_end {
-            if !u.is_finite() {
-                rows.push_row((0..self.num_basis).map(|i| (i as u32, self.value(i, u, env))));
-                continue;
-            }
-            let values = block.basis[start..end]
-                .iter()
-                .zip(&block.exp[start..end])
-                .map(|(&(i, weight), &e)| {
-                    // As `rbf_basis_value`: a product below RBF_MIN_VALUE is 0, a NaN stays.
-                    let v = weight * e * env * self.normalizer;
-                    (i, if v < RBF_MIN_VALUE { 0.0 } else { v })
-                });
-            if self.index_ordered {
-                // Mean order is column order: straight into the compressed row.
-                rows.push_row(values);
-            } else {
-                rows.scratch.clear();
-                rows.scratch.extend(values);
-                rows.scratch.sort_unstable_by_key(|e| e.0);
-                let row = std::mem::take(&mut rows.scratch);
-                rows.push_row(row.iter().copied());
-                rows.scratch = row;
-            }
-            start = end;
-        }
+        sparse_rbf::sparse_features(self, d)
     }
 
     /// The basis values of every distance, `[n, num_basis]`.
@@ -1063,48 +1009,6 @@ impl GaussianRbf {
             self.eval_into(di, &mut y[i * self.num_basis..(i + 1) * self.num_basis]);
         }
         y
-    }
-}
-
-/// Distances per block of [`GaussianRbf::sparse_block`]: its exponents stay in cache.
-const RBF_ROW_BLOCK: usize = 256;
-
-/// [`GaussianRbf::sparse_block`]'s buffers, reused from block to block.
-#[derive(Default)]
-struct RbfBlock {
-    /// Each kept basis's −z²/2, then its exponential.
-    exp: Vec<f32>,
-    /// Each kept basis's index and weight.
-    basis: Vec<(u32, f32)>,
-    /// Per distance: u, its envelope, and where its kept bases end in `exp`.
-    row_end: Vec<(f32, f32, usize)>,
-}
-
-impl RbfBlock {
-    fn clear(&mut self) {
-        self.exp.clear();
-        self.basis.clear();
-        self.row_end.clear();
-    }
-}
-
-/// Compressed rows being built: [`EdgeFeatures::Sparse`]'s vectors and a row to sort in.
-#[derive(Default)]
-struct SparseRows {
-    ptr: Vec<usize>,
-    idx: Vec<u32>,
-    val: Vec<f32>,
-    scratch: Vec<(u32, f32)>,
-}
-
-impl SparseRows {
-    /// Appends a row's non-zero entries (in the order given) and closes it.
-    fn push_row(&mut self, entries: impl Iterator<Item = (u32, f32)>) {
-        for (i, v) in entries.filter(|e| e.1 != 0.0) {
-            self.idx.push(i);
-            self.val.push(v);
-        }
-        self.ptr.push(self.idx.len());
     }
 }
 
