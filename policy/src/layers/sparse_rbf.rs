@@ -1,7 +1,7 @@
 //! [`GaussianRbf::features`]' compressed rows, built a block of distances at a time.
 //!
-//! Each distance reaches a run of ~40 bases in mean order (two binary searches find it), of
-//! which ~25 are non-zero. The scan keeps the non-zero ones' exponents, the block's
+//! Each distance reaches a run of ~40 bases in mean order (a table of windows, or two
+//! binary searches, finds it), of which ~25 are non-zero. The scan keeps the non-zero ones' exponents, the block's
 //! exponentials are taken at once ([`crate::vector_exp`]), then each row's values are
 //! written with the zeros left out. On AVX-512 machines the scan and the rows run 16 bases
 //! at a time through `pulp`'s `V4`, kept entries packed by the compress instructions
@@ -236,6 +236,8 @@ fn scan(rbf: &GaussianRbf, d: &[f32], block: &mut RbfBlock, vector: bool) {
         v4.vectorize(ScanV4 { v4, rbf, d, block });
         return;
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = vector;
     for &di in d {
         let (u, env) = rbf.normalised(di);
         if u.is_finite() {
@@ -277,6 +279,8 @@ fn emit(rbf: &GaussianRbf, block: &RbfBlock, rows: &mut SparseRows, vector: bool
             return;
         }
     }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = vector;
     let mut start = 0;
     for &(u, env, end) in &block.row_end {
         if !u.is_finite() {
