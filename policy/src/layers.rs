@@ -833,8 +833,14 @@ pub(crate) fn rbf_basis_value(
     if z2 > RBF_Z2_MAX {
         return 0.0;
     }
-    let v = weight * (-0.5 * z2).exp() * env * normalizer;
-    // A NaN stays NaN (the comparison is false).
+    rbf_scaled(weight, (-0.5 * z2).exp(), env, normalizer)
+}
+
+/// A basis value from its exponential `e`: weight · e · envelope · normaliser, in this
+/// order; a product below [`RBF_MIN_VALUE`] is 0, a NaN stays NaN (the comparison is false).
+#[inline(always)]
+pub(crate) fn rbf_scaled(weight: f32, e: f32, env: f32, normalizer: f32) -> f32 {
+    let v = weight * e * env * normalizer;
     if v < RBF_MIN_VALUE {
         0.0
     } else {
@@ -1031,9 +1037,7 @@ impl GaussianRbf {
             for (row, &di) in block.chunks_exact_mut(k).zip(d) {
                 let (_, env) = self.normalised(di);
                 for (o, &weight) in row.iter_mut().zip(&self.weight) {
-                    // As `rbf_basis_value`: a product below RBF_MIN_VALUE is 0, a NaN stays.
-                    let v = weight * *o * env * self.normalizer;
-                    *o = if v < RBF_MIN_VALUE { 0.0 } else { v };
+                    *o = rbf_scaled(weight, *o, env, self.normalizer);
                 }
             }
         }

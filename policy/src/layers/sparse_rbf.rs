@@ -9,7 +9,7 @@
 //! the rows are the same bits on any machine; a one-basis-at-a-time loop spent most of its
 //! time on branches and on growing vectors entry by entry.
 
-use super::{EdgeFeatures, GaussianRbf, RBF_MIN_VALUE, RBF_Z2_MAX};
+use super::{rbf_scaled, EdgeFeatures, GaussianRbf, RBF_MIN_VALUE, RBF_Z2_MAX};
 
 /// Distances per block: the block's exponents stay in cache.
 const ROW_BLOCK: usize = 256;
@@ -291,11 +291,7 @@ fn emit(rbf: &GaussianRbf, block: &RbfBlock, rows: &mut SparseRows, vector: bool
             .iter()
             .zip(&block.weight[start..end])
             .zip(&block.exp[start..end])
-            .map(|((&i, &weight), &e)| {
-                // As `rbf_basis_value`: a product below RBF_MIN_VALUE is 0, a NaN stays.
-                let v = weight * e * env * rbf.normalizer;
-                (i, if v < RBF_MIN_VALUE { 0.0 } else { v })
-            });
+            .map(|((&i, &weight), &e)| (i, rbf_scaled(weight, e, env, rbf.normalizer)));
         if rbf.index_ordered {
             // Mean order is column order: straight into the compressed row.
             rows.push_row(values);
